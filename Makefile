@@ -1,0 +1,33 @@
+# packetrt: `make render` and `make test` do all set-up on a fresh machine.
+VENV    ?= .venv
+PYTHON  ?= python3
+PY      := $(VENV)/bin/python
+STAMP   := $(VENV)/.installed-stamp
+
+# Scene search path: the shared scene folder beside the checkout, when it exists.
+SHARED_SCENES := $(abspath ../shared/scenes)
+ifeq ($(origin PACKETRT_SCENE_PATH), undefined)
+  ifneq ($(wildcard $(SHARED_SCENES)),)
+    export PACKETRT_SCENE_PATH := $(SHARED_SCENES)
+  endif
+endif
+
+.PHONY: render test bench clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+render: $(STAMP)
+	$(VENV)/bin/packetrt render -o out/default.png --stats out/default.json
+
+test: $(STAMP)
+	$(PY) -m pytest
+
+bench: $(STAMP)
+	$(VENV)/bin/packetrt bench benchmarks/smoke.toml --out out/bench-smoke
+
+clean:
+	rm -rf $(VENV) out
