@@ -1,0 +1,1 @@
+"""packetrt's shared core: contracts, scene model, BVH, kernels, Whitted loop, config, CLI."""

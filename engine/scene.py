@@ -1,0 +1,257 @@
+"""Scene model: triangles with materials, point lights, a pinhole camera, a background.
+
+Loaders (``scenes/``) describe a scene through ``SceneBuilder``; the renderer only sees
+the finished ``Scene``. Materials follow the NFF/BART ``fm`` model plus explicit mirror
+reflectance and transmission (the Whitted model):
+
+    colour = ambient_light * ambient * texel
+           + sum over visible lights of light * (diffuse * texel * max(0, n.l)
+                                                 + specular * max(0, r.v) ** shininess)
+           + reflectance * L(reflected ray) + transmission * L(refracted ray)
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Optional
+
+import numpy as np
+
+from .errors import SceneError
+from .types import Triangles
+
+
+@dataclass
+class Material:
+    """Surface appearance. Colours are linear RGB triples in [0, inf)."""
+
+    name: str = "default"
+    ambient: tuple = (0.1, 0.1, 0.1)
+    diffuse: tuple = (0.7, 0.7, 0.7)
+    specular: tuple = (0.0, 0.0, 0.0)
+    shininess: float = 16.0
+    reflectance: tuple = (0.0, 0.0, 0.0)  # mirror reflection weight per channel
+    transmission: float = 0.0             # refraction weight
+    ior: float = 1.0                      # index of refraction inside the surface
+    texture: Optional[np.ndarray] = None  # f32[H,W,3] linear RGB, multiplies ambient and diffuse
+    texture_name: str = ""
+
+
+@dataclass
+class PointLight:
+    position: tuple
+    color: tuple = (1.0, 1.0, 1.0)
+
+
+@dataclass
+class Camera:
+    """Pinhole camera; ``fov`` is the vertical field of view in degrees."""
+
+    eye: tuple
+    look_at: tuple
+    up: tuple = (0.0, 1.0, 0.0)
+    fov: float = 45.0
+
+    def basis(self):
+        """(eye, forward, right, up): f32[3] each, orthonormal, right-handed image plane."""
+        eye = np.asarray(self.eye, np.float64)
+        forward = np.asarray(self.look_at, np.float64) - eye
+        norm = np.linalg.norm(forward)
+        if not norm > 0:
+            raise SceneError("camera eye and look_at coincide")
+        forward /= norm
+        right = np.cross(forward, np.asarray(self.up, np.float64))
+        if np.linalg.norm(right) < 1e-12:  # up parallel to view: pick any perpendicular
+            right = np.cross(forward, [1.0, 0.0, 0.0] if abs(forward[0]) < 0.9 else [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        up = np.cross(right, forward)
+        return eye, forward, right, up
+
+
+@dataclass
+class Scene:
+    """A renderable scene. ``triangles`` indexes ``materials`` through ``triangles.material``."""
+
+    name: str
+    triangles: Triangles
+    materials: list
+    lights: list
+    camera: Camera
+    background: tuple = (0.0, 0.0, 0.0)
+    ambient_light: tuple = (1.0, 1.0, 1.0)
+    source: str = "procedural"
+    animated: bool = False
+    time: float = 0.0
+    info: dict = field(default_factory=dict)
+
+    @property
+    def n_triangles(self) -> int:
+        return int(self.triangles.v0.shape[0])
+
+    def bounds(self) -> np.ndarray:
+        """f32[2,3]: (min, max) over all vertices."""
+        t = self.triangles
+        lo = np.minimum(np.minimum(t.v0.min(0), t.v1.min(0)), t.v2.min(0))
+        hi = np.maximum(np.maximum(t.v0.max(0), t.v1.max(0)), t.v2.max(0))
+        return np.stack([lo, hi]).astype(np.float32)
+
+
+def make_triangles(vertices, faces, material, normals=None, uvs=None, *, source="scene") -> Triangles:
+    """Triangles from indexed geometry.
+
+    vertices: f[V,3]; faces: i[T,3]; material: i[T] (or one int); normals: per-vertex f[V,3]
+    or per-corner f[T,3,3] or None; uvs: per-vertex f[V,2] or per-corner f[T,3,2] or None.
+    Non-finite vertices or out-of-range indices raise SceneError naming ``source``.
+    Degenerate (zero-area) triangles are kept: they never report a hit.
+    """
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise SceneError(f"{source}: vertices must have shape (V, 3), got {vertices.shape}")
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        i = int(np.nonzero(bad)[0][0])
+        raise SceneError(f"{source}: vertex {i} is not finite ({vertices[i].tolist()}); "
+                         f"{int(bad.sum())} non-finite vertices in all")
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise SceneError(f"{source}: a face refers to vertex {int(faces.max())} but there are "
+                         f"only {len(vertices)} vertices")
+    v = vertices.astype(np.float32)
+    v0, v1, v2 = (np.ascontiguousarray(v[faces[:, k]]) for k in range(3))
+    e1 = (v1 - v0).astype(np.float32)
+    e2 = (v2 - v0).astype(np.float32)
+    ng = np.cross(e1.astype(np.float64), e2.astype(np.float64))
+    length = np.linalg.norm(ng, axis=1, keepdims=True)
+    ng = np.where(length > 0, ng / np.where(length > 0, length, 1), 0).astype(np.float32)
+    n = len(faces)
+    mat = np.broadcast_to(np.asarray(material, np.int32), (n,)).copy()
+
+    corner_normals = np.zeros((0, 3, 3), np.float32)
+    if normals is not None:
+        normals = np.asarray(normals, np.float32)
+        corner_normals = normals[faces] if normals.ndim == 2 else normals.reshape(n, 3, 3)
+        corner_normals = np.nan_to_num(corner_normals, nan=0.0, posinf=0.0, neginf=0.0)
+    corner_uvs = np.zeros((0, 3, 2), np.float32)
+    if uvs is not None:
+        uvs = np.asarray(uvs, np.float32)
+        corner_uvs = uvs[faces] if uvs.ndim == 2 else uvs.reshape(n, 3, 2)
+    return Triangles(v0, np.ascontiguousarray(e1), np.ascontiguousarray(e2), np.ascontiguousarray(ng),
+                     v1, v2, mat, np.ascontiguousarray(corner_normals, np.float32),
+                     np.ascontiguousarray(corner_uvs, np.float32))
+
+
+def concat_triangles(parts: list) -> Triangles:
+    """One Triangles from several; optional normals/uvs are filled where a part lacks them
+    (normals from the geometric normal, uvs with zeros)."""
+    if not parts:
+        raise SceneError("scene has no triangles")
+    any_normals = any(p.normals.shape[0] for p in parts)
+    any_uvs = any(p.uvs.shape[0] for p in parts)
+    normals, uvs = [], []
+    for p in parts:
+        n = p.v0.shape[0]
+        if any_normals:
+            normals.append(p.normals if p.normals.shape[0] else np.repeat(p.ng[:, None, :], 3, axis=1))
+        if any_uvs:
+            uvs.append(p.uvs if p.uvs.shape[0] else np.zeros((n, 3, 2), np.float32))
+    cat = lambda field_: np.ascontiguousarray(np.concatenate([getattr(p, field_) for p in parts]))
+    return Triangles(cat("v0"), cat("e1"), cat("e2"), cat("ng"), cat("v1"), cat("v2"), cat("material"),
+                     np.ascontiguousarray(np.concatenate(normals), np.float32) if any_normals
+                     else np.zeros((0, 3, 3), np.float32),
+                     np.ascontiguousarray(np.concatenate(uvs), np.float32) if any_uvs
+                     else np.zeros((0, 3, 2), np.float32))
+
+
+class SceneBuilder:
+    """Accumulates meshes and materials, then builds a Scene.
+
+    >>> b = SceneBuilder("demo")
+    >>> m = b.add_material(Material(name="red", diffuse=(1, 0, 0)))
+    >>> b.add_mesh(vertices, faces, m)
+    >>> scene = b.build(camera=..., lights=[...])
+    """
+
+    def __init__(self, name: str, source: str = "procedural"):
+        self.name = name
+        self.source = source
+        self.materials: list = []
+        self._material_index: dict = {}
+        self._parts: list = []
+
+    def add_material(self, material: Material, key=None) -> int:
+        """Index of ``material``; a repeated ``key`` returns the first index."""
+        if key is not None and key in self._material_index:
+            return self._material_index[key]
+        self.materials.append(material)
+        index = len(self.materials) - 1
+        if key is not None:
+            self._material_index[key] = index
+        return index
+
+    def add_mesh(self, vertices, faces, material: int, normals=None, uvs=None, source=None) -> None:
+        faces = np.asarray(faces, np.int64).reshape(-1, 3)
+        if len(faces) == 0:
+            return
+        self._parts.append(make_triangles(vertices, faces, material, normals, uvs,
+                                          source=source or self.source))
+
+    def add_triangles(self, tris: Triangles) -> None:
+        self._parts.append(tris)
+
+    @property
+    def n_triangles(self) -> int:
+        return sum(p.v0.shape[0] for p in self._parts)
+
+    def build(self, *, camera: Optional[Camera] = None, lights=None, background=(0.0, 0.0, 0.0),
+              ambient_light=(1.0, 1.0, 1.0), **extra) -> Scene:
+        """The Scene; a missing camera is framed automatically, missing lights get one."""
+        if not self._parts:
+            raise SceneError(f"{self.source}: the scene has no triangles")
+        if not self.materials:
+            self.add_material(Material())
+        tris = concat_triangles(self._parts)
+        scene = Scene(self.name, tris, list(self.materials), list(lights or []),
+                      camera or Camera((0, 0, 1), (0, 0, 0)), tuple(background), tuple(ambient_light),
+                      source=self.source, **extra)
+        if camera is None:
+            scene.camera = auto_camera(scene.bounds())
+        if not scene.lights:
+            scene.lights = [default_light(scene.bounds(), scene.camera)]
+        return scene
+
+
+def auto_camera(bounds: np.ndarray, fov: float = 40.0) -> Camera:
+    """A camera looking at the box centre from the +z side (slightly above), framing the box."""
+    lo, hi = np.asarray(bounds, np.float64)
+    centre = (lo + hi) / 2
+    radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-6)
+    distance = radius / math.tan(math.radians(fov) / 2) * 1.1
+    direction = np.array([0.0, 0.25, 1.0])
+    direction /= np.linalg.norm(direction)
+    return Camera(tuple(centre + direction * distance), tuple(centre), (0.0, 1.0, 0.0), fov)
+
+
+def default_light(bounds: np.ndarray, camera: Camera) -> PointLight:
+    """One white light above and to the side of the camera."""
+    lo, hi = np.asarray(bounds, np.float64)
+    size = float(np.linalg.norm(hi - lo))
+    eye, forward, right, up = camera.basis()
+    return PointLight(tuple(eye + (right + up * 1.5) * size * 0.5), (1.0, 1.0, 1.0))
+
+
+def override_materials(scene: Scene, mode: str) -> Scene:
+    """The first paper's Section 5 overrides: make every material reflective or refractive.
+
+    "reflective": mirror reflectance 0.5 on top of the existing shading.
+    "refractive": transmission 0.8 with index of refraction 1.5.
+    """
+    if mode == "none":
+        return scene
+    if mode == "reflective":
+        mats = [replace(m, reflectance=(0.5, 0.5, 0.5)) for m in scene.materials]
+    elif mode == "refractive":
+        mats = [replace(m, transmission=0.8, ior=1.5, reflectance=(0.0, 0.0, 0.0)) for m in scene.materials]
+    else:
+        from .errors import ConfigError
+        raise ConfigError(f"materials.override must be one of 'none', 'reflective', 'refractive'; got {mode!r}")
+    return replace(scene, materials=mats)

@@ -1,0 +1,1 @@
+"""Scene catalog, loaders (.aff, OBJ/PLY through trimesh) and procedural generators."""

@@ -1,0 +1,187 @@
+"""Scene catalog: named scenes described by small TOML files, found on the search path.
+
+Each ``scenes/catalog/<name>.toml`` says::
+
+    name = "bunny"
+    description = "Stanford Bunny, four levels of detail"
+    loader = "mesh"                          # a key of LOADERS
+    files = ["stanford-bunny/bun_zipper.ply"]  # relative to a folder of the search path
+    animated = false
+    [params]                                 # loader keyword arguments and their defaults;
+    lod = 0                                  # a config's [scene] keys may override these
+    [variants]                               # optional: a parameter that picks the file,
+    lod = ["a.ply", "b.ply"]                 # files = variants[param][value] (value 0..n-1)
+    [camera]                                 # optional override: eye, look_at, up, fov
+    [materials]                              # optional: override = "reflective"
+
+Loaders are functions ``load(files: list[Path], params: dict, time: float) -> Scene``
+registered with ``@scene_loader("name")``; procedural generators are loaders with no files.
+The scene search path is ``PACKETRT_SCENE_PATH`` (colon-separated folders).
+"""
+from __future__ import annotations
+
+import os
+import tomllib
+from dataclasses import dataclass, field, replace
+from importlib import import_module
+from pathlib import Path
+
+from engine.errors import ConfigError, SceneError
+from engine.scene import Camera, Scene, override_materials
+
+CATALOG_DIR = Path(__file__).with_name("catalog")
+SCENE_PATH_VARIABLE = "PACKETRT_SCENE_PATH"
+
+#: Modules whose import registers loaders.
+LOADER_MODULES = ["scenes.meshfile", "scenes.whitted"]
+
+LOADERS: dict = {}
+
+
+def scene_loader(name: str):
+    """Register ``load(files, params, time) -> Scene`` under ``name``."""
+    def decorate(function):
+        LOADERS[name] = function
+        return function
+    return decorate
+
+
+def _load_loader_modules() -> None:
+    for module in LOADER_MODULES:
+        import_module(module)
+
+
+@dataclass
+class SceneEntry:
+    name: str
+    description: str
+    loader: str
+    files: list
+    params: dict
+    animated: bool = False
+    camera: dict = field(default_factory=dict)
+    materials: dict = field(default_factory=dict)
+    variants: dict = field(default_factory=dict)
+    catalog_file: str = ""
+
+
+def search_path() -> list[Path]:
+    """Folders of PACKETRT_SCENE_PATH, in order (empty when unset)."""
+    raw = os.environ.get(SCENE_PATH_VARIABLE, "")
+    return [Path(p).expanduser() for p in raw.split(os.pathsep) if p.strip()]
+
+
+def entries() -> dict:
+    """{name: SceneEntry} for every catalog file."""
+    found = {}
+    for file in sorted(CATALOG_DIR.glob("*.toml")):
+        try:
+            data = tomllib.loads(file.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise SceneError(f"{file}: not valid TOML: {exc}") from None
+        allowed = {"name", "description", "loader", "files", "params", "animated", "camera", "materials",
+                   "variants"}
+        unknown = set(data) - allowed
+        if unknown:
+            raise SceneError(f"{file}: unknown key(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
+        entry = SceneEntry(data["name"], data.get("description", ""), data["loader"],
+                           list(data.get("files", [])), dict(data.get("params", {})),
+                           bool(data.get("animated", False)), dict(data.get("camera", {})),
+                           dict(data.get("materials", {})), dict(data.get("variants", {})), str(file))
+        found[entry.name] = entry
+    return found
+
+
+def find_files(entry: SceneEntry, params: dict | None = None) -> tuple[list[Path], list[str]]:
+    """(resolved paths, missing relative names) for an entry's files on the search path.
+
+    With ``[variants]``, the parameter's value picks the file (e.g. a bunny LOD).
+    """
+    params = {**entry.params, **(params or {})}
+    names = list(entry.files)
+    for param, choices in entry.variants.items():
+        value = params.get(param)
+        if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < len(choices):
+            raise ConfigError(f"scene {entry.name!r}: {param} must be an integer in 0..{len(choices) - 1}, "
+                              f"got {value!r}")
+        names.append(choices[value])
+    resolved, missing = [], []
+    for relative in names:
+        hit = next((folder / relative for folder in search_path() if (folder / relative).is_file()), None)
+        if hit is None:
+            missing.append(relative)
+        else:
+            resolved.append(hit)
+    return resolved, missing
+
+
+def missing_message(name: str, missing: list[str]) -> str:
+    folders = [str(p) for p in search_path()] or ["(nothing: PACKETRT_SCENE_PATH is not set)"]
+    return (f"scene {name!r}: missing file(s) {', '.join(missing)}; looked in {', '.join(folders)}; "
+            f"set {SCENE_PATH_VARIABLE} to the folder that holds them (e.g. ../shared/scenes)")
+
+
+def load_named(name: str, params: dict | None = None, time: float = 0.0) -> Scene:
+    """Load catalog scene ``name`` with ``params`` overriding the entry's defaults."""
+    _load_loader_modules()
+    catalog = entries()
+    if name not in catalog:
+        raise ConfigError(f"unknown scene {name!r}; catalog scenes: {', '.join(sorted(catalog))} "
+                          f"(or give [scene] path = \"file.obj\")")
+    entry = catalog[name]
+    params = dict(params or {})
+    unknown = set(params) - set(entry.params)
+    if unknown:
+        raise ConfigError(f"scene {name!r} has no parameter(s) {sorted(unknown)}; "
+                          f"allowed: {sorted(entry.params) or 'none'}")
+    merged = {**entry.params, **params}
+    files, missing = find_files(entry, merged)
+    if missing:
+        raise SceneError(missing_message(name, missing))
+    if entry.loader not in LOADERS:
+        raise SceneError(f"{entry.catalog_file}: loader {entry.loader!r} is not registered; "
+                         f"known loaders: {', '.join(sorted(LOADERS))}")
+    scene = LOADERS[entry.loader](files, merged, time)
+    scene = replace(scene, name=name)
+    if entry.camera:
+        scene.camera = Camera(**{**scene.camera.__dict__, **{k: (tuple(v) if isinstance(v, list) else v) for k, v in entry.camera.items()}})
+    if entry.materials.get("override", "none") != "none":
+        scene = override_materials(scene, entry.materials["override"])
+    return scene
+
+
+def load_path(path: str, time: float = 0.0) -> Scene:
+    """Load a scene file by its own path: .obj/.ply/.stl/.off through trimesh, .aff by the
+    BART loader (when registered)."""
+    _load_loader_modules()
+    file = Path(path).expanduser()
+    if not file.is_file():
+        raise SceneError(f"scene file {path!r} does not exist")
+    suffix = file.suffix.lower()
+    loader = "aff" if suffix == ".aff" else "mesh"
+    if loader not in LOADERS:
+        raise SceneError(f"{path}: no loader for {suffix!r} files is available")
+    scene = LOADERS[loader]([file], {}, time)
+    return scene
+
+
+def describe(load: bool = True) -> list[dict]:
+    """One row per catalog scene for ``packetrt scenes``: name, description, files found,
+    and, when loadable, triangles, lights and animated."""
+    _load_loader_modules()
+    rows = []
+    for name, entry in sorted(entries().items()):
+        files, missing = find_files(entry)
+        row = {"name": name, "description": entry.description, "loader": entry.loader,
+               "files_found": not missing, "missing": missing, "animated": entry.animated,
+               "params": entry.params, "triangles": None, "lights": None}
+        if load and not missing:
+            try:
+                scene = load_named(name)
+                row["triangles"] = scene.n_triangles
+                row["lights"] = len(scene.lights)
+                row["animated"] = entry.animated or scene.animated
+            except (SceneError, ConfigError) as exc:
+                row["error"] = str(exc)
+        rows.append(row)
+    return rows

@@ -1,0 +1,175 @@
+"""Mesh files (OBJ + MTL, PLY, STL, OFF) through trimesh, as scenes.
+
+A mesh file carries no camera or light, so the scene gets an auto-framed camera and a
+default point light; a material named like an emitter (MTL ``Ka`` > 1, as in the Cornell
+box's "light") instead places the point light just below that emitter's centre.
+
+MTL mapping (read by this module, since trimesh keeps only part of MTL):
+
+=========  ==============================================================
+``Ka``     ambient colour
+``Kd``     diffuse colour (``map_Kd`` texture multiplies it)
+``Ks``     specular colour; also the mirror reflectance when ``illum 3``
+``Ns``     Phong exponent
+``Ni``     index of refraction
+``d``      dissolve: transmission = 1 - d (``Tr`` = transmission directly)
+``illum``  3 = mirror (reflectance = Ks, or 0.8 if Ks is black);
+           4, 6, 7 = refractive (transmission = max(1 - d, 0.9), reflectance 0.1)
+=========  ==============================================================
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from engine.errors import SceneError
+from engine.scene import Material, PointLight, SceneBuilder
+
+from .catalog import scene_loader
+
+MESH_SUFFIXES = {".obj", ".ply", ".stl", ".off", ".glb", ".gltf"}
+
+
+def parse_mtl(path: Path) -> dict:
+    """{material name: Material} from an MTL file; a bad number names file and line."""
+    materials: dict = {}
+    current = None
+    props: dict = {}
+
+    def finish():
+        if current is not None:
+            materials[current] = material_from_mtl(current, props)
+
+    for number, raw in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        words = raw.split("#", 1)[0].split()
+        if not words:
+            continue
+        key, args = words[0], words[1:]
+        if key == "newmtl":
+            finish()
+            current, props = (args[0] if args else f"material{len(materials)}"), {}
+            continue
+        if key in ("Ka", "Kd", "Ks", "Ns", "Ni", "d", "Tr", "illum"):
+            try:
+                props[key] = [float(a) for a in args]
+            except ValueError:
+                raise SceneError(f"{path}:{number}: expected numbers after {key!r}, got {raw.strip()!r}") from None
+            if not props[key]:
+                raise SceneError(f"{path}:{number}: {key!r} needs a value")
+        elif key == "map_Kd" and args:
+            props["map_Kd"] = path.parent / args[-1]
+    finish()
+    return materials
+
+
+def material_from_mtl(name: str, p: dict) -> Material:
+    rgb = lambda key, default: tuple((p[key] * 3)[:3]) if key in p else default
+    illum = int(p.get("illum", [2])[0])
+    ks = rgb("Ks", (0.0, 0.0, 0.0))
+    transmission = 1.0 - p["d"][0] if "d" in p else (p["Tr"][0] if "Tr" in p else 0.0)
+    reflectance = (0.0, 0.0, 0.0)
+    if illum == 3:
+        reflectance = ks if max(ks) > 0 else (0.8, 0.8, 0.8)
+    if illum in (4, 6, 7):
+        transmission = max(transmission, 0.9)
+        reflectance = (0.1, 0.1, 0.1)
+    texture = None
+    if "map_Kd" in p and Path(p["map_Kd"]).is_file():
+        from PIL import Image
+        texture = np.asarray(Image.open(p["map_Kd"]).convert("RGB"), np.float32) / 255.0
+    return Material(name=name, ambient=rgb("Ka", (0.1, 0.1, 0.1)), diffuse=rgb("Kd", (0.7, 0.7, 0.7)),
+                    specular=ks, shininess=float(p.get("Ns", [16.0])[0]), reflectance=reflectance,
+                    transmission=float(min(max(transmission, 0.0), 1.0)),
+                    ior=float(p.get("Ni", [1.5 if transmission > 0 else 1.0])[0]), texture=texture,
+                    texture_name=str(p.get("map_Kd", "")))
+
+
+def check_obj_syntax(path: Path) -> None:
+    """Reject a malformed OBJ with file:line before trimesh sees it."""
+    vertices = 0
+    for number, raw in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        words = raw.split("#", 1)[0].split()
+        if not words:
+            continue
+        key = words[0]
+        if key == "v":
+            try:
+                values = [float(w) for w in words[1:4]]
+            except ValueError:
+                raise SceneError(f"{path}:{number}: bad vertex {raw.strip()!r}: expected 3 numbers") from None
+            if len(values) < 3:
+                raise SceneError(f"{path}:{number}: vertex {raw.strip()!r} has fewer than 3 coordinates")
+            if not np.isfinite(values).all():
+                raise SceneError(f"{path}:{number}: vertex {raw.strip()!r} is not finite")
+            vertices += 1
+        elif key == "f":
+            if len(words) < 4:
+                raise SceneError(f"{path}:{number}: face {raw.strip()!r} has fewer than 3 vertices")
+            for word in words[1:]:
+                try:
+                    index = int(word.split("/")[0])
+                except ValueError:
+                    raise SceneError(f"{path}:{number}: bad face index {word!r} in {raw.strip()!r}") from None
+                if index == 0 or index > vertices or index < -vertices:
+                    raise SceneError(f"{path}:{number}: face index {index} out of range "
+                                     f"(1..{vertices} vertices so far)")
+
+
+@scene_loader("mesh")
+def load_mesh_scene(files, params, time):
+    """Load the first of ``files`` as a mesh scene."""
+    import trimesh
+
+    path = Path(files[0])
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise SceneError(f"{path}: unsupported mesh format {suffix!r}; "
+                         f"supported: {', '.join(sorted(MESH_SUFFIXES))} and .aff")
+    mtl = {}
+    if suffix == ".obj":
+        check_obj_syntax(path)
+        for line in path.read_text(errors="replace").splitlines():
+            if line.strip().startswith("mtllib"):
+                lib = path.parent / line.split(None, 1)[1].strip()
+                if lib.is_file():
+                    mtl.update(parse_mtl(lib))
+    try:
+        loaded = trimesh.load(str(path), process=False, maintain_order=True)
+    except Exception as exc:  # trimesh raises many types for a malformed file
+        raise SceneError(f"{path}: cannot read mesh: {exc}") from None
+    geometries = list(loaded.geometry.items()) if isinstance(loaded, trimesh.Scene) else [(path.stem, loaded)]
+    builder = SceneBuilder(path.stem, source=str(path))
+    emitters = []
+    for name, geom in geometries:
+        if not hasattr(geom, "faces") or len(geom.faces) == 0:
+            continue
+        mat_name = getattr(getattr(geom.visual, "material", None), "name", None) or name
+        material = mtl.get(mat_name) or mtl.get(name) or Material(name=mat_name)
+        index = builder.add_material(material, key=material.name)
+        uvs = None
+        if material.texture is not None and getattr(geom.visual, "uv", None) is not None:
+            uvs = np.asarray(geom.visual.uv, np.float32)
+        builder.add_mesh(np.asarray(geom.vertices), np.asarray(geom.faces), index, uvs=uvs, source=str(path))
+        if max(material.ambient) > 1.0:
+            emitters.append((np.asarray(geom.vertices, np.float64), material))
+    if builder.n_triangles == 0:
+        raise SceneError(f"{path}: the file holds no triangles")
+    lights = None
+    if emitters:
+        lights = []
+        scene_size = None
+        for verts, material in emitters:
+            centre = verts.mean(axis=0)
+            lights.append((centre, material))
+        probe = builder.build()
+        scene_size = float(np.linalg.norm(probe.bounds()[1] - probe.bounds()[0]))
+        centre_all = probe.bounds().mean(axis=0)
+        placed = []
+        for centre, material in lights:
+            # Just inside the room from the emitter, towards the scene centre.
+            towards = centre_all - centre
+            towards /= max(np.linalg.norm(towards), 1e-9)
+            placed.append(PointLight(tuple(centre + towards * 0.02 * scene_size), (1.0, 1.0, 1.0)))
+        lights = placed
+    return builder.build(lights=lights)

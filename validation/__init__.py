@@ -1,0 +1,1 @@
+"""Ground truth: the Embree oracle, tie-aware hit comparison and the audit of a render."""
