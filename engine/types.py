@@ -92,10 +92,13 @@ class Packets(NamedTuple):
     offsets: i32[K+1]  packet k holds rays offsets[k] : offsets[k+1]; every packet length is
                        a multiple of 4 (whole 2x2 SIMD rays).
     size: int          n of the n x n screen tiles the packets came from.
+    width, height: int the image the tiles cover (pixel = y * width + x).
     """
 
     offsets: np.ndarray
     size: int
+    width: int
+    height: int
 
 
 class Frusta(NamedTuple):

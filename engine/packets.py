@@ -1,0 +1,100 @@
+"""Packet layout: image tiles -> n x n packets of 2x2 SIMD rays.
+
+A packet is the rays of one n x n screen tile (by ancestral pixel), in this order:
+the tile's 2x2 blocks row by row, and within a block the lanes (0,0), (1,0), (0,1), (1,1).
+Four consecutive rays form one SIMD ray. Secondary batches use the same order, keyed by
+each ray's ancestral camera pixel, so a reflection packet holds the reflections of one
+camera tile. Only live rays are kept: a packet is its live rays compacted and padded to a
+multiple of four with dead lanes (tmax < tmin, pixel -1), and empty packets vanish.
+
+Several rays may share a pixel (e.g. reflections of a reflection and of a refraction);
+they stay adjacent, in their input order.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import ConfigError
+from .kernels import safe_inverse
+from .types import Packets, RayBatch
+
+PACKET_SIZES = (2, 4, 8, 16, 32)
+
+
+def check_packet_size(n: int) -> int:
+    if n not in PACKET_SIZES:
+        raise ConfigError(f"render.packet must be one of {', '.join(map(str, PACKET_SIZES))}, got {n!r}")
+    return n
+
+
+def packet_keys(pixel: np.ndarray, width: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(packet id, position inside the packet) for ancestral pixels i32[M] >= 0."""
+    tiles_x = -(-width // n)
+    x = pixel % width
+    y = pixel // width
+    tile = (y // n) * tiles_x + (x // n)
+    bx, by = (x % n) // 2, (y % n) // 2
+    lane = (y % 2) * 2 + (x % 2)
+    inside = (by * (n // 2) + bx) * 4 + lane
+    return tile.astype(np.int64), inside.astype(np.int64)
+
+
+def packet_order(pixel: np.ndarray, width: int, height: int, n: int) -> tuple[np.ndarray, Packets]:
+    """Order candidate rays into packets.
+
+    pixel: i32[M] ancestral pixel of each candidate ray (all >= 0).
+    Returns (gather i64[R], packets): gather[i] is the candidate that lane i takes, or -1 for
+    a padding lane; R is M rounded up per packet to whole SIMD rays.
+    """
+    check_packet_size(n)
+    pixel = np.asarray(pixel, np.int64)
+    if pixel.size == 0:
+        return np.zeros(0, np.int64), Packets(np.zeros(1, np.int32), n, width, height)
+    tile, inside = packet_keys(pixel, width, n)
+    order = np.lexsort((inside, tile))  # stable: equal keys keep input order
+    sorted_tile = tile[order]
+    starts = np.flatnonzero(np.r_[True, sorted_tile[1:] != sorted_tile[:-1]])
+    counts = np.diff(np.r_[starts, len(order)])
+    padded = (counts + 3) // 4 * 4
+    offsets = np.zeros(len(padded) + 1, np.int64)
+    np.cumsum(padded, out=offsets[1:])
+    gather = np.full(int(offsets[-1]), -1, np.int64)
+    # Position of each sorted ray: its packet's offset plus its rank inside the packet.
+    rank = np.arange(len(order)) - np.repeat(starts, counts)
+    gather[np.repeat(offsets[:-1], counts) + rank] = order
+    return gather, Packets(offsets.astype(np.int32), n, width, height)
+
+
+def gather_batch(kind: str, gather: np.ndarray, org, direction, tmin, tmax, pixel, weight) -> RayBatch:
+    """A RayBatch in packet order from candidate arrays (f[M,3], f[M], i[M], f[M,3]).
+
+    Lanes with gather == -1 become dead padding: tmin 1, tmax 0, pixel -1, weight 0.
+    """
+    live = gather >= 0
+    take = np.where(live, gather, 0)
+    org_ = np.ascontiguousarray(np.asarray(org, np.float32)[take]) if len(take) else np.zeros((0, 3), np.float32)
+    dir_ = np.ascontiguousarray(np.asarray(direction, np.float32)[take]) if len(take) else np.zeros((0, 3), np.float32)
+    dir_[~live] = (0.0, 0.0, 1.0)
+    tmin_ = np.where(live, np.asarray(tmin, np.float32)[take] if len(take) else 0, 1).astype(np.float32)
+    tmax_ = np.where(live, np.asarray(tmax, np.float32)[take] if len(take) else 0, 0).astype(np.float32)
+    pix = np.where(live, np.asarray(pixel, np.int32)[take] if len(take) else 0, -1).astype(np.int32)
+    w = np.ascontiguousarray(np.asarray(weight, np.float32)[take]) if len(take) else np.zeros((0, 3), np.float32)
+    w[~live] = 0
+    return RayBatch(org_, dir_, safe_inverse(dir_), tmin_, tmax_, pix, w, kind)
+
+
+def make_batch(kind: str, org, direction, tmin, tmax, pixel, weight, width: int, height: int, n: int):
+    """(RayBatch, Packets): candidate rays ordered into n x n packets by ancestral pixel."""
+    gather, packets = packet_order(pixel, width, height, n)
+    return gather_batch(kind, gather, org, direction, tmin, tmax, pixel, weight), packets
+
+
+def single_packet(n_rays: int) -> Packets:
+    """Packets for an arbitrary ray array: consecutive groups of at most 1024 rays.
+
+    The batch must already be padded to a multiple of 4 (see ``pad_to_simd``).
+    """
+    offsets = np.arange(0, n_rays + 1, 1024, dtype=np.int64)
+    if offsets[-1] != n_rays:
+        offsets = np.r_[offsets, n_rays]
+    return Packets(offsets.astype(np.int32), 32, max(n_rays, 1), 1)
