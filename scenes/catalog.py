@@ -185,3 +185,15 @@ def describe(load: bool = True) -> list[dict]:
                 row["error"] = str(exc)
         rows.append(row)
     return rows
+
+
+def scene_from_config(scene_config, override: str = "none") -> Scene:
+    """The Scene a config's [scene] section and [materials] override describe."""
+    if scene_config.path:
+        if scene_config.params:
+            raise ConfigError(f"[scene] parameters {sorted(dict(scene_config.params))} apply to catalog "
+                              f"scenes only, not to path = {scene_config.path!r}")
+        scene = load_path(scene_config.path, scene_config.time)
+    else:
+        scene = load_named(scene_config.name, dict(scene_config.params), scene_config.time)
+    return override_materials(scene, override)

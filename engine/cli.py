@@ -1,0 +1,229 @@
+"""The ``packetrt`` command line.
+
+    packetrt render  [CONFIG] [selectors] [-o OUT.png] [--stats OUT.json] [--audit]
+    packetrt audit   [CONFIG] [selectors] [--json OUT.json] [--report DIR]
+    packetrt plugins [--json]
+    packetrt scenes  [--json]
+
+selectors: --scene S  --param KEY=VALUE  --time T  --traversal KIND=NAME|NAME
+           --frustum KIND=NAME|NAME  --packet N  --size WxH  --depth D  --threads T
+           --override none|reflective|refractive
+
+A user mistake prints one line ``packetrt: error: ...`` and exits with code 2; an audit
+that finds a mismatch exits with code 1.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from .errors import ConfigError, PacketrtError
+
+EXIT_USAGE = 2
+EXIT_MISMATCH = 1
+
+
+def _scene_param(text: str):
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise ConfigError(f"--param must look like KEY=VALUE, got {text!r}")
+    import tomllib
+
+    try:
+        parsed = tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        parsed = value  # a bare word is a string
+    return key, parsed
+
+
+def _add_selectors(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", nargs="?", help="TOML config (default: built-in defaults)")
+    p.add_argument("--scene", help="catalog scene name or a mesh/.aff file path")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="scene parameter, e.g. lod=3 (repeatable)")
+    p.add_argument("--time", type=float, help="animation time for animated scenes")
+    p.add_argument("--traversal", action="append", default=[], metavar="KIND=NAME|NAME")
+    p.add_argument("--frustum", action="append", default=[], metavar="KIND=NAME|NAME")
+    p.add_argument("--packet", type=int, help="packet side n (n x n rays): 2, 4, 8, 16 or 32")
+    p.add_argument("--size", help="image size WxH")
+    p.add_argument("--depth", type=int, help="max recursion depth")
+    p.add_argument("--threads", type=int, help="threads (0 = all cores)")
+    p.add_argument("--override", choices=["none", "reflective", "refractive"],
+                   help="make every material reflective or refractive (Overbeck et al. Sec. 5)")
+
+
+def _config_from(args):
+    from . import config as cfg
+
+    base = cfg.load(args.config) if args.config else cfg.Config()
+    config = cfg.with_overrides(
+        base, scene=args.scene, traversal=args.traversal, frustum=args.frustum, packet=args.packet,
+        size=cfg.parse_size(args.size) if args.size else None, depth=args.depth, threads=args.threads,
+        scene_params=[_scene_param(p) for p in args.param])
+    if args.time is not None:
+        config = replace(config, scene=replace(config.scene, time=args.time))
+    if args.override is not None:
+        config = cfg.validate(replace(config, override=args.override))
+    return config
+
+
+def _load_scene(config):
+    from scenes.catalog import scene_from_config
+
+    return scene_from_config(config.scene, config.override)
+
+
+def stats_dict(scene, config, result) -> dict:
+    """The --stats document (see the README for its fields)."""
+    from .types import RAY_KINDS
+
+    return {
+        "scene": scene.name, "triangles": scene.n_triangles,
+        "width": config.render.width, "height": config.render.height,
+        "config": config.to_dict(),
+        "seconds": result.seconds,
+        "rays": result.rays,
+        "mrays_per_s": result.mrays_per_s(),
+        "counters": {name: result.counters.get(name, dict.fromkeys(RAY_KINDS, 0))
+                     for name in ("ray_aabb", "ray_tri")},
+        "counters_by_depth": result.counters_by_depth,
+        "counting": True,
+        "extra": result.extra,
+    }
+
+
+def _write_json(path: str, data: dict) -> None:
+    try:
+        target = Path(path)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(json.dumps(data, indent=2, default=float) + "\n")
+    except OSError as exc:
+        raise PacketrtError(f"cannot write {path!r}: {exc.strerror or exc}") from None
+
+
+def cmd_render(args) -> int:
+    from .image import save_png
+    from .whitted import WhittedRenderer
+
+    config = _config_from(args)
+    scene = _load_scene(config)
+    if args.audit:
+        return _run_audit(scene, config, args.output, None, None, args.stats)
+    result = WhittedRenderer(scene, config, count=bool(args.stats)).render()
+    save_png(result.image, args.output)
+    mrays = result.mrays_per_s()
+    rates = ", ".join(f"{k} {result.rays[k]:,} rays {mrays[k]:.2f} Mrays/s" for k in result.rays if result.rays[k])
+    print(f"{scene.name}: {scene.n_triangles:,} triangles, {config.render.width}x{config.render.height}, "
+          f"{result.seconds['total']:.2f} s -> {args.output} ({rates})")
+    if args.stats:
+        _write_json(args.stats, stats_dict(scene, config, result))
+    return 0
+
+
+def _run_audit(scene, config, image_path, json_path, report_dir, stats_path) -> int:
+    from validation.audit import audit
+
+    from .image import save_png
+
+    report, result, bad_pixels = audit(scene, config)
+    if image_path:
+        save_png(result.image, image_path)
+    if json_path:
+        _write_json(json_path, report)
+    if stats_path:
+        _write_json(stats_path, stats_dict(scene, config, result))
+    if report_dir:
+        from validation.report import write_report
+
+        write_report(report_dir, report, result.image, bad_pixels, config.render.width, config.render.height)
+    print(f"audit {scene.name} ({scene.n_triangles:,} triangles) against {report['oracle']['name']} "
+          f"{report['oracle']['version']} (robust={report['oracle']['robust']}):")
+    for kind, row in report["by_kind"].items():
+        if row["checked"]:
+            print(f"  {kind:<10} checked {row['checked']:>9,}  agree {row['agree']:>9,}  "
+                  f"ties {row['ties']:>7,}  mismatches {row['mismatches']:>6,}")
+    print(f"  agreement {report['agreement']:.6f}, max |dt| on agreeing hits {report['max_abs_t_err']:.3g}")
+    return EXIT_MISMATCH if report["mismatch_count"] else 0
+
+
+def cmd_audit(args) -> int:
+    config = _config_from(args)
+    scene = _load_scene(config)
+    return _run_audit(scene, config, None, args.json, args.report, None)
+
+
+def cmd_plugins(args) -> int:
+    from .registry import describe, load_entry_points
+
+    loaded = load_entry_points()
+    table = describe()
+    table["entry_points_loaded"] = loaded
+    if args.json:
+        print(json.dumps(table, indent=2))
+        return 0
+    for group in ("traversals", "frusta"):
+        print(f"{group}:")
+        for row in table[group]:
+            print(f"  {row['name']:<12} {row['doc']}")
+    return 0
+
+
+def cmd_scenes(args) -> int:
+    from scenes.catalog import describe, search_path
+
+    rows = describe(load=True)
+    if args.json:
+        print(json.dumps({"search_path": [str(p) for p in search_path()], "scenes": rows}, indent=2))
+        return 0
+    print(f"search path: {':'.join(str(p) for p in search_path()) or '(PACKETRT_SCENE_PATH not set)'}")
+    print(f"{'name':<14} {'triangles':>10} {'lights':>6} {'animated':>8}  files")
+    for r in rows:
+        files = "found" if r["files_found"] else "missing: " + ", ".join(r["missing"])
+        tri = f"{r['triangles']:,}" if r["triangles"] is not None else "-"
+        print(f"{r['name']:<14} {tri:>10} {r['lights'] if r['lights'] is not None else '-':>6} "
+              f"{'yes' if r['animated'] else 'no':>8}  {files}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="packetrt", description="Embree-validated Whitted ray tracer "
+                                     "with plugin traversals (large ray packets, ray-space hierarchy).")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("render", help="render an image")
+    _add_selectors(p)
+    p.add_argument("-o", "--output", default="out/render.png", help="PNG to write")
+    p.add_argument("--stats", help="write timings, ray counts and counters as JSON")
+    p.add_argument("--audit", action="store_true", help="also check every ray against Embree")
+    p.set_defaults(run=cmd_render)
+    p = sub.add_parser("audit", help="check every ray of a render against Embree")
+    _add_selectors(p)
+    p.add_argument("--json", help="write the audit report as JSON")
+    p.add_argument("--report", help="write a report folder (JSON + mismatch image)")
+    p.set_defaults(run=cmd_audit)
+    p = sub.add_parser("plugins", help="list traversal and frustum plugins")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(run=cmd_plugins)
+    p = sub.add_parser("scenes", help="list catalog scenes")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(run=cmd_scenes)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.run(args)
+    except PacketrtError as exc:
+        print(f"packetrt: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("packetrt: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,270 @@
+"""Render configuration: TOML parsed into frozen dataclasses.
+
+::
+
+    [scene]      name = "whitted"        # or path = "my.obj"; time = 0.0; other keys are the
+                                         # scene's own parameters (e.g. lod = 2 for "bunny")
+    [render]     width = 512  height = 512  max_depth = 5  packet = 16  threads = 0
+                 leaf_size = 4  bins = 16
+    [traversal]  primary = "ranged"  shadow = "partition"  reflection = "partition"  refraction = "partition"
+    [frustum]    primary = "pinhole" shadow = "pointlight" reflection = "general"    refraction = "general"
+    [materials]  override = "none"       # or "reflective" / "refractive"
+    [plugins]    load_entry_points = false
+    [options.rayspace]  pair_budget = 4194304   # per-plugin options, checked by the plugin
+
+An unknown section, key or plugin name is a ConfigError that says what is allowed.
+``threads = 0`` means every core numba sees.
+"""
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+from .errors import ConfigError
+from .packets import PACKET_SIZES
+from .types import RAY_KINDS
+
+#: The first paper's final system (Overbeck et al. 2008, Section 6), when its plugins exist.
+PAPER_TRAVERSAL = {"primary": "ranged", "shadow": "partition", "reflection": "partition", "refraction": "partition"}
+PAPER_FRUSTUM = {"primary": "pinhole", "shadow": "pointlight", "reflection": "general", "refraction": "general"}
+MAX_IMAGE_SIDE = 16384
+MAX_DEPTH = 64
+#: Peak working memory per pixel of one wavefront (ray batch, hits, shading temporaries).
+BYTES_PER_PIXEL = 600
+
+
+def available_memory() -> int:
+    """Physical memory in bytes (a generous 64 GiB guess where the OS will not say)."""
+    import os
+
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 64 * 2**30
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    name: str = "whitted"
+    path: str = ""
+    time: float = 0.0
+    params: tuple = ()  # ((key, value), ...): the scene's own parameters
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    width: int = 512
+    height: int = 512
+    max_depth: int = 5
+    packet: int = 16
+    threads: int = 0
+    leaf_size: int = 4
+    bins: int = 16
+
+
+def _defaults(table: dict) -> dict:
+    """The paper's choice where that plugin is registered, else the reference ``single``/``none``."""
+    from .registry import FRUSTA, TRAVERSALS, _ensure_builtins_loaded
+
+    _ensure_builtins_loaded()
+    known = TRAVERSALS if table is PAPER_TRAVERSAL else FRUSTA
+    fallback = "single" if table is PAPER_TRAVERSAL else "none"
+    return {kind: (name if name in known else fallback) for kind, name in table.items()}
+
+
+@dataclass(frozen=True)
+class PerKind:
+    primary: str
+    shadow: str
+    reflection: str
+    refraction: str
+
+    def get(self, kind: str) -> str:
+        return getattr(self, kind)
+
+
+@dataclass(frozen=True)
+class Config:
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    traversal: PerKind = None
+    frustum: PerKind = None
+    override: str = "none"
+    load_entry_points: bool = False
+    options: tuple = ()  # ((plugin name, ((key, value), ...)), ...)
+    source: str = "<defaults>"
+
+    def __post_init__(self):
+        if self.traversal is None:
+            object.__setattr__(self, "traversal", PerKind(**_defaults(PAPER_TRAVERSAL)))
+        if self.frustum is None:
+            object.__setattr__(self, "frustum", PerKind(**_defaults(PAPER_FRUSTUM)))
+
+    def to_dict(self) -> dict:
+        return {
+            "scene": {"name": self.scene.name, "path": self.scene.path, "time": self.scene.time,
+                      **dict(self.scene.params)},
+            "render": {f.name: getattr(self.render, f.name) for f in fields(RenderConfig)},
+            "traversal": {k: self.traversal.get(k) for k in RAY_KINDS},
+            "frustum": {k: self.frustum.get(k) for k in RAY_KINDS},
+            "materials": {"override": self.override},
+            "plugins": {"load_entry_points": self.load_entry_points},
+            "options": {name: dict(opts) for name, opts in self.options},
+        }
+
+
+def _check_type(where: str, key: str, value, expected):
+    if expected is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if expected is int and isinstance(value, bool) or not isinstance(value, expected):
+        raise ConfigError(f"{where}: {key} must be {expected.__name__}, got {value!r}")
+    return value
+
+
+def _dataclass_from(cls, table: dict, where: str):
+    allowed = {f.name: f.type for f in fields(cls)}
+    kwargs = {}
+    for key, value in table.items():
+        if key not in allowed:
+            raise ConfigError(f"{where}: unknown key {key!r}; allowed: {', '.join(allowed)}")
+        expected = {"int": int, "str": str, "float": float, "bool": bool}[allowed[key]]
+        kwargs[key] = _check_type(where, key, value, expected)
+    return cls(**kwargs)
+
+
+def validate(config: Config) -> Config:
+    """Range and name checks shared by files and command-line overrides."""
+    r = config.render
+    for side in ("width", "height"):
+        value = getattr(r, side)
+        if not 1 <= value <= MAX_IMAGE_SIDE:
+            raise ConfigError(f"render.{side} must be in 1..{MAX_IMAGE_SIDE}, got {value}")
+    needed = r.width * r.height * BYTES_PER_PIXEL
+    if needed > available_memory():
+        raise ConfigError(f"render size {r.width}x{r.height} needs about {needed / 2**30:.1f} GiB for its ray "
+                          f"batches, more than this machine's {available_memory() / 2**30:.1f} GiB; render smaller")
+    if not 0 <= r.max_depth <= MAX_DEPTH:
+        raise ConfigError(f"render.max_depth must be in 0..{MAX_DEPTH}, got {r.max_depth}")
+    if r.packet not in PACKET_SIZES:
+        raise ConfigError(f"render.packet must be one of {', '.join(map(str, PACKET_SIZES))}, got {r.packet}")
+    if not 0 <= r.threads <= 1024:
+        raise ConfigError(f"render.threads must be in 0..1024 (0 = all cores), got {r.threads}")
+    if config.override not in ("none", "reflective", "refractive"):
+        raise ConfigError(f"materials.override must be 'none', 'reflective' or 'refractive', got {config.override!r}")
+    from .registry import get_frustum, get_traversal, load_entry_points
+
+    if config.load_entry_points:
+        load_entry_points()
+    for kind in RAY_KINDS:
+        get_traversal(config.traversal.get(kind))
+        get_frustum(config.frustum.get(kind))
+    for name, options in config.options:
+        plugin = get_traversal(name)
+        if not hasattr(plugin, "configure"):
+            raise ConfigError(f"options.{name}: traversal {name!r} takes no options")
+        plugin.configure(dict(options))
+    return config
+
+
+def from_dict(data: dict, source: str = "<dict>") -> Config:
+    """Config from a parsed TOML table; every key is checked."""
+    sections = {"scene", "render", "traversal", "frustum", "materials", "plugins", "options"}
+    unknown = set(data) - sections
+    if unknown:
+        raise ConfigError(f"{source}: unknown section(s) {sorted(unknown)}; allowed: {', '.join(sorted(sections))}")
+    for section in sections & set(data):
+        if not isinstance(data[section], dict):
+            raise ConfigError(f"{source}: [{section}] must be a table")
+    scene_table = dict(data.get("scene", {}))
+    scene = SceneConfig(
+        name=_check_type(f"{source} [scene]", "name", scene_table.pop("name", "whitted"), str),
+        path=_check_type(f"{source} [scene]", "path", scene_table.pop("path", ""), str),
+        time=_check_type(f"{source} [scene]", "time", scene_table.pop("time", 0.0), float),
+        params=tuple(sorted(scene_table.items())),
+    )
+    if scene.path and source not in ("<dict>", "<defaults>"):
+        # A relative scene path is relative to the config file.
+        candidate = Path(source).parent / scene.path
+        if candidate.exists():
+            scene = replace(scene, path=str(candidate))
+    render = _dataclass_from(RenderConfig, data.get("render", {}), f"{source} [render]")
+    base = Config()
+    per_kind = {}
+    for section in ("traversal", "frustum"):
+        table = data.get(section, {})
+        for key in table:
+            if key not in RAY_KINDS:
+                raise ConfigError(f"{source} [{section}]: unknown ray kind {key!r}; allowed: {', '.join(RAY_KINDS)}")
+            _check_type(f"{source} [{section}]", key, table[key], str)
+        current = getattr(base, section)
+        per_kind[section] = PerKind(**{k: table.get(k, current.get(k)) for k in RAY_KINDS})
+    materials = data.get("materials", {})
+    if set(materials) - {"override"}:
+        raise ConfigError(f"{source} [materials]: unknown key(s) {sorted(set(materials) - {'override'})}; allowed: override")
+    plugins = data.get("plugins", {})
+    if set(plugins) - {"load_entry_points"}:
+        raise ConfigError(f"{source} [plugins]: unknown key(s) {sorted(set(plugins) - {'load_entry_points'})}; "
+                          f"allowed: load_entry_points")
+    options = tuple((name, tuple(sorted(table.items()))) for name, table in sorted(data.get("options", {}).items()))
+    config = Config(scene=scene, render=render, traversal=per_kind["traversal"], frustum=per_kind["frustum"],
+                    override=_check_type(f"{source} [materials]", "override", materials.get("override", "none"), str),
+                    load_entry_points=_check_type(f"{source} [plugins]", "load_entry_points",
+                                                  plugins.get("load_entry_points", False), bool),
+                    options=options, source=source)
+    return validate(config)
+
+
+def load(path: str) -> Config:
+    """Config from a TOML file; a missing or malformed file is a ConfigError naming it."""
+    file = Path(path)
+    if not file.is_file():
+        raise ConfigError(f"config file {path!r} does not exist")
+    try:
+        data = tomllib.loads(file.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return from_dict(data, source=str(path))
+
+
+def with_overrides(config: Config, *, scene=None, traversal=(), frustum=(), packet=None, size=None,
+                   depth=None, threads=None, scene_params=()) -> Config:
+    """Apply command-line selectors. traversal/frustum: "NAME" (every kind) or "KIND=NAME"."""
+    def apply(per_kind: PerKind, specs, what):
+        values = {k: per_kind.get(k) for k in RAY_KINDS}
+        for spec in specs:
+            kind, _, name = spec.rpartition("=")
+            if kind and kind not in RAY_KINDS:
+                raise ConfigError(f"--{what} {spec!r}: unknown ray kind {kind!r}; allowed: {', '.join(RAY_KINDS)}")
+            for k in ([kind] if kind else RAY_KINDS):
+                values[k] = name
+        return PerKind(**values)
+
+    changes = {"traversal": apply(config.traversal, traversal, "traversal"),
+               "frustum": apply(config.frustum, frustum, "frustum")}
+    render = config.render
+    if packet is not None:
+        render = replace(render, packet=packet)
+    if size is not None:
+        render = replace(render, width=size[0], height=size[1])
+    if depth is not None:
+        render = replace(render, max_depth=depth)
+    if threads is not None:
+        render = replace(render, threads=threads)
+    scene_config = config.scene
+    if scene is not None:
+        is_file = Path(scene).suffix.lower() in (".obj", ".ply", ".stl", ".off", ".aff", ".glb", ".gltf")
+        scene_config = SceneConfig(name="" if is_file else scene, path=scene if is_file else "",
+                                   time=config.scene.time, params=() if scene != config.scene.name else config.scene.params)
+    if scene_params:
+        scene_config = replace(scene_config, params=tuple(sorted({**dict(scene_config.params), **dict(scene_params)}.items())))
+    return validate(replace(config, render=render, scene=scene_config, **changes))
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """"WxH" -> (W, H); anything else is a ConfigError."""
+    try:
+        w, h = text.lower().split("x")
+        return int(w), int(h)
+    except ValueError:
+        raise ConfigError(f"--size must look like 512x512, got {text!r}") from None

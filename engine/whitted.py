@@ -1,0 +1,282 @@
+"""The Whitted loop: the only shading code. Every traversal variant renders through it.
+
+Wavefront by depth:
+
+1. primary rays in packet order -> closest hits;
+2. for every point light a shadow batch in the same ancestral packet order -> occlusion;
+3. local Phong (ambient, diffuse with textures, specular) into the image;
+4. a reflection batch (reflectance > 0; total internal reflection joins it) and a refraction
+   batch (transmission > 0, Snell), kept in ancestral packet order, dead rays compacted out;
+5. repeat from 2 with the secondary batches, up to ``max_depth`` generations.
+
+The traversal and frustum for each ray kind come from the config. Shading is vectorised
+numpy over a whole batch; the hot loops are the traversals' numba kernels.
+
+``observer(kind, query, rays, packets, answer)`` is called after every cast batch
+(query "intersect" with Hits, or "occluded" with bool[R]); the audit uses it.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+from .bvh import build_bvh, scene_bounds
+from .config import Config
+from .offset import offset_origin
+from .packets import gather_batch, make_batch, packet_order
+from .registry import get_frustum, get_traversal
+from .scene import Scene
+from .types import RAY_KINDS, Hits, RayBatch, empty_hits, new_stats, stats_by_depth, stats_totals
+
+SHADOW_TMAX_SCALE = np.float32(1.0 - 1e-4)  # stop shadow rays just short of the light
+MIN_WEIGHT = np.float32(1e-3)               # rays carrying less are not worth casting
+
+
+@dataclass
+class RenderResult:
+    """image: f32[H,W,3] linear RGB; stats: the --stats dictionary (see ``stats_dict``)."""
+
+    image: np.ndarray
+    seconds: dict
+    rays: dict
+    counters: dict
+    counters_by_depth: dict
+    extra: dict = field(default_factory=dict)
+
+    def mrays_per_s(self) -> dict:
+        return {k: (self.rays[k] / self.seconds["trace"][k] / 1e6 if self.seconds["trace"][k] > 0 else 0.0)
+                for k in RAY_KINDS}
+
+
+class MaterialTable:
+    """The scene's materials as arrays indexed by material id (M materials).
+
+    ambient, diffuse, specular, reflectance: f32[M,3]; shininess, transmission, ior: f32[M];
+    texture: list of f32[H,W,3] or None.
+    """
+
+    def __init__(self, materials):
+        self.ambient = np.array([m.ambient for m in materials], np.float32).reshape(-1, 3)
+        self.diffuse = np.array([m.diffuse for m in materials], np.float32).reshape(-1, 3)
+        self.specular = np.array([m.specular for m in materials], np.float32).reshape(-1, 3)
+        self.reflectance = np.array([m.reflectance for m in materials], np.float32).reshape(-1, 3)
+        self.shininess = np.array([m.shininess for m in materials], np.float32)
+        self.transmission = np.array([m.transmission for m in materials], np.float32)
+        self.ior = np.array([m.ior if m.ior > 0 else 1.0 for m in materials], np.float32)
+        self.texture = [m.texture for m in materials]
+
+
+def camera_rays(scene: Scene, width: int, height: int):
+    """(org f32[W*H,3], dir f32[W*H,3] unit): one ray through each pixel centre, row-major."""
+    eye, forward, right, up = scene.camera.basis()
+    half_h = math.tan(math.radians(scene.camera.fov) / 2)
+    half_w = half_h * width / height
+    ys, xs = np.mgrid[0:height, 0:width]
+    px = ((xs + 0.5) / width * 2 - 1) * half_w
+    py = (1 - (ys + 0.5) / height * 2) * half_h
+    d = forward + px[..., None] * right + py[..., None] * up
+    d = (d / np.linalg.norm(d, axis=-1, keepdims=True)).reshape(-1, 3).astype(np.float32)
+    return np.tile(eye.astype(np.float32), (width * height, 1)), d
+
+
+def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Nearest texel, wrapping: texture f32[H,W,3], uv f32[M,2] -> f32[M,3]."""
+    h, w = texture.shape[:2]
+    x = np.floor((uv[:, 0] % 1.0) * w).astype(np.int64) % w
+    y = np.floor((1.0 - uv[:, 1] % 1.0) * h).astype(np.int64) % h
+    return texture[y, x]
+
+
+class WhittedRenderer:
+    """Renders one scene with one config. Build once, ``render()`` as often as wanted."""
+
+    def __init__(self, scene: Scene, config: Config, *, observer=None, count: bool = False):
+        self.scene = scene
+        self.config = config
+        self.observer = observer
+        self.count = count
+        self.threads = config.render.threads or numba.config.NUMBA_NUM_THREADS
+        numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+        self.traversal = {k: get_traversal(config.traversal.get(k)) for k in RAY_KINDS}
+        self.frustum = {k: get_frustum(config.frustum.get(k)) for k in RAY_KINDS}
+        self.materials = MaterialTable(scene.materials)
+        self.tris = scene.triangles
+        self.bvh = build_bvh(self.tris, leaf_size=config.render.leaf_size, bins=config.render.bins)
+        self.bounds = scene_bounds(self.bvh)
+
+    # -- tracing -------------------------------------------------------------------------
+    def _trace(self, kind, rays, packets, query, acc):
+        traversal, frustum = self.traversal[kind], self.frustum[kind]
+        stats = new_stats(numba.get_num_threads()) if self.count else None
+        start = time.perf_counter()
+        frusta = frustum.build(rays, packets, self.bounds)
+        if query == "intersect":
+            answer = empty_hits(rays.org.shape[0])
+            traversal.intersect(self.bvh, self.tris, rays, packets, frusta, answer, stats)
+        else:
+            answer = np.zeros(rays.org.shape[0], np.bool_)
+            traversal.occluded(self.bvh, self.tris, rays, packets, frusta, answer, stats)
+        acc["trace"][kind] += time.perf_counter() - start
+        acc["rays"][kind] += int(np.count_nonzero(rays.tmin <= rays.tmax))
+        if stats is not None:
+            for name, value in stats_totals(stats).items():
+                acc["counters"].setdefault(name, dict.fromkeys(RAY_KINDS, 0))[kind] += value
+            per_depth = stats_by_depth(stats)
+            for name, values in per_depth.items():
+                mine = acc["by_depth"].setdefault(name, {k: [] for k in RAY_KINDS})[kind]
+                mine.extend([0] * (len(values) - len(mine)))
+                for d, v in enumerate(values):
+                    mine[d] += v
+            for key, value in stats.extra.items():
+                acc["extra"].setdefault(kind, {})[key] = value
+        if self.observer is not None:
+            self.observer(kind, query, rays, packets, answer)
+        return answer
+
+    # -- the loop ------------------------------------------------------------------------
+    def render(self) -> RenderResult:
+        cfg = self.config.render
+        width, height, n = cfg.width, cfg.height, cfg.packet
+        acc = {"trace": dict.fromkeys(RAY_KINDS, 0.0), "rays": dict.fromkeys(RAY_KINDS, 0),
+               "counters": {}, "by_depth": {}, "extra": {}}
+        start = time.perf_counter()
+        image = np.zeros((width * height, 3), np.float32)
+        org, dirs = camera_rays(self.scene, width, height)
+        pixel = np.arange(width * height, dtype=np.int32)
+        weight = np.ones((width * height, 3), np.float32)
+        batches = [make_batch("primary", org, dirs, np.zeros(len(pixel)), np.full(len(pixel), np.inf),
+                              pixel, weight, width, height, n)]
+        shade_seconds = 0.0
+        for depth in range(cfg.max_depth + 1):
+            children = {"reflection": [], "refraction": []}
+            for rays, packets in batches:
+                if rays.org.shape[0] == 0:
+                    continue
+                hits = self._trace(rays.kind, rays, packets, "intersect", acc)
+                shade_start = time.perf_counter()
+                trace_before = sum(acc["trace"].values())
+                spawned = self._shade(rays, packets, hits, image, depth < cfg.max_depth, acc)
+                shade_seconds += time.perf_counter() - shade_start - (sum(acc["trace"].values()) - trace_before)
+                for kind, parts in spawned.items():
+                    children[kind].append(parts)
+            batches = []
+            for kind in ("reflection", "refraction"):
+                parts = [p for p in children[kind] if len(p[0])]
+                if parts:
+                    cat = [np.concatenate([p[i] for p in parts]) for i in range(4)]
+                    o, d, pix, w = cat
+                    batches.append(make_batch(kind, o, d, np.zeros(len(pix)), np.full(len(pix), np.inf),
+                                              pix, w, width, height, n))
+            if not batches:
+                break
+        total = time.perf_counter() - start
+        seconds = {"bvh": self.bvh.build_seconds, "trace": acc["trace"], "shade": shade_seconds, "total": total}
+        return RenderResult(image.reshape(height, width, 3), seconds, acc["rays"], acc["counters"],
+                            acc["by_depth"], acc["extra"])
+
+    def _shade(self, rays: RayBatch, packets, hits: Hits, image, spawn: bool, acc) -> dict:
+        """Add this batch's direct light and background to ``image``; return its children as
+        {"reflection": (org, dir, pixel, weight), "refraction": (...)}."""
+        m, tris, scene = self.materials, self.tris, self.scene
+        live = rays.pixel >= 0
+        miss = live & (hits.prim < 0)
+        bg = np.asarray(scene.background, np.float32)
+        np.add.at(image, rays.pixel[miss], rays.weight[miss] * bg)
+        idx = np.flatnonzero(live & (hits.prim >= 0))
+        empty = (np.zeros((0, 3), np.float32),) * 2 + (np.zeros(0, np.int32), np.zeros((0, 3), np.float32))
+        if idx.size == 0:
+            return {"reflection": empty, "refraction": empty}
+        prim = hits.prim[idx]
+        d = rays.dir[idx]
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        t = hits.t[idx][:, None]
+        p = (rays.org[idx] + t * rays.dir[idx]).astype(np.float32)
+        u, v = hits.u[idx][:, None], hits.v[idx][:, None]
+        ng = tris.ng[prim]
+        entering = np.einsum("ij,ij->i", ng, d) < 0
+        ng_ff = np.where(entering[:, None], ng, -ng)  # geometric normal facing the ray
+        if tris.normals.shape[0]:
+            c = tris.normals[prim]
+            ns = (1 - u - v) * c[:, 0] + u * c[:, 1] + v * c[:, 2]
+            length = np.linalg.norm(ns, axis=1, keepdims=True)
+            ns = np.where(length > 0, ns / np.where(length > 0, length, 1), ng)
+            ns = np.where((np.einsum("ij,ij->i", ns, ng_ff) < 0)[:, None], -ns, ns)
+        else:
+            ns = ng_ff
+        mat = tris.material[prim]
+        weight = rays.weight[idx]
+        pixel = rays.pixel[idx]
+
+        texel = np.ones((idx.size, 3), np.float32)
+        if tris.uvs.shape[0]:
+            for mid in np.unique(mat):
+                tex = m.texture[mid]
+                if tex is None:
+                    continue
+                sel = mat == mid
+                c = tris.uvs[prim[sel]]
+                uv = (1 - u[sel] - v[sel]) * c[:, 0] + u[sel] * c[:, 1] + v[sel] * c[:, 2]
+                texel[sel] = sample_texture(tex, uv)
+
+        color = np.asarray(scene.ambient_light, np.float32) * m.ambient[mat] * texel
+        leave = offset_origin(p, ng_ff)
+        width, height, n = self.config.render.width, self.config.render.height, self.config.render.packet
+        for light in scene.lights:
+            to_light = np.asarray(light.position, np.float32) - leave
+            dist = np.linalg.norm(to_light, axis=1)
+            l = to_light / np.maximum(dist, 1e-30)[:, None]
+            ndotl = np.einsum("ij,ij->i", ns, l)
+            lit = (ndotl > 0) & (np.einsum("ij,ij->i", ng_ff, l) > 0)
+            cand = np.flatnonzero(lit)
+            if cand.size == 0:
+                continue
+            gather, shadow_packets = packet_order(pixel[cand], width, height, n)
+            shadow = gather_batch("shadow", gather, leave[cand], l[cand], np.zeros(cand.size),
+                                  dist[cand] * SHADOW_TMAX_SCALE, pixel[cand],
+                                  np.ones((cand.size, 3), np.float32))
+            occluded = self._trace("shadow", shadow, shadow_packets, "occluded", acc)
+            visible = cand[gather[(gather >= 0) & ~occluded]]
+            lc = np.asarray(light.color, np.float32)
+            r = 2 * ndotl[visible, None] * ns[visible] - l[visible]
+            spec = np.maximum(np.einsum("ij,ij->i", r, -d[visible]), 0) ** m.shininess[mat[visible]]
+            color[visible] += lc * (m.diffuse[mat[visible]] * texel[visible] * ndotl[visible, None]
+                                    + m.specular[mat[visible]] * spec[:, None])
+        np.add.at(image, pixel, weight * color)
+        if not spawn:
+            return {"reflection": empty, "refraction": empty}
+
+        # Reflection about the shading normal; fall back to the geometric one when the
+        # interpolated normal would send the ray into the surface.
+        cos_i = -np.einsum("ij,ij->i", d, ns)
+        refl = d + 2 * cos_i[:, None] * ns
+        bad = np.einsum("ij,ij->i", refl, ng_ff) <= 0
+        cos_g = -np.einsum("ij,ij->i", d, ng_ff)
+        refl[bad] = d[bad] + 2 * cos_g[bad, None] * ng_ff[bad]
+        refl_w = weight * m.reflectance[mat]
+        want_refl = refl_w.max(axis=1) > MIN_WEIGHT
+
+        trans = m.transmission[mat]
+        want_trans = (trans > 0) & (weight.max(axis=1) * trans > MIN_WEIGHT)
+        eta = np.where(entering, 1.0 / m.ior[mat], m.ior[mat]).astype(np.float32)
+        k = 1 - eta * eta * (1 - cos_i * cos_i)
+        tir = want_trans & (k < 0)
+        ok = want_trans & ~tir
+        refr = eta[:, None] * d + (eta * cos_i - np.sqrt(np.maximum(k, 0)))[:, None] * ns
+        refr_bad = ok & (np.einsum("ij,ij->i", refr, ng_ff) >= 0)
+        refr[refr_bad] = d[refr_bad]  # grazing smooth-normal case: continue straight through
+        trans_w = weight * trans[:, None]
+        enter = offset_origin(p, -ng_ff)
+
+        r_sel = np.flatnonzero(want_refl)
+        t_sel = np.flatnonzero(tir)
+        o_sel = np.flatnonzero(ok)
+        reflection = (np.concatenate([leave[r_sel], leave[t_sel]]),
+                      np.concatenate([refl[r_sel], refl[t_sel]]).astype(np.float32),
+                      np.concatenate([pixel[r_sel], pixel[t_sel]]),
+                      np.concatenate([refl_w[r_sel], trans_w[t_sel]]))
+        refraction = (enter[o_sel], refr[o_sel].astype(np.float32), pixel[o_sel], trans_w[o_sel])
+        return {"reflection": reflection, "refraction": refraction}

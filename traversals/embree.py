@@ -1,0 +1,59 @@
+"""``embree``: Intel Embree through embreex, as a rendering backend.
+
+The yardstick for every speed figure: the same rays, the same thread count (a thread
+pool of ``threads`` workers, each answering one chunk; embreex releases the GIL). Ignores
+the packet layout, frusta and our BVH: Embree builds its own. The Embree scene is built
+once per triangle set and reused. Counters are not available (Embree does not expose
+them); ``stats.extra["embree"]`` records version, robust flag and build time.
+"""
+from __future__ import annotations
+
+import numba
+
+from engine.embree_backend import EmbreeScene
+from engine.registry import register_traversal
+
+
+@register_traversal("embree")
+class EmbreeTraversal:
+    """Intel Embree (embreex), robust mode, same thread count as numba."""
+
+    OPTIONS = {"robust": True}
+
+    def __init__(self):
+        self.robust = True
+        self._scenes: dict = {}
+
+    def configure(self, options: dict) -> None:
+        from engine.errors import ConfigError
+
+        for key, value in options.items():
+            if key != "robust" or not isinstance(value, bool):
+                raise ConfigError(f"options.embree: allowed key is robust = true|false, got {key} = {value!r}")
+            self.robust = value
+
+    def scene_for(self, tris) -> EmbreeScene:
+        threads = numba.get_num_threads()
+        key = (id(tris.v0), tris.v0.shape[0], self.robust, threads)
+        entry = self._scenes.get(key)
+        if entry is None or entry[0] is not tris.v0:
+            self._scenes.clear()  # one scene at a time: renders do not interleave triangle sets
+            entry = (tris.v0, EmbreeScene(tris, robust=self.robust, threads=threads))
+            self._scenes[key] = entry
+        return entry[1]
+
+    def _record(self, scene, stats):
+        if stats is not None:
+            stats.extra["embree"] = {"version": scene.version, "embreex": scene.binding_version(),
+                                     "robust": scene.robust, "build_seconds": scene.build_seconds}
+
+    def intersect(self, bvh, tris, rays, packets, frusta, hits, stats):
+        scene = self.scene_for(tris)
+        answer = scene.intersect(rays)
+        hits.t[:], hits.prim[:], hits.u[:], hits.v[:] = answer.t, answer.prim, answer.u, answer.v
+        self._record(scene, stats)
+
+    def occluded(self, bvh, tris, rays, packets, frusta, occluded, stats):
+        scene = self.scene_for(tris)
+        occluded[:] = scene.occluded(rays)
+        self._record(scene, stats)
