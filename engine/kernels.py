@@ -81,14 +81,13 @@ def intersect_triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax, v0, v1
     by = by_ - sy * bz_
     cx = cx_ - sx * cz_
     cy = cy_ - sy * cz_
-    eu = cx * by - cy * bx
-    ev = ax * cy - ay * cx
-    ew = bx * ay - by * ax
-    if eu == F32_ZERO or ev == F32_ZERO or ew == F32_ZERO:
-        # An edge function that rounds to zero is decided in double, as the paper asks.
-        eu = np.float32(np.float64(cx) * np.float64(by) - np.float64(cy) * np.float64(bx))
-        ev = np.float32(np.float64(ax) * np.float64(cy) - np.float64(ay) * np.float64(cx))
-        ew = np.float32(np.float64(bx) * np.float64(ay) - np.float64(by) * np.float64(ax))
+    # Edge functions from exact float32 products in double: the sign is then exact, so two
+    # triangles sharing an edge always agree on which side the ray passes. (Rounding them in
+    # float32, with a double fallback only on an exact zero, lets neighbours disagree and
+    # rays aimed at shared vertices slip through.)
+    eu = np.float32(np.float64(cx) * np.float64(by) - np.float64(cy) * np.float64(bx))
+    ev = np.float32(np.float64(ax) * np.float64(cy) - np.float64(ay) * np.float64(cx))
+    ew = np.float32(np.float64(bx) * np.float64(ay) - np.float64(by) * np.float64(ax))
     if (eu < F32_ZERO or ev < F32_ZERO or ew < F32_ZERO) and \
             (eu > F32_ZERO or ev > F32_ZERO or ew > F32_ZERO):
         return F32_INF, F32_ZERO, F32_ZERO

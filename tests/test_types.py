@@ -1,0 +1,57 @@
+"""Contracts: field names, dtypes, shapes and contiguity of what the core produces."""
+import numpy as np
+
+from engine import types
+from engine.bvh import build_bvh
+from scenes.catalog import load_named
+
+from conftest import primary_batch
+
+
+def test_triangles_contract():
+    tris = load_named("whitted").triangles
+    assert types.Triangles._fields[:4] == ("v0", "e1", "e2", "ng")
+    t = tris.v0.shape[0]
+    for name in ("v0", "e1", "e2", "ng", "v1", "v2"):
+        array = getattr(tris, name)
+        assert array.dtype == np.float32 and array.shape == (t, 3) and array.flags.c_contiguous, name
+    assert tris.material.dtype == np.int32 and tris.material.shape == (t,)
+    assert tris.normals.shape == (t, 3, 3)  # the spheres carry smooth normals
+    np.testing.assert_allclose(tris.v0 + tris.e1, tris.v1, atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(tris.ng, axis=1), 1.0, atol=1e-5)
+
+
+def test_bvh_rays_packets_hits_contract():
+    scene = load_named("whitted")
+    bvh = build_bvh(scene.triangles)
+    assert bvh.bmin.dtype == np.float32 and bvh.bmin.shape == bvh.bmax.shape == (len(bvh.first), 3)
+    assert bvh.first.dtype == bvh.count.dtype == bvh.prim.dtype == np.int32
+    assert bvh.build_seconds > 0 and 0 < bvh.depth < types.MAX_BVH_DEPTH
+    rays, packets = primary_batch(scene, 30, 22, 8)
+    r = rays.org.shape[0]
+    for name in ("org", "dir", "inv_dir"):
+        assert getattr(rays, name).dtype == np.float32 and getattr(rays, name).shape == (r, 3)
+    assert rays.pixel.dtype == np.int32 and rays.kind == "primary"
+    assert np.isfinite(rays.inv_dir).all()
+    offsets = packets.offsets
+    assert offsets[0] == 0 and offsets[-1] == r and (np.diff(offsets) % 4 == 0).all()
+    assert sorted(rays.pixel[rays.pixel >= 0].tolist()) == list(range(30 * 22))
+    dead = rays.pixel < 0
+    assert (rays.tmax[dead] < rays.tmin[dead]).all()
+    hits = types.empty_hits(r)
+    assert hits.t.dtype == np.float32 and np.isinf(hits.t).all() and (hits.prim == -1).all()
+
+
+def test_packets_keep_each_tile_together():
+    from engine.packets import packet_keys
+
+    scene = load_named("whitted")
+    rays, packets = primary_batch(scene, 40, 40, 16)
+    for k in range(len(packets.offsets) - 1):
+        pix = rays.pixel[packets.offsets[k]:packets.offsets[k + 1]]
+        tiles, _ = packet_keys(pix[pix >= 0], 40, 16)
+        assert len(set(tiles.tolist())) == 1
+        # Each group of 4 lanes is one 2x2 screen block.
+        quad = pix[:4]
+        xs, ys = quad % 40, quad // 40
+        assert xs.max() - xs.min() <= 1 and ys.max() - ys.min() <= 1
