@@ -212,7 +212,10 @@ def from_dict(data: dict, source: str = "<dict>") -> Config:
                     load_entry_points=_check_type(f"{source} [plugins]", "load_entry_points",
                                                   plugins.get("load_entry_points", False), bool),
                     options=options, source=source)
-    return validate(config)
+    try:
+        return validate(config)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
 
 
 def load(path: str) -> Config:

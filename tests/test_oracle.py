@@ -1,0 +1,61 @@
+"""Embree agrees with our traversal on real rays, and the comparison can tell ties from errors."""
+import numpy as np
+import pytest
+
+from engine.bvh import build_bvh
+from engine.config import Config, with_overrides
+from engine.registry import get_traversal
+from engine.types import empty_hits
+from scenes.catalog import load_named, scene_from_config
+from validation.audit import audit
+from validation.compare import compare_hits
+from validation.oracle import EmbreeOracle
+
+from conftest import primary_batch
+
+
+def single_hits(scene, rays, packets):
+    hits = empty_hits(rays.org.shape[0])
+    get_traversal("single").intersect(build_bvh(scene.triangles), scene.triangles, rays, packets, None, hits, None)
+    return hits
+
+
+@pytest.mark.parametrize("name,params", [("bunny", {"lod": 1}), ("cornell-box", {})])
+def test_single_agrees_with_embree_on_primary_rays(shared_scenes, name, params):
+    scene = load_named(name, params)
+    rays, packets = primary_batch(scene, 96, 96, 16)
+    ours = single_hits(scene, rays, packets)
+    theirs = EmbreeOracle(scene.triangles).intersect(rays)
+    result = compare_hits(rays, ours, theirs, scene.triangles)
+    assert result.mismatch.sum() == 0
+    assert result.agree.sum() + result.tie.sum() == (rays.pixel >= 0).sum()
+    assert (ours.prim >= 0).sum() > 1000  # the camera really sees the model
+
+
+def test_comparison_flags_a_wrong_hit():
+    scene = load_named("whitted")
+    rays, packets = primary_batch(scene, 48, 48, 8)
+    ours = single_hits(scene, rays, packets)
+    theirs = EmbreeOracle(scene.triangles).intersect(rays)
+    hit = np.flatnonzero(ours.prim >= 0)
+    wrong = ours._replace(prim=ours.prim.copy(), t=ours.t.copy())
+    # Pretend we hit some far-away triangle, and pretend we missed some interior hits.
+    wrong.prim[hit[:10]] = (ours.prim[hit[:10]] + scene.n_triangles // 2) % scene.n_triangles
+    wrong.t[hit[10:20]] *= 1.5
+    wrong.prim[hit[20:30]] = -1
+    result = compare_hits(rays, wrong, theirs, scene.triangles)
+    assert result.mismatch[hit[:20]].all()
+    assert result.mismatch.sum() >= 20
+
+
+@pytest.mark.parametrize("name,override", [("whitted", "none"), ("cornell-box", "reflective"),
+                                           ("bunny", "refractive")])
+def test_audit_of_a_whitted_render_has_no_mismatch(shared_scenes, name, override):
+    config = with_overrides(Config(), scene=name, size=(96, 96), depth=3)
+    scene = scene_from_config(config.scene, override)
+    report, _, _ = audit(scene, config)
+    assert report["rays_checked"] > 96 * 96
+    assert report["by_kind"]["shadow"]["checked"] > 0
+    assert report["by_kind"]["reflection"]["checked"] + report["by_kind"]["refraction"]["checked"] > 0
+    assert report["mismatch_count"] == 0, report["mismatches"][:3]
+    assert report["oracle"]["robust"] is True and report["oracle"]["version"].count(".") == 2

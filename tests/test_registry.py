@@ -1,0 +1,37 @@
+"""Registry: config names map to plugins; unknown names list the registered ones."""
+import pytest
+
+from engine import registry
+from engine.errors import ConfigError
+
+
+def test_builtins_are_registered_and_answer_both_queries():
+    for name in registry.traversal_names():
+        plugin = registry.get_traversal(name)
+        assert callable(plugin.intersect) and callable(plugin.occluded)
+    for name in registry.frustum_names():
+        assert callable(registry.get_frustum(name).build)
+
+
+def test_unknown_names_list_what_is_registered():
+    with pytest.raises(ConfigError) as info:
+        registry.get_traversal("warp-drive")
+    assert "single" in str(info.value) and "embree" in str(info.value)
+    with pytest.raises(ConfigError, match="registered frustums: .*none"):
+        registry.get_frustum("cone")
+
+
+def test_entry_points_are_loaded_only_when_asked(monkeypatch):
+    class FakeEntry:
+        name, value, group = "fake", "fake_plugin:Fake", "packetrt.traversals"
+
+        def load(self):
+            registry.register_traversal("fake-from-entry-point")(type("Fake", (), {
+                "intersect": lambda *a: None, "occluded": lambda *a: None}))
+
+    monkeypatch.setattr(registry.metadata, "entry_points",
+                        lambda group: [FakeEntry()] if group == "packetrt.traversals" else [])
+    assert "fake-from-entry-point" not in registry.traversal_names()
+    assert registry.load_entry_points() == ["packetrt.traversals:fake"]
+    assert "fake-from-entry-point" in registry.traversal_names()
+    registry.TRAVERSALS.pop("fake-from-entry-point")

@@ -1,0 +1,53 @@
+"""The Whitted loop: every ray kind is cast, and Embree as the traversal gives the same image."""
+import numpy as np
+
+from engine.config import Config, with_overrides
+from engine.image import save_png, to_srgb8
+from engine.whitted import WhittedRenderer
+from scenes.catalog import load_named
+
+
+def render(traversal, size=(96, 72), depth=4, count=False):
+    config = with_overrides(Config(), traversal=[traversal], frustum=["none"], size=size, depth=depth)
+    return WhittedRenderer(load_named("whitted"), config, count=count).render()
+
+
+def test_default_scene_casts_every_ray_kind_and_shows_shadows():
+    result = render("single", count=True)
+    for kind in ("primary", "shadow", "reflection", "refraction"):
+        assert result.rays[kind] > 0, kind
+        assert result.seconds["trace"][kind] > 0
+    assert result.rays["primary"] == 96 * 72
+    assert result.counters["ray_tri"]["primary"] > 0 and result.counters["ray_aabb"]["shadow"] > 0
+    assert result.image.shape == (72, 96, 3) and result.image.dtype == np.float32
+
+
+def test_spheres_cast_shadows_on_the_floor():
+    answers = []
+    config = with_overrides(Config(), traversal=["single"], frustum=["none"], size=(96, 72), depth=0)
+    renderer = WhittedRenderer(load_named("whitted"), config,
+                               observer=lambda kind, query, rays, packets, answer:
+                               answers.append(answer[rays.pixel >= 0]) if kind == "shadow" else None)
+    renderer.render()
+    occluded = np.concatenate(answers)
+    assert 0.02 < occluded.mean() < 0.5
+
+
+def test_single_and_embree_render_the_same_image():
+    a = to_srgb8(render("single").image).astype(int)
+    b = to_srgb8(render("embree").image).astype(int)
+    differ = np.abs(a - b).max(axis=2) > 2
+    assert differ.mean() < 0.001, f"{differ.sum()} pixels differ"
+
+
+def test_depth_zero_has_no_secondary_rays():
+    result = render("single", depth=0)
+    assert result.rays["reflection"] == result.rays["refraction"] == 0
+    assert result.rays["shadow"] > 0
+
+
+def test_png_is_gamma_encoded_and_clamped(tmp_path):
+    image = np.array([[[0.0, 0.5, 4.0]]], np.float32)
+    assert to_srgb8(image).tolist() == [[[0, round(0.5 ** (1 / 2.2) * 255), 255]]]
+    save_png(image, str(tmp_path / "sub" / "x.png"))
+    assert (tmp_path / "sub" / "x.png").stat().st_size > 0
