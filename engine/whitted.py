@@ -12,7 +12,8 @@ Wavefront by depth:
 The traversal and frustum for each ray kind come from the config. Shading is vectorised
 numpy over a whole batch; the hot loops are the traversals' numba kernels.
 
-``observer(kind, query, rays, packets, answer)`` is called after every cast batch
+A traversal plugin may define ``prepare(tris) -> seconds`` to build its own structure before
+timing starts. ``observer(kind, query, rays, packets, answer)`` is called after every cast batch
 (query "intersect" with Hits, or "occluded" with bool[R]); the audit uses it.
 """
 from __future__ import annotations
@@ -107,6 +108,12 @@ class WhittedRenderer:
         self.tris = scene.triangles
         self.bvh = build_bvh(self.tris, leaf_size=config.render.leaf_size, bins=config.render.bins)
         self.bounds = scene_bounds(self.bvh)
+        # Plugins with their own acceleration structure (Embree) build it now, outside the
+        # timed trace, and report the build time.
+        self.prepare_seconds = {}
+        for plugin in {id(p): p for p in self.traversal.values()}.values():
+            if hasattr(plugin, "prepare"):
+                self.prepare_seconds[plugin.name] = plugin.prepare(self.tris)
 
     # -- tracing -------------------------------------------------------------------------
     def _trace(self, kind, rays, packets, query, acc):
@@ -174,7 +181,8 @@ class WhittedRenderer:
             if not batches:
                 break
         total = time.perf_counter() - start
-        seconds = {"bvh": self.bvh.build_seconds, "trace": acc["trace"], "shade": shade_seconds, "total": total}
+        seconds = {"bvh": self.bvh.build_seconds, "trace": acc["trace"], "shade": shade_seconds, "total": total,
+                   "plugin_build": self.prepare_seconds}
         return RenderResult(image.reshape(height, width, 3), seconds, acc["rays"], acc["counters"],
                             acc["by_depth"], acc["extra"])
 

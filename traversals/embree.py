@@ -42,6 +42,10 @@ class EmbreeTraversal:
             self._scenes[key] = entry
         return entry[1]
 
+    def prepare(self, tris) -> float:
+        """Build (or reuse) the Embree scene for ``tris``; returns Embree's build seconds."""
+        return self.scene_for(tris).build_seconds
+
     def _record(self, scene, stats):
         if stats is not None:
             stats.extra["embree"] = {"version": scene.version, "embreex": scene.binding_version(),
