@@ -1,0 +1,396 @@
+"""The cone-sphere ray-space hierarchy of Roger, Assarsson and Holzschuch (2007) and its test.
+
+A node bounds a set of ray segments by
+
+- a sphere (``centre``, ``radius``) holding every ray's origin,
+- a cone of directions (unit ``axis``, half-angle ``alpha`` in [0, pi], kept with its
+  ``cos_a`` and ``sin_a``) holding every ray's direction; the spread may exceed 90 degrees,
+- a reach ``far``: every point of every segment lies within ``far`` of the centre
+  (inf for unbounded rays).
+
+Every segment point therefore lies in the cone with apex ``centre`` grown by ``radius``
+(Minkowski sum) and inside the ball of radius ``far``. A node with no rays has radius -1.
+
+Layout (mip-map over the screen grid of ancestral pixels, W x H = packets.width x height):
+
+- level 0: one slot per live ray (several rays may share a pixel), grouped by 2x2 pixel block;
+  ``slot_ray`` maps a slot to its ray, ``block_start`` gives each block's slots.
+- level k >= 1: a dense row-major grid of ceil(W / 2^k) x ceil(H / 2^k) nodes; node (x, y) of
+  level k covers pixels [x 2^k, (x+1) 2^k) x [y 2^k, (y+1) 2^k). Its children at level k-1 >= 1
+  are (2x+i, 2y+j), i, j in {0, 1}, where inside the grid (implicit, like a mip-map); at
+  level 1 its children are the slots of block y * ceil(W/2) + x.
+- the root is the single node of level ``levels``.
+
+All node arrays cover every level, level 0 first; level k's nodes are
+``level_offset[k] : level_offset[k+1]``. The build computes in float64 and stores float32
+with radii, reaches and angles rounded outwards, so a parent holds its children exactly.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit, prange
+
+# Outward rounding of float64 lengths before they are stored as float32 (>> one float32 ulp).
+GROWTH = 1.0 + 2.0 ** -20
+# Angle added to a merged cone so the float32-rounded axis still holds the children (radians).
+ANGLE_SLACK = 2.0 ** -20
+# Relative slack of the float32 test: covers its own rounding and the watertight test's
+# acceptance of hits a few ulps outside a triangle or past tmax (both ~1e-7 relative).
+TEST_SLACK = np.float32(2.0 ** -16)
+EMPTY = np.float32(-1.0)
+
+
+class RayHierarchy(NamedTuple):
+    """Cone-sphere hierarchy over one ray batch (M nodes over all levels, S live-ray slots).
+
+    centre: f32[M,3]; radius: f32[M] (-1 = empty); axis: f32[M,3] unit; alpha, cos_a, sin_a:
+    f32[M]; far: f32[M].
+    level_offset: i64[levels+2]  level k nodes are level_offset[k] : level_offset[k+1].
+    level_width, level_height: i64[levels+1]  grid size of level k >= 1 (level 0: S x 1).
+    block_start: i64[n1+1]  slots of level-1 block b are block_start[b] : block_start[b+1].
+    slot_ray: i32[S]  ray index of each slot.
+    levels: int  the root's level (>= 1).
+    max_block_rays: int  most slots under one level-1 node.
+    """
+
+    centre: np.ndarray
+    radius: np.ndarray
+    axis: np.ndarray
+    alpha: np.ndarray
+    cos_a: np.ndarray
+    sin_a: np.ndarray
+    far: np.ndarray
+    level_offset: np.ndarray
+    level_width: np.ndarray
+    level_height: np.ndarray
+    block_start: np.ndarray
+    slot_ray: np.ndarray
+    levels: int
+    max_block_rays: int
+
+
+# ---------------------------------------------------------------------------------------
+# The test
+# ---------------------------------------------------------------------------------------
+
+@njit(cache=True)
+def cone_sphere_overlap(h, node, sx, sy, sz, rho, abs_tol):
+    """May a segment of node ``node`` (global index) touch the sphere (s, rho)?
+
+    Growing the sphere by the node radius reduces the node to a cone with a point apex; in
+    the plane of the cone axis and the sphere centre the cone is a 2D wedge and the test is
+    the distance from the centre to the wedge. Conservative: never False when a segment of
+    the node meets the sphere. abs_tol: absolute slack for the coordinates' magnitude.
+    """
+    r = h.radius[node]
+    if r < 0:
+        return False
+    vx = sx - h.centre[node, 0]
+    vy = sy - h.centre[node, 1]
+    vz = sz - h.centre[node, 2]
+    dist = np.sqrt(vx * vx + vy * vy + vz * vz)
+    grown = rho + r
+    tol = TEST_SLACK * (dist + grown) + abs_tol
+    if dist - rho > h.far[node] + tol:
+        return False  # past the end of every segment
+    if dist <= grown + tol:
+        return True  # the apex is inside the grown sphere
+    dx, dy, dz = h.axis[node, 0], h.axis[node, 1], h.axis[node, 2]
+    a = vx * dx + vy * dy + vz * dz
+    # The off-axis part from |v x d|, not sqrt(dist^2 - a^2): no cancellation near the axis.
+    cx = vy * dz - vz * dy
+    cy = vz * dx - vx * dz
+    cz = vx * dy - vy * dx
+    b = np.sqrt(cx * cx + cy * cy + cz * cz)
+    ca, sa = h.cos_a[node], h.sin_a[node]
+    if a >= dist * ca - tol:
+        return True  # the centre is inside the cone
+    if a * ca + b * sa < 0:
+        return False  # the nearest wedge point is the apex, and that is too far
+    return b * ca - a * sa <= grown + tol  # distance to the wedge's edge
+
+
+@njit(cache=True)
+def child_count(h, level, node):
+    """Child slots of node ``node`` (index within ``level`` >= 1), including empty ones."""
+    if level == 1:
+        return h.block_start[node + 1] - h.block_start[node]
+    return 4
+
+
+@njit(cache=True)
+def child_of(h, level, node, j):
+    """Index within level-1 of the j-th child of ``node`` at ``level`` >= 1; -1 if off the grid."""
+    if level == 1:
+        return h.block_start[node] + j
+    width = h.level_width[level]
+    x = node % width
+    y = node // width
+    cx = 2 * x + (j & 1)
+    cy = 2 * y + (j >> 1)
+    if cx >= h.level_width[level - 1] or cy >= h.level_height[level - 1]:
+        return -1
+    return cy * h.level_width[level - 1] + cx
+
+
+# ---------------------------------------------------------------------------------------
+# The build
+# ---------------------------------------------------------------------------------------
+
+def level_grid(width: int, height: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """(grid widths i64[L+1], grid heights i64[L+1], L) of the mip-map over W x H pixels."""
+    widths, heights = [0], [0]
+    w, h = width, height
+    while True:
+        w, h = -(-w // 2), -(-h // 2)
+        widths.append(w)
+        heights.append(h)
+        if w == 1 and h == 1:
+            break
+    return np.array(widths, np.int64), np.array(heights, np.int64), len(widths) - 1
+
+
+@njit(cache=True)
+def _sort_slots(pixel, tmin, tmax, width, block_width, n_blocks):
+    """Counting sort of the live rays by 2x2 pixel block (stable: rays keep batch order).
+
+    Returns (block_start i64[n_blocks+1], slot_ray i32[S]).
+    """
+    counts = np.zeros(n_blocks + 1, np.int64)
+    n_live = 0
+    for r in range(pixel.shape[0]):
+        if pixel[r] >= 0 and tmin[r] <= tmax[r]:
+            b = (pixel[r] // width // 2) * block_width + (pixel[r] % width) // 2
+            counts[b + 1] += 1
+            n_live += 1
+    for b in range(n_blocks):
+        counts[b + 1] += counts[b]
+    block_start = counts.copy()
+    slot_ray = np.empty(n_live, np.int32)
+    for r in range(pixel.shape[0]):
+        if pixel[r] >= 0 and tmin[r] <= tmax[r]:
+            b = (pixel[r] // width // 2) * block_width + (pixel[r] % width) // 2
+            slot_ray[counts[b]] = r
+            counts[b] += 1
+    return block_start, slot_ray
+
+
+@njit(cache=True)
+def _store_length(x):
+    """float64 length >= 0 -> float32 no smaller (inf stays inf)."""
+    return np.float32(x * GROWTH)
+
+
+@njit(cache=True)
+def _leaf_node(h, s, org, dirs, tmin, tmax, reverse, ax, ay, az):
+    """Level-0 node of slot ``s``: its exact ray (radius 0, spread 0), or the ray reversed
+    to leave the point a.
+
+    Forward: apex at the origin; a negative tmin puts the part behind the origin in the
+    sphere. Reversed: apex at a, direction -dir; the segment is P - s dir, s in
+    [tP - tmax, tP - tmin], where P = org + tP dir is the point of the ray's line nearest a
+    (or its end if that lies further on), and the radius is |P - a| (rounding-small when the
+    ray aims at a).
+    """
+    r = h.slot_ray[s]
+    dx, dy, dz = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
+    length = np.sqrt(dx * dx + dy * dy + dz * dz)
+    lo, hi = np.float64(tmin[r]), np.float64(tmax[r])
+    sign = 1.0
+    if reverse and length > 0:
+        ox, oy, oz = np.float64(org[r, 0]), np.float64(org[r, 1]), np.float64(org[r, 2])
+        t_near = ((ax - ox) * dx + (ay - oy) * dy + (az - oz) * dz) / (length * length)
+        tp = max(t_near, hi)
+        gx, gy, gz = ox + tp * dx - ax, oy + tp * dy - ay, oz + tp * dz - az
+        gap = np.sqrt(gx * gx + gy * gy + gz * gz)
+        h.centre[s, 0] = ax
+        h.centre[s, 1] = ay
+        h.centre[s, 2] = az
+        h.radius[s] = _store_length(gap)
+        h.far[s] = _store_length(gap + (tp - lo) * length)
+        sign = -1.0
+    else:
+        h.centre[s, 0] = org[r, 0]
+        h.centre[s, 1] = org[r, 1]
+        h.centre[s, 2] = org[r, 2]
+        behind = max(0.0, -lo) * length
+        h.radius[s] = _store_length(behind)
+        # A zero direction reaches nowhere (and 0 * inf would be NaN).
+        h.far[s] = _store_length(max(behind, hi * length)) if length > 0 else h.radius[s]
+    if length > 0:
+        h.axis[s, 0] = np.float32(sign * dx / length)
+        h.axis[s, 1] = np.float32(sign * dy / length)
+        h.axis[s, 2] = np.float32(sign * dz / length)
+        h.alpha[s] = 0.0
+        h.cos_a[s] = 1.0
+        h.sin_a[s] = 0.0
+    else:  # a zero direction has no cone: allow every direction
+        h.axis[s, 0] = 0.0
+        h.axis[s, 1] = 0.0
+        h.axis[s, 2] = 1.0
+        h.alpha[s] = np.pi
+        h.cos_a[s] = -1.0
+        h.sin_a[s] = 0.0
+
+
+@njit(cache=True, parallel=True)
+def _leaf_nodes(h, org, dirs, tmin, tmax, reverse, ax, ay, az):
+    """Every level-0 node (see ``_leaf_node``), parallel over slots.
+
+    The body is a separate function: numba's parfor loses some writes made through a
+    named-tuple attribute directly inside a prange body.
+    """
+    for s in prange(h.slot_ray.shape[0]):
+        _leaf_node(h, s, org, dirs, tmin, tmax, reverse, ax, ay, az)
+
+
+@njit(cache=True)
+def _grow_sphere(cx, cy, cz, r, ox, oy, oz, orad):
+    """Smallest sphere holding the spheres (c, r) and (o, orad), float64."""
+    dx, dy, dz = ox - cx, oy - cy, oz - cz
+    dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+    if dist + orad <= r:
+        return cx, cy, cz, r
+    if dist + r <= orad:
+        return ox, oy, oz, orad
+    grown = 0.5 * (dist + r + orad)
+    shift = (grown - r) / dist
+    return cx + dx * shift, cy + dy * shift, cz + dz * shift, grown
+
+
+@njit(cache=True)
+def _grow_cone(ax, ay, az, a, bx, by, bz, b):
+    """Smallest cone (about a great-circle blend of the axes) holding cones (A, a) and (B, b)."""
+    crx = ay * bz - az * by
+    cry = az * bx - ax * bz
+    crz = ax * by - ay * bx
+    sin_t = np.sqrt(crx * crx + cry * cry + crz * crz)
+    cos_t = ax * bx + ay * by + az * bz
+    theta = np.arctan2(sin_t, cos_t)  # accurate for tiny and near-pi angles alike
+    if theta + b <= a:
+        return ax, ay, az, a
+    if theta + a <= b:
+        return bx, by, bz, b
+    grown = 0.5 * (a + b + theta)
+    if grown >= np.pi:
+        return ax, ay, az, np.pi
+    if sin_t < 1e-12:
+        if cos_t > 0:  # axes parallel up to rounding: widening A by theta is enough
+            return ax, ay, az, max(a, b) + theta
+        return ax, ay, az, np.pi  # opposite axes: no meaningful blend
+    phi = grown - a  # rotate A towards B by phi
+    wa = np.sin(theta - phi) / sin_t
+    wb = np.sin(phi) / sin_t
+    nx, ny, nz = wa * ax + wb * bx, wa * ay + wb * by, wa * az + wb * bz
+    norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+    return nx / norm, ny / norm, nz / norm, grown
+
+
+@njit(cache=True)
+def _merge_children(h, parent, level, local):
+    """Parent node ``parent`` (global) from the children of node ``local`` at ``level`` >= 1."""
+    base = h.level_offset[level - 1]
+    n_children = child_count(h, level, local)
+    # Pass 1: merged sphere and cone, children taken one by one.
+    found = False
+    cx = cy = cz = rad = 0.0
+    ax = ay = az = 0.0
+    alpha = 0.0
+    for j in range(n_children):
+        c = child_of(h, level, local, j)
+        if c < 0 or h.radius[base + c] < 0:
+            continue
+        n = base + c
+        ocx, ocy, ocz = np.float64(h.centre[n, 0]), np.float64(h.centre[n, 1]), np.float64(h.centre[n, 2])
+        oax, oay, oaz = np.float64(h.axis[n, 0]), np.float64(h.axis[n, 1]), np.float64(h.axis[n, 2])
+        if not found:
+            cx, cy, cz, rad = ocx, ocy, ocz, np.float64(h.radius[n])
+            ax, ay, az, alpha = oax, oay, oaz, np.float64(h.alpha[n])
+            found = True
+        else:
+            cx, cy, cz, rad = _grow_sphere(cx, cy, cz, rad, ocx, ocy, ocz, np.float64(h.radius[n]))
+            ax, ay, az, alpha = _grow_cone(ax, ay, az, alpha, oax, oay, oaz, np.float64(h.alpha[n]))
+    if not found:
+        h.radius[parent] = EMPTY
+        h.far[parent] = EMPTY
+        h.centre[parent, 0] = h.centre[parent, 1] = h.centre[parent, 2] = 0.0
+        h.axis[parent, 0] = h.axis[parent, 1] = 0.0
+        h.axis[parent, 2] = 1.0
+        h.alpha[parent], h.cos_a[parent], h.sin_a[parent] = 0.0, 1.0, 0.0
+        return
+    h.centre[parent, 0], h.centre[parent, 1], h.centre[parent, 2] = cx, cy, cz
+    # Pass 2: radius and reach measured from the stored (rounded) centre.
+    qx, qy, qz = np.float64(h.centre[parent, 0]), np.float64(h.centre[parent, 1]), np.float64(h.centre[parent, 2])
+    rad = 0.0
+    far = 0.0
+    for j in range(n_children):
+        c = child_of(h, level, local, j)
+        if c < 0 or h.radius[base + c] < 0:
+            continue
+        n = base + c
+        gx = np.float64(h.centre[n, 0]) - qx
+        gy = np.float64(h.centre[n, 1]) - qy
+        gz = np.float64(h.centre[n, 2]) - qz
+        gap = np.sqrt(gx * gx + gy * gy + gz * gz)
+        rad = max(rad, gap + np.float64(h.radius[n]))
+        far = max(far, gap + np.float64(h.far[n]))
+    h.radius[parent] = _store_length(rad)
+    h.far[parent] = _store_length(far)
+    h.axis[parent, 0], h.axis[parent, 1], h.axis[parent, 2] = ax, ay, az
+    if alpha > 0:
+        alpha = alpha + ANGLE_SLACK
+    alpha = min(alpha, np.pi)
+    h.alpha[parent] = alpha
+    h.cos_a[parent] = np.cos(alpha)
+    h.sin_a[parent] = np.sin(alpha)
+
+
+@njit(cache=True, parallel=True)
+def _inner_level(h, level):
+    """Every node of ``level`` >= 1 from its children (parallel over the level's nodes)."""
+    start = h.level_offset[level]
+    for local in prange(h.level_offset[level + 1] - start):
+        _merge_children(h, start + local, level, local)
+
+
+def build_hierarchy(org, dirs, tmin, tmax, pixel, width: int, height: int, apex=None) -> RayHierarchy:
+    """Cone-sphere hierarchy over a ray batch.
+
+    org, dirs: f32[R,3]; tmin, tmax: f32[R]; pixel: i32[R] ancestral pixel y * width + x
+    (-1 = padding); a lane with tmax < tmin is dead and gets no slot. apex: None, or a point
+    f64[3] that every ray aims at (a point light): the rays are then indexed reversed, as
+    segments leaving the apex, which gives the hierarchy zero spatial extent.
+    """
+    pixel = np.ascontiguousarray(pixel, np.int32)
+    live = (pixel >= 0) & (tmin <= tmax)
+    if np.any(pixel[live] >= width * height):
+        bad = int(pixel[live].max())
+        raise ValueError(f"ray pixel {bad} is outside the {width}x{height} screen grid")
+    widths, heights, levels = level_grid(width, height)
+    block_start, slot_ray = _sort_slots(pixel, tmin, tmax, width, int(widths[1]), int(widths[1] * heights[1]))
+    n_slots = slot_ray.shape[0]
+    sizes = np.r_[n_slots, widths[1:] * heights[1:]]
+    level_offset = np.zeros(levels + 2, np.int64)
+    np.cumsum(sizes, out=level_offset[1:])
+    widths[0], heights[0] = n_slots, 1
+    m = int(level_offset[-1])
+    h = RayHierarchy(np.empty((m, 3), np.float32), np.empty(m, np.float32), np.empty((m, 3), np.float32),
+                     np.empty(m, np.float32), np.empty(m, np.float32), np.empty(m, np.float32),
+                     np.empty(m, np.float32), level_offset, widths, heights, block_start, slot_ray,
+                     int(levels), int(np.diff(block_start).max(initial=0)))
+    if apex is None:
+        _leaf_nodes(h, org, dirs, tmin, tmax, False, 0.0, 0.0, 0.0)
+    else:
+        a = np.asarray(apex, np.float32).astype(np.float64)  # the stored centre is float32
+        _leaf_nodes(h, org, dirs, tmin, tmax, True, a[0], a[1], a[2])
+    for level in range(1, levels + 1):
+        _inner_level(h, level)
+    return h
+
+
+def hierarchy_scale(h: RayHierarchy) -> float:
+    """Largest coordinate magnitude of any live node centre (0 for an empty hierarchy)."""
+    live = h.radius >= 0
+    return float(np.abs(h.centre[live]).max(initial=0.0))

@@ -1,0 +1,277 @@
+"""``rayspace``: the ray-space hierarchy of Roger, Assarsson and Holzschuch (2007).
+
+Instead of a hierarchy over the scene, a hierarchy over the rays of one batch, rebuilt for
+every batch: nothing depends on the scene's layout, so moving geometry costs nothing to
+rebuild. Ignores the BVH and the frusta it is given.
+
+How it works
+    1. Build (``engine.cone_sphere``): the batch's live rays are indexed by ancestral pixel on
+       the ``packets.width x packets.height`` screen; each ray is an exact cone-sphere (radius 0,
+       spread 0, reach bounded by tmax), each 2x2 pixel block holds all its rays, and every
+       coarser level of the mip-map holds four nodes of the level below, up to one root.
+    2. Traversal (``engine.pair_stream``): a stream of (node, triangle) pairs starts with every
+       triangle at the root; per level each pair's children are tested against the
+       triangle's bounding sphere (``engine.triangle_spheres``) and the survivors are compacted
+       with a parallel prefix sum. The test is conservative: a pair is dropped only when no
+       ray under the node can touch the triangle.
+    3. Final tests: the candidate triangles of each ray get the shared watertight test and the
+       shared tie rule, so the hits are bit-identical to ``single``'s.
+
+Shadow rays
+    A ``shadow`` batch whose rays all aim at one point (a point light) is indexed reversed, as
+    segments that leave the light: the hierarchy then has (rounding-)zero spatial extent and
+    only the cones differ. The reversed segment of a ray ends where its original one starts,
+    at tmin (a surface offset): it keeps the original [tmin, tmax] range, mirrored, so the
+    surface a ray leaves is never in reach of its own reversal's far end. The final tests
+    still use the original rays with their own [tmin, tmax], so the occlusion answer is the
+    original ray's, exactly. Rays aiming at different lights are not reversed.
+
+Options (``[options.rayspace]`` in a config, or ``configure``)
+    pair_budget = 4194304   most (node, triangle) pairs one stream may hold (1 .. 2^31-1).
+                            A level that would overflow splits the triangles into batches
+                            traced one after another, merged by closest hit. A budget too
+                            small for one triangle's pairs raises ConfigError with the need.
+
+Statistics (``stats.extra["rayspace"]``, summed over calls; lists are indexed by level,
+0 = rays, last = root): ``cone_sphere_tests``, ``pairs_before`` (child slots before
+compaction), ``pairs_after``, ``candidates`` and ``candidates_per_ray`` (final triangle
+tests per live ray), ``rays``, ``batches``, ``retries`` (batches abandoned for overflow),
+``peak_pairs``, ``reversed_batches``, and ``seconds`` for each phase (triangle_spheres, build,
+traversal, compaction, sort, final). Triangle tests also go to ``stats.counters[:, 1, 0]``.
+
+When it pays (measured in benchmarks/rayspace_notes.md terms: see the project report)
+    Work grows with triangles x screen area covered, not log(triangles): it suits few
+    triangles, coherent secondary rays and shadow rays from one light; it loses to a BVH on
+    large meshes, where the top levels pair almost every triangle with many nodes.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from numba import get_thread_id, njit, prange
+
+from engine.cone_sphere import TEST_SLACK, build_hierarchy, hierarchy_scale
+from engine.errors import ConfigError
+from engine.kernels import F32_INF, closer, intersect_triangle, ray_shear
+from engine.pair_stream import expand, group_by_slot, root_stream
+from engine.registry import register_traversal
+from engine.triangle_spheres import triangle_spheres
+from engine.types import COUNTER_RAY_TRI
+
+CHUNK = 256               # slots per prange task of the final tests
+MAX_PAIR_BUDGET = 2**31 - 1   # stream indices are i32
+# Reverse a shadow batch only when every ray passes within this fraction of the longest
+# segment of one point; the leftover distance becomes the leaf radius, so this is about
+# efficiency, never correctness.
+APEX_TOLERANCE = 1e-4
+PHASES = ("triangle_spheres", "build", "traversal", "compaction", "sort", "final")
+
+
+@njit(cache=True, parallel=True)
+def _final_tests(slot_ray, start, cand, v0, v1, v2, org, dirs, tmin, tmax, any_hit,
+                 best_t, best_prim, best_u, best_v, counters):
+    """Watertight tests of each slot's candidates, merged into the running best hit.
+
+    slot_ray: i32[S]; start: i64[S+1]; cand: i32[P] (see ``group_by_slot``). best_*: f32/i32[R]
+    hold the result of earlier triangle batches and are updated in place; for any_hit a ray
+    that is already occluded is skipped and a ray stops at its first hit.
+    counters: i64[threads,3,D] or None (triangle tests go to depth 0).
+    """
+    n_slots = slot_ray.shape[0]
+    for chunk in prange((n_slots + CHUNK - 1) // CHUNK):
+        thread = get_thread_id()
+        for s in range(chunk * CHUNK, min(n_slots, (chunk + 1) * CHUNK)):
+            if start[s] == start[s + 1]:
+                continue
+            r = slot_ray[s]
+            bt, bp, bu, bv = best_t[r], best_prim[r], best_u[r], best_v[r]
+            if any_hit and bp >= 0:
+                continue
+            t_lo = tmin[r]
+            t_hi = min(tmax[r], bt)  # a tie with an earlier batch's hit is still accepted
+            kx, ky, kz, sx, sy, sz = ray_shear(dirs[r, 0], dirs[r, 1], dirs[r, 2])
+            okx, oky, okz = org[r, kx], org[r, ky], org[r, kz]
+            for i in range(start[s], start[s + 1]):
+                tri = cand[i]
+                if counters is not None:
+                    counters[thread, COUNTER_RAY_TRI, 0] += 1
+                t, u, v = intersect_triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi,
+                                             v0, v1, v2, tri)
+                if t < F32_INF and closer(t, tri, bt, bp):
+                    bt, bp, bu, bv = t, tri, u, v
+                    if any_hit:
+                        break
+                    t_hi = t
+            best_t[r], best_prim[r], best_u[r], best_v[r] = bt, bp, bu, bv
+
+
+def live_lanes(rays) -> np.ndarray:
+    """bool[R]: lanes with a pixel and a non-empty [tmin, tmax]."""
+    return (rays.pixel >= 0) & (rays.tmin <= rays.tmax)
+
+
+def shared_apex(rays, live: np.ndarray):
+    """The point every live ray aims at (f64[3]), or None when they do not share one.
+
+    The candidate is the least-squares nearest point to all ray lines; it is accepted when
+    the leaf radii the reversed build would get are all tiny against the segment lengths.
+    """
+    if not live.any():
+        return None
+    o = rays.org[live].astype(np.float64)
+    d = rays.dir[live].astype(np.float64)
+    lo = rays.tmin[live].astype(np.float64)
+    hi = rays.tmax[live].astype(np.float64)
+    length = np.linalg.norm(d, axis=1)
+    if not (np.isfinite(hi).all() and np.isfinite(lo).all() and (length > 0).all()):
+        return None
+    u = d / length[:, None]
+    # sum over rays of (I - u u^T)(p - o) = 0
+    m = len(u) * np.eye(3) - u.T @ u
+    b = o.sum(axis=0) - u.T @ np.einsum("ij,ij->i", u, o)
+    p = np.linalg.lstsq(m, b, rcond=None)[0]
+    p = p.astype(np.float32).astype(np.float64)  # the build stores the apex as float32
+    t_near = np.einsum("ij,ij->i", p - o, d) / (length * length)
+    tp = np.maximum(t_near, hi)
+    radius = np.linalg.norm(o + tp[:, None] * d - p, axis=1)
+    reach = (tp - lo) * length
+    if radius.max() <= APEX_TOLERANCE * reach.max():
+        return p
+    return None
+
+
+def _new_record(levels: int) -> dict:
+    return {"calls": 0, "rays": 0, "triangles": 0, "levels": levels, "reversed_batches": 0,
+            "cone_sphere_tests": [0] * (levels + 1), "pairs_before": [0] * (levels + 1),
+            "pairs_after": [0] * (levels + 1), "candidates": 0, "candidates_per_ray": 0.0,
+            "batches": 0, "retries": 0, "peak_pairs": 0, "seconds": dict.fromkeys(PHASES, 0.0)}
+
+
+def _accumulate(stats, record: dict) -> None:
+    """Add one call's record to stats.extra["rayspace"] (lists elementwise, peak by max)."""
+    total = stats.extra.setdefault("rayspace", _new_record(0))
+    for key in ("calls", "rays", "triangles", "reversed_batches", "candidates", "batches", "retries"):
+        total[key] += record[key]
+    total["levels"] = max(total["levels"], record["levels"])
+    total["peak_pairs"] = max(total["peak_pairs"], record["peak_pairs"])
+    for key in ("cone_sphere_tests", "pairs_before", "pairs_after"):
+        mine = total[key]
+        mine.extend([0] * (len(record[key]) - len(mine)))
+        for level, value in enumerate(record[key]):
+            mine[level] += value
+    for phase, seconds in record["seconds"].items():
+        total["seconds"][phase] += seconds
+    total["candidates_per_ray"] = total["candidates"] / total["rays"] if total["rays"] else 0.0
+
+
+@register_traversal("rayspace")
+class RaySpaceTraversal:
+    """Ray-space cone-sphere hierarchy over the batch's rays (Roger et al. 2007); no scene hierarchy."""
+
+    OPTIONS = {"pair_budget": 1 << 22}
+
+    def __init__(self):
+        self.pair_budget = self.OPTIONS["pair_budget"]
+
+    def configure(self, options: dict) -> None:
+        """Set the options; keys left out take their defaults. Bad keys or values: ConfigError."""
+        unknown = set(options) - set(self.OPTIONS)
+        if unknown:
+            raise ConfigError(f"options.rayspace: unknown key(s) {sorted(unknown)}; "
+                              f"allowed: {', '.join(sorted(self.OPTIONS))}")
+        budget = options.get("pair_budget", self.OPTIONS["pair_budget"])
+        if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) \
+                or not 1 <= budget <= MAX_PAIR_BUDGET:
+            raise ConfigError(f"options.rayspace: pair_budget must be an integer in 1..{MAX_PAIR_BUDGET}, "
+                              f"got {budget!r}")
+        self.pair_budget = int(budget)
+
+    # -- the two queries ---------------------------------------------------------------
+    def intersect(self, bvh, tris, rays, packets, frusta, hits, stats):
+        self._trace(tris, rays, packets, False, hits.t, hits.prim, hits.u, hits.v, stats)
+
+    def occluded(self, bvh, tris, rays, packets, frusta, occluded, stats):
+        n = rays.org.shape[0]
+        t = np.empty(n, np.float32)
+        prim = np.empty(n, np.int32)
+        u = np.empty(n, np.float32)
+        v = np.empty(n, np.float32)
+        self._trace(tris, rays, packets, True, t, prim, u, v, stats)
+        occluded[:] = prim >= 0
+
+    # -- the work ----------------------------------------------------------------------
+    def _trace(self, tris, rays, packets, any_hit, out_t, out_prim, out_u, out_v, stats):
+        out_t[:] = np.inf
+        out_prim[:] = -1
+        out_u[:] = 0
+        out_v[:] = 0
+        n_tris = tris.v0.shape[0]
+        live = live_lanes(rays)
+        if n_tris == 0 or not live.any():
+            return
+        clock = time.perf_counter()
+        centre, radius = triangle_spheres(tris.v0, tris.v1, tris.v2)
+        seconds = dict.fromkeys(PHASES, 0.0)
+        seconds["triangle_spheres"] = time.perf_counter() - clock
+
+        clock = time.perf_counter()
+        apex = shared_apex(rays, live) if rays.kind == "shadow" else None
+        h = build_hierarchy(rays.org, rays.dir, rays.tmin, rays.tmax, rays.pixel,
+                            packets.width, packets.height, apex)
+        seconds["build"] = time.perf_counter() - clock
+        # Absolute slack of the float32 test at this scene's coordinate magnitude.
+        scale = max(float(np.abs(centre).max() + radius.max()), hierarchy_scale(h))
+        abs_tol = float(TEST_SLACK) * scale
+
+        record = _new_record(h.levels)
+        record.update(calls=1, rays=int(live.sum()), triangles=n_tris, reversed_batches=int(apex is not None))
+        budget = self.pair_budget
+        first, size = 0, min(n_tris, budget)
+        while first < n_tris:
+            last = min(n_tris, first + size)
+            nodes, cand_tris = root_stream(first, last)
+            overflow = None
+            batch_peak = last - first
+            for level in range(h.levels, 0, -1):
+                out_nodes, out_tris, step = expand(h, level, nodes, cand_tris, centre, radius, abs_tol, budget)
+                record["cone_sphere_tests"][level - 1] += step.tests
+                record["pairs_before"][level - 1] += step.slots
+                seconds["traversal"] += step.count_seconds
+                seconds["compaction"] += step.compact_seconds
+                if out_nodes is None:
+                    overflow = (level - 1, step.survivors)
+                    break
+                record["pairs_after"][level - 1] += step.survivors
+                batch_peak = max(batch_peak, step.survivors)
+                nodes, cand_tris = out_nodes, out_tris
+            if overflow is not None:
+                level, needed = overflow
+                if last - first == 1:
+                    raise ConfigError(
+                        f"options.rayspace: pair_budget = {budget} is too small: triangle {first} alone "
+                        f"needs {needed} (node, triangle) pairs at level {level} of the ray hierarchy "
+                        f"({record['rays']} rays); set pair_budget to at least {needed}")
+                record["retries"] += 1
+                # Shrink in proportion to the overflow, at least by half.
+                size = max(1, min((last - first) // 2, (last - first) * budget // needed))
+                continue
+            record["pairs_before"][h.levels] += last - first
+            record["pairs_after"][h.levels] += last - first
+            record["peak_pairs"] = max(record["peak_pairs"], batch_peak)
+            clock = time.perf_counter()
+            start, cand = group_by_slot(nodes, cand_tris, h.slot_ray.shape[0])
+            seconds["sort"] += time.perf_counter() - clock
+            clock = time.perf_counter()
+            _final_tests(h.slot_ray, start, cand, tris.v0, tris.v1, tris.v2, rays.org, rays.dir,
+                         rays.tmin, rays.tmax, any_hit, out_t, out_prim, out_u, out_v,
+                         None if stats is None else stats.counters)
+            seconds["final"] += time.perf_counter() - clock
+            record["candidates"] += int(cand.shape[0])
+            record["batches"] += 1
+            first = last
+            if 2 * batch_peak <= budget:  # room to spare: try larger batches again
+                size = min(n_tris, 2 * size)
+        record["seconds"] = seconds
+        if stats is not None:
+            _accumulate(stats, record)
