@@ -1,0 +1,273 @@
+"""Packet-local ray state and the kernels every packet traversal shares.
+
+The packet traversals of Overbeck, Ramamoorthi and Mark (2008) -- simd, masked, ranged,
+partition -- differ only in how a packet walks the BVH. What they share lives here:
+
+- ``load_packet`` copies packet k (rays offsets[k] : offsets[k+1], whole 2x2 SIMD rays) into
+  packet-local structure-of-arrays rows, so the four lanes of SIMD ray i are the consecutive
+  floats 4i .. 4i+3 of every row: the layout the fixed 4-lane loops vectorise on. It also does
+  the per-ray set-up of the watertight test once (``engine.kernels.ray_shear``) and picks the
+  packet's near-child order from its direction signs.
+- ``slab_mask4``: the 4-lane ray-box test of one SIMD ray, a bit mask of the lanes that hit.
+- ``first_hit``: Overbeck's getFirstHit (the first SIMD ray at or after ``lo`` that hits a box,
+  the frustum as early reject).
+- ``leaf_triangles`` / ``intersect_lanes``: the leaf, frustum-culled, then the shared
+  ``intersect_triangle`` and tie rule ``closer`` lane by lane, exactly as ``single`` does.
+- ``store_hits``: the packet's answers back into the batch's Hits arrays.
+
+Packet-local state (L = the longest packet of the batch):
+    rf: f32[RF_ROWS, L]  rows OX..IZ origin and inv_dir; TLO, THI the live segment (THI shrinks
+                         to the best hit); SX, SY, SZ and OKX, OKY, OKZ the shear and the
+                         permuted origin; BEST_T, BEST_U, BEST_V the best hit so far.
+    ri: i32[RI_ROWS, L]  rows KX, KY, KZ the shear's axes; BEST_PRIM the best triangle (-1).
+    near: i64[6]         near-child offset (0: left child first) per ``child_order_keys`` key.
+
+A dead lane gets TLO = +inf and THI = -inf, so every box and triangle test misses it; an
+occlusion query kills a lane the same way as soon as it is blocked.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from .frustum_cull import frustum_misses_box, frustum_misses_triangle
+from .kernels import F32_INF, closer, intersect_triangle, ray_shear, slab_test
+from .types import MAX_BVH_DEPTH
+
+OX, OY, OZ, IX, IY, IZ, TLO, THI, SX, SY, SZ, OKX, OKY, OKZ, BEST_T, BEST_U, BEST_V = range(17)
+RF_ROWS = 17
+KX, KY, KZ, BEST_PRIM = range(4)
+RI_ROWS = 4
+
+#: Depth-first traversal that tests a node when it is popped holds at most two entries per level.
+STACK_SIZE = 2 * MAX_BVH_DEPTH + 2
+
+F32_NEG_INF = np.float32(-np.inf)
+F32_ZERO = np.float32(0.0)
+ALL_LANES = 0xF
+
+
+@njit(cache=True)
+def longest_packet(offsets):
+    """The most rays in one packet (offsets: i32[K+1])."""
+    longest = 0
+    for k in range(offsets.shape[0] - 1):
+        longest = max(longest, offsets[k + 1] - offsets[k])
+    return longest
+
+
+@njit(cache=True)
+def largest_leaf(count):
+    """The most triangles in one leaf (count: i32[N])."""
+    largest = 0
+    for node in range(count.shape[0]):
+        largest = max(largest, count[node])
+    return largest
+
+
+@njit(cache=True)
+def packet_scratch(max_rays, max_leaf):
+    """Per-worker buffers: (rf f32[RF_ROWS,L], ri i32[RI_ROWS,L], near i64[6], fr f32[16],
+    leaf_tris i32[max_leaf])."""
+    rf = np.empty((RF_ROWS, max_rays), np.float32)
+    ri = np.empty((RI_ROWS, max_rays), np.int32)
+    near = np.zeros(6, np.int64)
+    fr = np.zeros(16, np.float32)
+    leaf_tris = np.empty(max(max_leaf, 1), np.int32)
+    return rf, ri, near, fr, leaf_tris
+
+
+@njit(cache=True)
+def child_order_keys(bmin, bmax, first, count):
+    """i8[N]: for each inner node, 2 * axis + upper, where ``axis`` is the axis along which its
+    children's box centres lie farthest apart and ``upper`` is 1 when the left child's centre is
+    the higher one along it. With the packet's direction signs this gives the near child."""
+    n = first.shape[0]
+    keys = np.zeros(n, np.int8)
+    for node in range(n):
+        if count[node] > 0:
+            continue
+        left = first[node]
+        best_axis = 0
+        best_gap = np.float32(-1.0)
+        upper = 0
+        for a in range(3):
+            # Doubled centres: the factor 1/2 does not change the comparison.
+            gap = (bmin[left + 1, a] + bmax[left + 1, a]) - (bmin[left, a] + bmax[left, a])
+            if abs(gap) > best_gap:
+                best_gap = abs(gap)
+                best_axis = a
+                upper = 1 if gap < F32_ZERO else 0
+        keys[node] = 2 * best_axis + upper
+    return keys
+
+
+@njit(cache=True)
+def load_packet(org, inv, dirs, tmin, tmax, start, n, rf, ri, near):
+    """Transpose rays start .. start+n (org, inv, dirs: f32[R,3]; tmin, tmax: f32[R]) into the
+    packet-local rows rf, ri and set the near-child table from the live rays' summed direction.
+    Returns the number of live lanes."""
+    live = 0
+    sum_x = 0.0
+    sum_y = 0.0
+    sum_z = 0.0
+    for i in range(n):
+        r = start + i
+        rf[OX, i] = org[r, 0]
+        rf[OY, i] = org[r, 1]
+        rf[OZ, i] = org[r, 2]
+        rf[IX, i] = inv[r, 0]
+        rf[IY, i] = inv[r, 1]
+        rf[IZ, i] = inv[r, 2]
+        rf[BEST_T, i] = F32_INF
+        rf[BEST_U, i] = F32_ZERO
+        rf[BEST_V, i] = F32_ZERO
+        ri[BEST_PRIM, i] = -1
+        if tmin[r] <= tmax[r]:
+            live += 1
+            rf[TLO, i] = tmin[r]
+            rf[THI, i] = tmax[r]
+            kx, ky, kz, sx, sy, sz = ray_shear(dirs[r, 0], dirs[r, 1], dirs[r, 2])
+            ri[KX, i] = kx
+            ri[KY, i] = ky
+            ri[KZ, i] = kz
+            rf[SX, i] = sx
+            rf[SY, i] = sy
+            rf[SZ, i] = sz
+            rf[OKX, i] = org[r, kx]
+            rf[OKY, i] = org[r, ky]
+            rf[OKZ, i] = org[r, kz]
+            sum_x += dirs[r, 0]
+            sum_y += dirs[r, 1]
+            sum_z += dirs[r, 2]
+        else:
+            rf[TLO, i] = F32_INF
+            rf[THI, i] = F32_NEG_INF
+            ri[KX, i] = 0
+            ri[KY, i] = 1
+            ri[KZ, i] = 2
+            rf[SX, i] = F32_ZERO
+            rf[SY, i] = F32_ZERO
+            rf[SZ, i] = F32_ZERO
+            rf[OKX, i] = F32_ZERO
+            rf[OKY, i] = F32_ZERO
+            rf[OKZ, i] = F32_ZERO
+    # Travelling towards -axis, the upper child comes first: near offset = upper XOR negative.
+    neg_x = 1 if sum_x < 0.0 else 0
+    neg_y = 1 if sum_y < 0.0 else 0
+    neg_z = 1 if sum_z < 0.0 else 0
+    near[0], near[1] = neg_x, 1 - neg_x
+    near[2], near[3] = neg_y, 1 - neg_y
+    near[4], near[5] = neg_z, 1 - neg_z
+    return live
+
+
+@njit(cache=True)
+def slab_mask4(rf, lane0, bmin, bmax, node):
+    """4-bit mask of the lanes of SIMD ray lane0 .. lane0+3 whose live segment meets box ``node``.
+
+    The per-lane test is ``engine.kernels.slab_test`` on the packet-local rows; the fixed
+    4-iteration loop over consecutive lanes, with no stores, is what LLVM vectorises.
+    """
+    mask = 0
+    for lane in range(4):
+        r = lane0 + lane
+        tn = slab_test(rf[OX, r], rf[OY, r], rf[OZ, r], rf[IX, r], rf[IY, r], rf[IZ, r],
+                       rf[TLO, r], rf[THI, r], bmin, bmax, node)
+        mask |= (1 << lane) if tn < F32_INF else 0
+    return mask
+
+
+@njit(cache=True)
+def live_mask4(rf, lane0):
+    """4-bit mask of the lanes of SIMD ray lane0 that are still live (TLO <= THI)."""
+    mask = 0
+    for lane in range(4):
+        mask |= (1 << lane) if rf[TLO, lane0 + lane] <= rf[THI, lane0 + lane] else 0
+    return mask
+
+
+@njit(cache=True)
+def first_hit(rf, lo, hi, bmin, bmax, node, fr, cull):
+    """Overbeck's getFirstHit over SIMD rays lo .. hi-1: (index of the first one that hits box
+    ``node``, or hi; ray-box tests done). SIMD ray ``lo`` is tried first (early accept); if it
+    misses, a valid frustum that misses the box rejects the rest at once."""
+    if lo >= hi:
+        return hi, 0
+    if slab_mask4(rf, 4 * lo, bmin, bmax, node) != 0:
+        return lo, 4
+    if cull and frustum_misses_box(fr, bmin, bmax, node):
+        return hi, 4
+    tests = 4
+    for i in range(lo + 1, hi):
+        tests += 4
+        if slab_mask4(rf, 4 * i, bmin, bmax, node) != 0:
+            return i, tests
+    return hi, tests
+
+
+@njit(cache=True)
+def leaf_triangles(first, count, prim, node, v0, v1, v2, fr, cull, leaf_tris):
+    """Copy leaf ``node``'s triangles into leaf_tris, dropping those the packet frustum culls;
+    returns how many remain."""
+    n = 0
+    for i in range(first[node], first[node] + count[node]):
+        tri = prim[i]
+        if cull and frustum_misses_triangle(fr, v0, v1, v2, tri):
+            continue
+        leaf_tris[n] = tri
+        n += 1
+    return n
+
+
+@njit(cache=True)
+def intersect_lanes(rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit):
+    """Test the live lanes of SIMD ray lane0 selected by ``mask`` against leaf_tris[:n_tris].
+
+    Each test is ``intersect_triangle`` with the lane's own shear and segment and the update is
+    ``closer``, exactly as in ``single``, so the best hit is bit-identical whatever the order.
+    For ``any_hit`` a lane dies (THI = -inf) at its first hit. Returns (ray-triangle tests done,
+    lanes that died).
+    """
+    tests = 0
+    finished = 0
+    for lane in range(4):
+        r = lane0 + lane
+        t_lo = rf[TLO, r]
+        t_hi = rf[THI, r]
+        if (mask >> lane) & 1 == 0 or not t_lo <= t_hi:
+            continue
+        okx, oky, okz = rf[OKX, r], rf[OKY, r], rf[OKZ, r]
+        kx, ky, kz = ri[KX, r], ri[KY, r], ri[KZ, r]
+        sx, sy, sz = rf[SX, r], rf[SY, r], rf[SZ, r]
+        best_t = rf[BEST_T, r]
+        best_prim = ri[BEST_PRIM, r]
+        best_u = rf[BEST_U, r]
+        best_v = rf[BEST_V, r]
+        for j in range(n_tris):
+            tri = leaf_tris[j]
+            tests += 1
+            t, u, v = intersect_triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi, v0, v1, v2, tri)
+            if t < F32_INF and closer(t, tri, best_t, best_prim):
+                best_t, best_prim, best_u, best_v = t, tri, u, v
+                t_hi = t
+                if any_hit:
+                    t_hi = F32_NEG_INF
+                    finished += 1
+                    break
+        rf[THI, r] = t_hi
+        rf[BEST_T, r] = best_t
+        ri[BEST_PRIM, r] = best_prim
+        rf[BEST_U, r] = best_u
+        rf[BEST_V, r] = best_v
+    return tests, finished
+
+
+@njit(cache=True)
+def store_hits(rf, ri, start, n, out_t, out_prim, out_u, out_v):
+    """Write the packet's best hits to rays start .. start+n of the output arrays (f32/i32[R])."""
+    for i in range(n):
+        out_t[start + i] = rf[BEST_T, i]
+        out_prim[start + i] = ri[BEST_PRIM, i]
+        out_u[start + i] = rf[BEST_U, i]
+        out_v[start + i] = rf[BEST_V, i]

@@ -1,0 +1,65 @@
+"""The plugin side shared by the packet traversals: contracts in, kernel call, answers out.
+
+Each packet traversal (``traversals/simd.py`` and friends) is a subclass naming its numba
+kernel; every kernel has the signature
+
+    kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
+           offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
+           counters)
+
+with the BVH and triangle arrays as in ``engine.types``, ``planes`` f32[K,4,4] and ``valid``
+bool[K] (all False when there is no frustum), ``order`` the i8[N] child-order keys of
+``engine.packet_kernels.child_order_keys``, ``n_chunks`` the number of interleaved packet
+decks dealt to the threads, and ``counters`` i64[threads,3,D] or None.
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from .packet_kernels import child_order_keys
+
+#: Packet decks per thread: packet k goes to deck k % n_chunks, so neighbouring (similarly
+#: expensive) tiles land on different threads and the threads finish together.
+DECKS_PER_THREAD = 4
+
+
+class PacketTraversal:
+    """Adapter from the traversal plugin interface to a packet kernel (set ``kernel``)."""
+
+    kernel = None
+
+    def intersect(self, bvh, tris, rays, packets, frusta, hits, stats):
+        """Closest hit of every ray into ``hits`` (arrays of length R)."""
+        self._run(bvh, tris, rays, packets, frusta, False, hits.t, hits.prim, hits.u, hits.v, stats)
+
+    def occluded(self, bvh, tris, rays, packets, frusta, occluded, stats):
+        """occluded[r] = True when ray r hits anything in [tmin, tmax]."""
+        n = rays.org.shape[0]
+        t = np.empty(n, np.float32)
+        prim = np.empty(n, np.int32)
+        u = np.empty(n, np.float32)
+        v = np.empty(n, np.float32)
+        self._run(bvh, tris, rays, packets, frusta, True, t, prim, u, v, stats)
+        occluded[:] = prim >= 0
+
+    def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats):
+        offsets = np.ascontiguousarray(packets.offsets, np.int32)
+        n_packets = offsets.shape[0] - 1
+        if offsets[-1] != rays.org.shape[0] or np.any(np.diff(offsets) % 4):
+            raise ValueError("packets must cover the batch in whole 2x2 SIMD rays "
+                             f"(offsets end at {int(offsets[-1])}, batch has {rays.org.shape[0]} rays)")
+        if frusta is None:
+            planes = np.zeros((n_packets, 4, 4), np.float32)
+            valid = np.zeros(n_packets, np.bool_)
+        else:
+            planes = np.ascontiguousarray(frusta.planes, np.float32)
+            valid = np.ascontiguousarray(frusta.valid, np.bool_)
+            if planes.shape != (n_packets, 4, 4) or valid.shape != (n_packets,):
+                raise ValueError(f"frusta for {planes.shape[0]} packets given to a batch of {n_packets}")
+        order = child_order_keys(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
+        n_chunks = min(n_packets, DECKS_PER_THREAD * numba.get_num_threads())
+        type(self).kernel(bvh.bmin, bvh.bmax, bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
+                          rays.org, rays.inv_dir, rays.dir, rays.tmin, rays.tmax,
+                          offsets, planes, valid, order, n_chunks, any_hit,
+                          out_t, out_prim, out_u, out_v, None if stats is None else stats.counters)
