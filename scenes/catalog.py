@@ -33,7 +33,8 @@ CATALOG_DIR = Path(__file__).with_name("catalog")
 SCENE_PATH_VARIABLE = "PACKETRT_SCENE_PATH"
 
 #: Modules whose import registers loaders.
-LOADER_MODULES = ["scenes.meshfile", "scenes.whitted", "scenes.aff", "scenes.spd_rings"]
+LOADER_MODULES = ["scenes.meshfile", "scenes.whitted", "scenes.aff", "scenes.spd_rings", "scenes.erw6",
+                  "scenes.cosine"]
 
 LOADERS: dict = {}
 
