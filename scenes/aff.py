@@ -127,7 +127,8 @@ class Tokens:
             raise self.error(f"expected a non-negative count for {what}, got {n}")
         if start + n > len(self.words):
             got = len(self.words) - start
-            raise self.error(f"expected {n} {kind}s for {what}, but the file ends after {got}")
+            raise self.error(f"expected {n} {kind}s for {what}, but the file ends after {got}",
+                             len(self.words) - 1 if self.words else None)
         self.pos += n
         return start, self.words[start:start + n]
 
@@ -585,8 +586,9 @@ class Parser:
     def _check_range(self, index, size, what, line):
         if index.size and (index.min() < 0 or index.max() >= size):
             bad = int(index.max()) if index.max() >= size else int(index.min())
-            raise SceneError(f"{self.path}:{line}: mesh refers to {what} {bad}, but only "
-                             f"{size} {what}s are given (indices start at 0)")
+            plural = {"vertex": "vertices"}.get(what, what + "s")
+            raise SceneError(f"{self.path}:{line}: mesh refers to {what} {bad}, but it has {size} "
+                             f"{plural} (indices start at 0)")
 
     def _polygon(self, line):
         tok = self.tok
