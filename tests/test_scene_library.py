@@ -1,0 +1,139 @@
+"""The scene library: triangle counts of the real and procedural catalog scenes, animation at
+two times, and the cosine scene's fallback room. Real scenes skip only when the shared scene
+folder beside the checkout is absent."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from engine.errors import ConfigError
+from scenes.catalog import describe, entries, load_named
+
+SHARED_SCENES = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
+
+
+@pytest.fixture
+def scene_path(monkeypatch):
+    """PACKETRT_SCENE_PATH = the shared scene folder (skip when it is not there)."""
+    if not SHARED_SCENES.is_dir():
+        pytest.skip(f"shared scene data not found at {SHARED_SCENES}")
+    monkeypatch.setenv("PACKETRT_SCENE_PATH", str(SHARED_SCENES))
+    return SHARED_SCENES
+
+
+@pytest.fixture
+def no_scene_path(monkeypatch):
+    monkeypatch.setenv("PACKETRT_SCENE_PATH", "")
+
+
+def test_kitchen_has_the_published_triangle_count(scene_path):
+    scene = load_named("bart-kitchen")
+    assert scene.n_triangles == 110_561
+    assert scene.info["triangles"] == 110_561 and scene.animated
+    assert scene.info["textures"] == 8 and len(scene.lights) == 6
+    assert scene.triangles.uvs.shape == (110_561, 3, 2)
+
+
+def test_kitchen_toy_car_and_camera_move(scene_path):
+    early, late = load_named("bart-kitchen", time=0.0), load_named("bart-kitchen", time=5.0)
+    assert early.n_triangles == late.n_triangles
+    moved = np.any(early.triangles.v0 != late.triangles.v0, axis=1)
+    assert moved.sum() == early.info["animated_triangles"] > 0          # only the toy car
+    assert early.camera.eye != late.camera.eye
+    np.testing.assert_allclose(late.camera.eye, (3.5, 0.2, 0.1), atol=1e-9)   # the key at 5 s
+
+
+@pytest.mark.parametrize("tessellation, cone_triangles", [(1, 8), (3, 24)])
+def test_museum_counts(scene_path, tessellation, cone_triangles):
+    scene = load_named("bart-museum", {"tessellation": tessellation}, time=2.0)
+    # pillar mesh 10,000 + 133 fan-triangulated polygons (274) + 10 textured triangles,
+    # 1,024 animated triangles, 8 cones.
+    assert scene.info["static_triangles"] == 10_284 + 8 * cone_triangles
+    assert scene.info["tpa_triangles"] == 1_024
+    assert scene.n_triangles == 10_284 + 1_024 + 8 * cone_triangles
+
+
+def test_robots_at_two_times_differ(scene_path):
+    a, b = load_named("bart-robots", time=0.0), load_named("bart-robots", time=20.0)
+    assert a.n_triangles == b.n_triangles == 71_708
+    moving = np.any(a.triangles.v0 != b.triangles.v0, axis=1)
+    assert moving.sum() > 10_000
+    assert a.camera.eye != b.camera.eye
+    assert a.info["unkeyed_transforms"] == ["grip_lift1", "grip_rot1", "gun_lift2", "gun_rot2", "head_rot2"]
+
+
+@pytest.mark.parametrize("lod, count", [(3, 948), (2, 3_851), (1, 16_301), (0, 69_451)])
+def test_bunny_levels_of_detail(scene_path, lod, count):
+    assert load_named("bunny", {"lod": lod}).n_triangles == count
+
+
+@pytest.mark.parametrize("size_factor, tessellation", [(1, 1), (1, 3), (2, 2), (3, 1)])
+def test_spd_rings_counts(no_scene_path, size_factor, tessellation):
+    scene = load_named("spd-rings", {"size_factor": size_factor, "tessellation": tessellation})
+    units = size_factor * (size_factor + 1) * (2 * size_factor + 1) // 6
+    per_unit = 30 * (8 * tessellation + 12 * tessellation ** 2)
+    assert scene.n_triangles == units * per_unit + 2 == scene.info["triangles"]
+    assert scene.info["units"] == units and len(scene.lights) == 3
+    assert len({m.diffuse for m in scene.materials}) == 7                 # six rings + backdrop
+
+
+def test_spd_rings_default_is_spd_size_factor_7(no_scene_path):
+    scene = load_named("spd-rings")
+    assert scene.info["units"] == 140 and scene.info["cylinders"] == scene.info["spheres"] == 4_200
+    assert scene.n_triangles == 554_402
+
+
+def test_spd_ring_unit_lies_on_dodecahedron_edge_midpoints():
+    from scenes.spd_rings import unit_vertices
+    v = unit_vertices(0.0)                                   # unscaled: circumradius 1
+    np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0)
+    d = np.linalg.norm(v[:, None] - v[None], axis=2)
+    edge = 2 / (1 + 5 ** 0.5)                                # icosidodecahedron edge / radius
+    assert (np.abs(d - edge) < 1e-9).sum(axis=1).tolist() == [4] * 30
+
+
+@pytest.mark.parametrize("subdivisions", [8, 2])
+def test_erw6_counts(no_scene_path, subdivisions):
+    scene = load_named("erw6", {"subdivisions": subdivisions})
+    assert scene.n_triangles == 12 * subdivisions ** 2 + 36
+    assert len(scene.lights) == 1
+
+
+def test_cosine_falls_back_to_erw6_without_the_kitchen(no_scene_path):
+    scene = load_named("cosine-n", {"n": 3, "resolution": 16})
+    assert scene.info["host"] == "erw6"
+    assert scene.n_triangles == 804 + 2 * 16 ** 2
+    mirror = scene.materials[int(scene.triangles.material[-1])]
+    assert max(mirror.reflectance) >= 0.9
+
+
+def test_cosine_sits_in_the_kitchen_when_it_is_found(scene_path):
+    scene = load_named("cosine-n", {"resolution": 8}, time=5.0)
+    assert scene.info["host"] == "bart-kitchen"
+    assert scene.n_triangles == 110_561 + 128
+
+
+def test_cosine_surface_follows_its_formula():
+    from scenes.cosine import cosine_surface
+    vertices, faces, normals = cosine_surface(3.0, 12)
+    x, y, z = vertices.T
+    np.testing.assert_allclose(z, np.cos(3 * x) * np.cos(3 * y))
+    assert len(faces) == 2 * 12 ** 2 and np.all(normals[:, 2] > 0)
+
+
+@pytest.mark.parametrize("name, params", [("spd-rings", {"size_factor": 0}), ("erw6", {"subdivisions": -1}),
+                                          ("cosine-n", {"n": 0}), ("cosine-n", {"resolution": 1.5})])
+def test_bad_procedural_parameters(no_scene_path, name, params):
+    with pytest.raises(ConfigError):
+        load_named(name, params)
+
+
+def test_catalog_lists_the_library(no_scene_path):
+    catalog = entries()
+    for name in ("bart-kitchen", "bart-museum", "bart-robots", "spd-rings", "erw6", "cosine-n"):
+        assert name in catalog
+    assert all(catalog[n].animated for n in ("bart-kitchen", "bart-museum", "bart-robots"))
+    rows = {row["name"]: row for row in describe(load=False)}
+    assert not rows["bart-kitchen"]["files_found"] and rows["erw6"]["files_found"]
