@@ -1,4 +1,5 @@
-"""The plugin side shared by the packet traversals: contracts in, kernel call, answers out.
+"""The plugin side shared by the packet traversals and frustum builders: contracts in, kernel
+call, answers out.
 
 Each packet traversal (``traversals/simd.py`` and friends) is a subclass naming its numba
 kernel; every kernel has the signature
@@ -11,6 +12,13 @@ with the BVH and triangle arrays as in ``engine.types``, ``planes`` f32[K,4,4] a
 bool[K] (all False when there is no frustum), ``order`` the i8[N] child-order keys of
 ``engine.packet_kernels.child_order_keys``, ``n_chunks`` the number of interleaved packet
 decks dealt to the threads, and ``counters`` i64[threads,3,D] or None.
+
+Each frustum builder (``frusta/pinhole.py`` and friends) names a kernel
+
+    kernel(org, dirs, tmin, tmax, offsets, bounds, n_chunks, planes, valid)
+
+that fills ``planes`` f32[K,4,4] and ``valid`` bool[K] for the packets, given the scene box
+``bounds`` f32[2,3].
 """
 from __future__ import annotations
 
@@ -18,10 +26,16 @@ import numba
 import numpy as np
 
 from .packet_kernels import child_order_keys
+from .types import Frusta
 
 #: Packet decks per thread: packet k goes to deck k % n_chunks, so neighbouring (similarly
 #: expensive) tiles land on different threads and the threads finish together.
 DECKS_PER_THREAD = 4
+
+
+def deck_count(n_packets: int) -> int:
+    """How many interleaved decks of packets to deal to the threads."""
+    return min(n_packets, DECKS_PER_THREAD * numba.get_num_threads())
 
 
 class PacketTraversal:
@@ -58,8 +72,25 @@ class PacketTraversal:
             if planes.shape != (n_packets, 4, 4) or valid.shape != (n_packets,):
                 raise ValueError(f"frusta for {planes.shape[0]} packets given to a batch of {n_packets}")
         order = child_order_keys(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
-        n_chunks = min(n_packets, DECKS_PER_THREAD * numba.get_num_threads())
         type(self).kernel(bvh.bmin, bvh.bmax, bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
                           rays.org, rays.inv_dir, rays.dir, rays.tmin, rays.tmax,
-                          offsets, planes, valid, order, n_chunks, any_hit,
+                          offsets, planes, valid, order, deck_count(n_packets), any_hit,
                           out_t, out_prim, out_u, out_v, None if stats is None else stats.counters)
+
+
+class PacketFrustum:
+    """Adapter from the frustum plugin interface to a builder kernel (set ``kernel``)."""
+
+    kernel = None
+
+    def build(self, rays, packets, scene_bounds):
+        """One frustum per packet: Frusta(planes f32[K,4,4], valid bool[K])."""
+        n_packets = len(packets.offsets) - 1
+        planes = np.zeros((n_packets, 4, 4), np.float32)
+        valid = np.zeros(n_packets, np.bool_)
+        if n_packets:
+            type(self).kernel(rays.org, rays.dir, rays.tmin, rays.tmax,
+                              np.ascontiguousarray(packets.offsets, np.int32),
+                              np.ascontiguousarray(scene_bounds, np.float32), deck_count(n_packets),
+                              planes, valid)
+        return Frusta(planes, valid)

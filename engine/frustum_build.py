@@ -1,0 +1,176 @@
+"""Construction of packet frusta, shared by the frustum plugins (Overbeck et al. 2008, Section 4).
+
+Every frustum here is built the paper's way, around a dominant axis w (one along which every
+ray of the packet travels with the same strict sign s): on two planes across w -- a near one
+at w' = s*w = wn and a far one at w' = wf -- the rays' crossing points fill the rectangles
+[u0, u1] x [v0, v1] (u, v the other two axes), and the four side planes join the rectangles'
+matching edges. Since u and v are linear in w' along a ray, every ray's part between the two
+planes lies inside the side planes.
+
+- Pinhole and point-light packets share one end point, the apex: the near rectangle is that
+  point and the far one is the rays' direction slopes at unit distance (``apex_frustum``).
+- Reflection and refraction packets have scattered origins: the near plane is placed at the
+  origins' nearest w', the far one beyond the scene box (``slab_frustum``), so every part of
+  a ray that can meet geometry lies between them.
+
+All of this is float64. Each plane is then moved outwards by a margin -- FRUSTUM_SLACK times
+the coordinate scale plus the ray length involved, plus any slack the caller knows of -- so
+that the float32 plane tests and the float32 watertight triangle test, whose errors grow with
+those magnitudes, can never disagree with the frustum: culling stays conservative.
+A packet with no such axis, no live ray or degenerate rays gets no frustum (valid False).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+#: Relative widening of every frustum: about sqrt of float32's epsilon, far above the rounding
+#: of the plane tests and of the watertight test's edge functions on the scales involved.
+FRUSTUM_SLACK = 2.0 ** -11
+
+
+@njit(cache=True)
+def choose_axis(g, m):
+    """Dominant axis of the m vectors g[:m] (f64[>=m,3]): (axis, sign) with sign * g[i, axis] > 0
+    for every i, picking the axis whose worst vector is least oblique; (-1, 0.0) when no axis has
+    one strict sign for all of them (or a vector is zero or not finite)."""
+    best_axis = -1
+    best_sign = 0.0
+    best_cos = 0.0
+    for a in range(3):
+        total = 0.0
+        for i in range(m):
+            total += g[i, a]
+        sign = 1.0 if total >= 0.0 else -1.0
+        worst = np.inf
+        for i in range(m):
+            length = math.sqrt(g[i, 0] * g[i, 0] + g[i, 1] * g[i, 1] + g[i, 2] * g[i, 2])
+            if not (length > 0.0 and length < np.inf):
+                return -1, 0.0
+            worst = min(worst, sign * g[i, a] / length)
+        if worst > best_cos:
+            best_axis = a
+            best_sign = sign
+            best_cos = worst
+    return best_axis, best_sign
+
+
+@njit(cache=True)
+def side_planes(axis, sign, wn, wf, near_rect, far_rect, margin, out):
+    """The four side planes joining the rectangles near_rect at w' = wn and far_rect at w' = wf
+    (each f64[4] = u0, u1, v0, v1; w' = sign * coordinate[axis]; wf > wn) into out (f32[4,4]
+    rows nx, ny, nz, d, inward), each moved outwards by ``margin``."""
+    span = wf - wn
+    for p in range(4):
+        comp = (axis + 1 + p // 2) % 3  # u for planes 0, 1; v for 2, 3
+        c = 1.0 if p % 2 == 0 else -1.0  # lower bound: coord >= edge; upper: coord <= edge
+        slope = (far_rect[p] - near_rect[p]) / span
+        # c * (coord - near - slope * (w' - wn)) >= 0, normalised.
+        norm = math.sqrt(1.0 + slope * slope)
+        for a in range(3):
+            out[p, a] = 0.0
+        out[p, comp] = c / norm
+        out[p, axis] = -c * slope * sign / norm
+        out[p, 3] = -c * (near_rect[p] - slope * wn) / norm + margin
+
+
+@njit(cache=True)
+def abs_max3(x, y, z):
+    return max(abs(x), max(abs(y), abs(z)))
+
+
+@njit(cache=True)
+def bounds_scale(bounds):
+    """Largest coordinate magnitude of the scene box (f32[2,3])."""
+    s = 0.0
+    for j in range(2):
+        s = max(s, abs_max3(bounds[j, 0], bounds[j, 1], bounds[j, 2]))
+    return s
+
+
+@njit(cache=True)
+def farthest_corner(px, py, pz, bounds):
+    """Distance from (px, py, pz) to the farthest corner of the scene box (f32[2,3])."""
+    dx = max(abs(bounds[0, 0] - px), abs(bounds[1, 0] - px))
+    dy = max(abs(bounds[0, 1] - py), abs(bounds[1, 1] - py))
+    dz = max(abs(bounds[0, 2] - pz), abs(bounds[1, 2] - pz))
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@njit(cache=True)
+def apex_frustum(apex, g, m, scale, reach, extra, out):
+    """Frustum from the point apex (f64[3]) along the m vectors g[:m] (f64[>=m,3]): the rays
+    apex + s g[i], s >= 0. ``scale`` is the largest coordinate magnitude involved, ``reach`` the
+    longest ray length that matters, ``extra`` slack the caller adds. Writes out (f32[4,4]);
+    returns False (out untouched) when there is no dominant axis."""
+    axis, sign = choose_axis(g, m)
+    if axis < 0:
+        return False
+    u = (axis + 1) % 3
+    v = (axis + 2) % 3
+    lo_u = np.inf
+    hi_u = -np.inf
+    lo_v = np.inf
+    hi_v = -np.inf
+    for i in range(m):
+        w = sign * g[i, axis]
+        lo_u = min(lo_u, g[i, u] / w)
+        hi_u = max(hi_u, g[i, u] / w)
+        lo_v = min(lo_v, g[i, v] / w)
+        hi_v = max(hi_v, g[i, v] / w)
+    near_rect = np.array([apex[u], apex[u], apex[v], apex[v]])
+    far_rect = np.array([apex[u] + lo_u, apex[u] + hi_u, apex[v] + lo_v, apex[v] + hi_v])
+    wn = sign * apex[axis]
+    side_planes(axis, sign, wn, wn + 1.0, near_rect, far_rect,
+                FRUSTUM_SLACK * (scale + reach) + extra, out)
+    return True
+
+
+@njit(cache=True)
+def slab_frustum(p0, g, m, bounds, out):
+    """Frustum around m rays with scattered starts p0[:m] and directions g[:m] (f64[>=m,3]) whose
+    geometry lies in the scene box ``bounds`` (f32[2,3]): near plane through the nearest start,
+    far plane beyond the box. Writes out (f32[4,4]); False when there is no dominant axis."""
+    axis, sign = choose_axis(g, m)
+    if axis < 0:
+        return False
+    u = (axis + 1) % 3
+    v = (axis + 2) % 3
+    scale = bounds_scale(bounds)
+    wn = np.inf
+    w_start_far = -np.inf
+    for i in range(m):
+        w = sign * p0[i, axis]
+        wn = min(wn, w)
+        w_start_far = max(w_start_far, w)
+        scale = max(scale, abs_max3(p0[i, 0], p0[i, 1], p0[i, 2]))
+    wf = max(max(sign * bounds[0, axis], sign * bounds[1, axis]), w_start_far)
+    if not wf > wn:
+        # Every start lies on one plane with the whole scene behind it: any positive span will do.
+        wf = wn + 1.0 + scale
+    near_rect = np.array([np.inf, -np.inf, np.inf, -np.inf])
+    far_rect = np.array([np.inf, -np.inf, np.inf, -np.inf])
+    reach = 0.0
+    for i in range(m):
+        w0 = sign * p0[i, axis]
+        gw = sign * g[i, axis]
+        tn = (wn - w0) / gw
+        tf = (wf - w0) / gw
+        un = p0[i, u] + tn * g[i, u]
+        vn = p0[i, v] + tn * g[i, v]
+        uf = p0[i, u] + tf * g[i, u]
+        vf = p0[i, v] + tf * g[i, v]
+        near_rect[0] = min(near_rect[0], un)
+        near_rect[1] = max(near_rect[1], un)
+        near_rect[2] = min(near_rect[2], vn)
+        near_rect[3] = max(near_rect[3], vn)
+        far_rect[0] = min(far_rect[0], uf)
+        far_rect[1] = max(far_rect[1], uf)
+        far_rect[2] = min(far_rect[2], vf)
+        far_rect[3] = max(far_rect[3], vf)
+        length = math.sqrt(g[i, 0] * g[i, 0] + g[i, 1] * g[i, 1] + g[i, 2] * g[i, 2])
+        reach = max(reach, (tf - tn) * length)
+    side_planes(axis, sign, wn, wf, near_rect, far_rect, FRUSTUM_SLACK * (scale + reach), out)
+    return True

@@ -1,0 +1,84 @@
+"""``pointlight``: frusta for shadow rays towards one point light.
+
+Overbeck, Ramamoorthi, Mark 2008, Section 4: shadow rays to a point light share the light as a
+common point, so their frustum is the pinhole frustum seen from the light. In packetrt a shadow
+ray starts at the surface and runs towards the light, stopping at tmax just short of it, so the
+light is recovered as the mean of the rays' end points org + tmax dir. From it, along the
+dominant axis of the vectors light -> segment start, the extremal (u, v) slopes at unit
+distance give the four corner rays and the side planes through the light. The planes are widened
+by the spread of the end points around the light (the rays stop a little short, by different
+amounts) on top of the margin of ``engine.frustum_build``.
+
+Invalid (no culling) when the rays do not meet at one point (end points spread by more than
+END_SPREAD of the shortest ray, or an infinite tmax), have no common dominant axis sign, are
+degenerate (a ray starting at the light), or none is live.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from engine.frustum_build import abs_max3, apex_frustum, bounds_scale
+from engine.packet_kernels import longest_packet
+from engine.packet_plugin import PacketFrustum
+from engine.registry import register_frustum
+
+#: How far the end points may scatter around their mean, relative to the shortest ray, for the
+#: rays to count as meeting at one light.
+END_SPREAD = 1e-2
+
+
+@njit(cache=True, parallel=True)
+def pointlight_frusta(org, dirs, tmin, tmax, offsets, bounds, n_chunks, planes, valid):
+    """Fill planes (f32[K,4,4]) and valid (bool[K]) for shadow rays org, dirs (f32[R,3]), tmin,
+    tmax (f32[R]) in packets offsets (i32[K+1]); bounds: the scene box f32[2,3]."""
+    n_packets = offsets.shape[0] - 1
+    scene_scale = bounds_scale(bounds)
+    for chunk in prange(n_chunks):
+        g = np.empty((longest_packet(offsets), 3))
+        light = np.empty(3)
+        for k in range(chunk, n_packets, n_chunks):
+            valid[k] = False
+            light[:] = 0.0
+            m = 0
+            for r in range(offsets[k], offsets[k + 1]):
+                if tmin[r] <= tmax[r]:
+                    for a in range(3):
+                        light[a] += org[r, a] + np.float64(tmax[r]) * dirs[r, a]
+                    m += 1
+            if m == 0:
+                continue
+            light /= m
+            spread = 0.0
+            shortest = np.inf
+            scale = max(scene_scale, abs_max3(light[0], light[1], light[2]))
+            m = 0
+            for r in range(offsets[k], offsets[k + 1]):
+                if not tmin[r] <= tmax[r]:
+                    continue
+                ex = org[r, 0] + np.float64(tmax[r]) * dirs[r, 0] - light[0]
+                ey = org[r, 1] + np.float64(tmax[r]) * dirs[r, 1] - light[1]
+                ez = org[r, 2] + np.float64(tmax[r]) * dirs[r, 2] - light[2]
+                spread = max(spread, math.sqrt(ex * ex + ey * ey + ez * ez))
+                for a in range(3):
+                    # Vector from the light back to where the ray's segment starts.
+                    g[m, a] = org[r, a] + np.float64(tmin[r]) * dirs[r, a] - light[a]
+                shortest = min(shortest, math.sqrt(g[m, 0] ** 2 + g[m, 1] ** 2 + g[m, 2] ** 2))
+                scale = max(scale, abs_max3(org[r, 0], org[r, 1], org[r, 2]))
+                m += 1
+            # NaN-safe: an infinite tmax makes the spread NaN and fails this test.
+            if not spread <= END_SPREAD * shortest:
+                continue
+            reach = 0.0
+            for i in range(m):
+                reach = max(reach, math.sqrt(g[i, 0] ** 2 + g[i, 1] ** 2 + g[i, 2] ** 2))
+            valid[k] = apex_frustum(light, g, m, scale, reach, spread, planes[k])
+
+
+@register_frustum("pointlight")
+class PointLightFrustum(PacketFrustum):
+    """Shadow rays towards one point light: four planes through the light and the extremal rays."""
+
+    kernel = pointlight_frusta
