@@ -38,8 +38,8 @@ Textures (binary PPM, read with Pillow) are looked up next to the including file
 
 Animation: translation and scale keys are Kochanek-Bartels (tension, continuity, bias) Hermite
 splines over non-uniformly spaced keys. Rotation keys are absolute axis-angle orientations, made
-quaternions; consecutive keys are joined the shorter way (so a wheel keyed every 90 degrees turns
-on: 0, 90, ... 720), and each segment is a Hermite spline in the log space of the rotation
+quaternions; consecutive keys are joined the shorter way (a gun keyed every 90 degrees up to 720
+keeps turning one way), and each segment is a Hermite spline in the log space of the rotation
 relative to its first key, with KB tangents built from the neighbouring relative rotations (exact
 for rotation about one axis). Times before the first or after the last key hold the end key.
 Later keys win: a key at or before an earlier key's time replaces it and the keys after it
@@ -49,6 +49,11 @@ the ``v`` angle stays the vertical field of view.
 
 Parameters: ``tessellation`` (R above, default 3), ``camera`` ("auto": the animated camera when
 the scene has ``k camera``, else ``v``; "static": always ``v``).
+
+Kept but not applied: ``hither`` and ``resolution`` go to ``scene.info`` (the renderer's config
+sets the image size); the detail level of ``i`` is read and ignored. Choices where the format
+leaves room: ``tpa`` keys are blended linearly (vertices and normals); spline end keys use the
+chord to their neighbour as tangent; NFF cones stay open (no caps), as in NFF.
 
 Malformed input raises ``SceneError`` with ``FILE:LINE: what was expected``.
 """
