@@ -390,7 +390,10 @@ def build_hierarchy(org, dirs, tmin, tmax, pixel, width: int, height: int, apex=
     return h
 
 
-def hierarchy_scale(h: RayHierarchy) -> float:
-    """Largest coordinate magnitude of any live node centre (0 for an empty hierarchy)."""
-    live = h.radius >= 0
-    return float(np.abs(h.centre[live]).max(initial=0.0))
+def absolute_slack(h: RayHierarchy, sphere_c: np.ndarray, sphere_r: np.ndarray) -> float:
+    """The test's absolute slack for these rays and spheres (f32[T,3], f32[T]): rounding of
+    float32 coordinates grows with their magnitude, not with the distances involved."""
+    scale = float(np.abs(h.centre[h.radius >= 0]).max(initial=0.0))
+    if sphere_r.shape[0]:
+        scale = max(scale, float(np.abs(sphere_c).max() + sphere_r.max()))
+    return float(TEST_SLACK) * scale

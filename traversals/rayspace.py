@@ -51,7 +51,7 @@ import time
 import numpy as np
 from numba import get_thread_id, njit, prange
 
-from engine.cone_sphere import TEST_SLACK, build_hierarchy, hierarchy_scale
+from engine.cone_sphere import absolute_slack, build_hierarchy
 from engine.errors import ConfigError
 from engine.kernels import F32_INF, closer, intersect_triangle, ray_shear
 from engine.pair_stream import expand, group_by_slot, root_stream
@@ -220,9 +220,7 @@ class RaySpaceTraversal:
         h = build_hierarchy(rays.org, rays.dir, rays.tmin, rays.tmax, rays.pixel,
                             packets.width, packets.height, apex)
         seconds["build"] = time.perf_counter() - clock
-        # Absolute slack of the float32 test at this scene's coordinate magnitude.
-        scale = max(float(np.abs(centre).max() + radius.max()), hierarchy_scale(h))
-        abs_tol = float(TEST_SLACK) * scale
+        abs_tol = absolute_slack(h, centre, radius)
 
         record = _new_record(h.levels)
         record.update(calls=1, rays=int(live.sum()), triangles=n_tris, reversed_batches=int(apex is not None))
