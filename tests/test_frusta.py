@@ -1,0 +1,202 @@
+"""Frustum builders (pinhole, pointlight, general): conservative on random packets, invalid where
+no frustum can be built.
+
+Conservative means: no ray of the packet hits (by the engine's own slab test and watertight
+triangle test) a box or a triangle that the frustum culls. The random geometry is scattered
+around points on the rays at the scale of the packet's spread, so a good share of it lies just
+outside the frustum, where a wrong plane would show; tiny triangles pierced by the corner rays
+probe the margin the builders leave for rounding.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numba import njit
+
+from engine.frustum_cull import frustum_misses_box, frustum_misses_triangle, load_frustum
+from engine.kernels import F32_INF, intersect_triangle, ray_shear, safe_inverse, slab_test
+from engine.registry import get_frustum
+from engine.types import Packets, RayBatch
+
+BUILDERS = ["pinhole", "pointlight", "general"]
+RAYS = 64
+GEOMETRY = 300
+
+
+def one_packet(org, direction, tmin, tmax) -> tuple:
+    """(RayBatch, Packets) of a single packet over the given rays (f[M,3], f[M,3], f[M], f[M])."""
+    org = np.ascontiguousarray(org, np.float32)
+    direction = np.ascontiguousarray(direction, np.float32)
+    m = len(org)
+    rays = RayBatch(org, direction, safe_inverse(direction), np.asarray(tmin, np.float32),
+                    np.asarray(tmax, np.float32), np.arange(m, dtype=np.int32), np.ones((m, 3), np.float32),
+                    "primary")
+    return rays, Packets(np.array([0, m], np.int32), 8, m, 1)
+
+
+def random_packet(kind: str, rng: np.random.Generator):
+    """Rays of one packet as the builder ``kind`` expects them, with a dead lane at the end.
+
+    Returns (rays, packets, spread): spread is the directions' angular spread.
+    """
+    centre = rng.normal(size=3)
+    centre /= np.linalg.norm(centre)
+    e1 = np.cross(centre, rng.normal(size=3))
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(centre, e1)
+    spread = 10.0 ** rng.uniform(-4, -0.5)
+    a, b = rng.uniform(-1, 1, (2, RAYS, 1))
+    d = centre + spread * (a * e1 + b * e2)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    tmin = np.zeros(RAYS)
+    tmax = np.full(RAYS, np.inf)
+    if kind == "pinhole":
+        org = np.tile(rng.uniform(-10, 10, 3), (RAYS, 1))
+    elif kind == "pointlight":
+        light = rng.uniform(-10, 10, 3).astype(np.float32)
+        org = (light + d * rng.uniform(0.5, 20, (RAYS, 1))).astype(np.float32)  # surface points
+        to_light = light - org
+        tmax = np.linalg.norm(to_light, axis=1) * (1 - 1e-4)
+        d = to_light / np.linalg.norm(to_light, axis=1, keepdims=True)
+    else:
+        org = rng.uniform(-10, 10, 3) + rng.uniform(-1, 1, (RAYS, 3)) * 10.0 ** rng.uniform(-3, 0.5)
+    tmin[-1], tmax[-1] = 1.0, 0.0  # a dead lane: ignored by the builders
+    rays, packets = one_packet(org, d, tmin, tmax)
+    return rays, packets, spread
+
+
+def extremal_rays(rays, planes):
+    """Index of the live ray nearest to each plane (f32[4,4]) at t = 1: the packet's corner rays."""
+    live = np.flatnonzero(rays.tmin <= rays.tmax)
+    reach = np.minimum(rays.tmax[live], 1.0)[:, None]
+    points = (rays.org[live] + reach * rays.dir[live]).astype(np.float64)
+    distance = points @ planes[:, :3].T.astype(np.float64) + planes[:, 3]
+    return live[np.argmin(distance, axis=0)]
+
+
+def random_geometry(rays, spread, corner_rays, rng):
+    """Boxes (bmin, bmax f32[G,3]) and triangles (v0, v1, v2 f32[G,3]) near points on the rays.
+
+    Boxes and odd triangles are scattered around points on random rays at the packet's scale;
+    even triangles are pierced by a corner ray and range from that scale down to 1e-7 of their
+    distance, so only the margin the builders leave for rounding keeps them from being culled.
+    """
+    live = np.flatnonzero(rays.tmin <= rays.tmax)
+    pick = rng.choice(live, GEOMETRY)
+    pierced = np.arange(GEOMETRY) % 2 == 0
+    pick[pierced] = rng.choice(corner_rays, int(pierced.sum()))
+    reach = np.minimum(rays.tmax[pick], 30.0)
+    t = rng.uniform(0.02, 1.0, GEOMETRY) * reach
+    size = (spread * t)[:, None]
+    on_ray = rays.org[pick] + t[:, None] * rays.dir[pick]
+    centre = on_ray + rng.normal(size=(GEOMETRY, 3)) * size * 1.5
+    half = np.abs(rng.normal(size=(GEOMETRY, 3))) * size * 0.3
+    hub = np.where(pierced[:, None], on_ray, centre)
+    scale = np.where(pierced, 10.0 ** rng.uniform(-7, -2, GEOMETRY) * t, size[:, 0] * 0.3)[:, None]
+    corners = [hub + rng.normal(size=(GEOMETRY, 3)) * scale for _ in range(3)]
+    as32 = lambda x: np.ascontiguousarray(x, np.float32)
+    return as32(centre - half), as32(centre + half), *(as32(c) for c in corners)
+
+
+@njit(cache=True)
+def culled_yet_hit(planes, valid, org, dirs, inv, tmin, tmax, bmin, bmax, v0, v1, v2):
+    """(boxes culled, culled boxes some ray hits, triangles culled, culled triangles some ray hits)
+    for the single packet's frustum."""
+    fr = np.zeros(16, np.float32)
+    load_frustum(planes, valid, 0, fr)
+    n_rays = org.shape[0]
+    boxes = box_errors = tris = tri_errors = 0
+    for g in range(bmin.shape[0]):
+        if frustum_misses_box(fr, bmin, bmax, g):
+            boxes += 1
+            for r in range(n_rays):
+                if slab_test(org[r, 0], org[r, 1], org[r, 2], inv[r, 0], inv[r, 1], inv[r, 2],
+                             tmin[r], tmax[r], bmin, bmax, g) < F32_INF:
+                    box_errors += 1
+                    break
+        if frustum_misses_triangle(fr, v0, v1, v2, g):
+            tris += 1
+            for r in range(n_rays):
+                if not tmin[r] <= tmax[r]:
+                    continue
+                kx, ky, kz, sx, sy, sz = ray_shear(dirs[r, 0], dirs[r, 1], dirs[r, 2])
+                t, u, v = intersect_triangle(org[r, kx], org[r, ky], org[r, kz], kx, ky, kz, sx, sy, sz,
+                                             tmin[r], tmax[r], v0, v1, v2, g)
+                if t < F32_INF:
+                    tri_errors += 1
+                    break
+    return boxes, box_errors, tris, tri_errors
+
+
+def cull_check(kind, seed):
+    rng = np.random.default_rng(seed)
+    rays, packets, spread = random_packet(kind, rng)
+    # A scene box around everything the geometry below can reach.
+    live = rays.tmin <= rays.tmax
+    bounds = np.stack([rays.org[live].min(0) - 40, rays.org[live].max(0) + 40]).astype(np.float32)
+    frusta = get_frustum(kind).build(rays, packets, bounds)
+    assert frusta.valid.tolist() == [True]
+    bmin, bmax, v0, v1, v2 = random_geometry(rays, spread, extremal_rays(rays, frusta.planes[0]), rng)
+    return culled_yet_hit(frusta.planes, frusta.valid, rays.org, rays.dir, rays.inv_dir, rays.tmin, rays.tmax,
+                          bmin, bmax, v0, v1, v2)
+
+
+@settings(max_examples=60, deadline=None)
+@given(kind=st.sampled_from(BUILDERS), seed=st.integers(0, 2 ** 32 - 1))
+def test_frustum_is_conservative(kind, seed):
+    boxes, box_errors, tris, tri_errors = cull_check(kind, seed)
+    assert box_errors == 0, f"{box_errors} of {boxes} culled boxes are hit"
+    assert tri_errors == 0, f"{tri_errors} of {tris} culled triangles are hit"
+
+
+@pytest.mark.parametrize("kind", BUILDERS)
+def test_frustum_culls_plenty(kind):
+    """Not vacuous: a good share of the geometry near the packet is culled."""
+    culled = [cull_check(kind, seed) for seed in range(10)]
+    assert sum(c[0] for c in culled) > 0.1 * 10 * GEOMETRY
+    assert sum(c[2] for c in culled) > 0.1 * 10 * GEOMETRY
+
+
+BOUNDS = np.array([[-20, -20, -20], [20, 20, 20]], np.float32)
+
+
+def all_octants():
+    """Unit directions into all eight octants: no axis has one sign for them all."""
+    d = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("kind", BUILDERS)
+def test_mixed_sign_packets_are_invalid(kind):
+    d = all_octants()
+    if kind == "pointlight":
+        light = np.array([1.0, 2.0, 3.0])
+        org = light + 5 * d  # surface points on every side of the light
+        rays, packets = one_packet(org, -d, np.zeros(8), np.full(8, 5.0))
+    else:
+        rays, packets = one_packet(np.tile([0.5, 0.5, 0.5], (8, 1)), d, np.zeros(8), np.full(8, np.inf))
+    assert get_frustum(kind).build(rays, packets, BOUNDS).valid.tolist() == [False]
+
+
+@pytest.mark.parametrize("kind", BUILDERS)
+def test_dead_packets_are_invalid(kind):
+    rays, packets = one_packet(np.zeros((4, 3)), np.tile([0, 0, 1.0], (4, 1)), np.ones(4), np.zeros(4))
+    assert get_frustum(kind).build(rays, packets, BOUNDS).valid.tolist() == [False]
+
+
+def test_pinhole_needs_one_eye():
+    d = np.tile([0.0, 0.0, 1.0], (4, 1))
+    org = np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [0.5, 0, 0]], np.float64)
+    rays, packets = one_packet(org, d, np.zeros(4), np.full(4, np.inf))
+    assert get_frustum("pinhole").build(rays, packets, BOUNDS).valid.tolist() == [False]
+
+
+def test_pointlight_needs_one_light():
+    org = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float64)
+    d = np.tile([0.0, 0.0, 1.0], (4, 1))
+    # Parallel rays (a directional light) and rays without an end never meet at one point.
+    for tmax in (np.full(4, 5.0), np.full(4, np.inf)):
+        rays, packets = one_packet(org, d, np.zeros(4), tmax)
+        assert get_frustum("pointlight").build(rays, packets, BOUNDS).valid.tolist() == [False]
