@@ -18,7 +18,7 @@ Layout (mip-map over the screen grid of ancestral pixels, W x H = packets.width 
 - level k >= 1: a dense row-major grid of ceil(W / 2^k) x ceil(H / 2^k) nodes; node (x, y) of
   level k covers pixels [x 2^k, (x+1) 2^k) x [y 2^k, (y+1) 2^k). Its children at level k-1 >= 1
   are (2x+i, 2y+j), i, j in {0, 1}, where inside the grid (implicit, like a mip-map); at
-  level 1 its children are the slots of block y * ceil(W/2) + x.
+  level 1 its children are the slots of block y * ceil(W/2) + x (see ``children``).
 - the root is the single node of level ``levels``.
 
 All node arrays cover every level, level 0 first; level k's nodes are
@@ -85,54 +85,47 @@ def cone_sphere_overlap(h, node, sx, sy, sz, rho, abs_tol):
     the node meets the sphere. abs_tol: absolute slack for the coordinates' magnitude.
     """
     r = h.radius[node]
-    if r < 0:
-        return False
     vx = sx - h.centre[node, 0]
     vy = sy - h.centre[node, 1]
     vz = sz - h.centre[node, 2]
     dist = np.sqrt(vx * vx + vy * vy + vz * vz)
     grown = rho + r
     tol = TEST_SLACK * (dist + grown) + abs_tol
-    if dist - rho > h.far[node] + tol:
-        return False  # past the end of every segment
-    if dist <= grown + tol:
-        return True  # the apex is inside the grown sphere
     dx, dy, dz = h.axis[node, 0], h.axis[node, 1], h.axis[node, 2]
-    a = vx * dx + vy * dy + vz * dz
+    a = vx * dx + vy * dy + vz * dz  # along the axis
     # The off-axis part from |v x d|, not sqrt(dist^2 - a^2): no cancellation near the axis.
     cx = vy * dz - vz * dy
     cy = vz * dx - vx * dz
     cz = vx * dy - vy * dx
     b = np.sqrt(cx * cx + cy * cy + cz * cz)
     ca, sa = h.cos_a[node], h.sin_a[node]
-    if a >= dist * ca - tol:
-        return True  # the centre is inside the cone
-    if a * ca + b * sa < 0:
-        return False  # the nearest wedge point is the apex, and that is too far
-    return b * ca - a * sa <= grown + tol  # distance to the wedge's edge
+    # Every clause is evaluated and combined with & and | rather than branched on: the
+    # outcome is unpredictable, and a mispredicted branch costs more than the arithmetic.
+    reach = dist - rho <= h.far[node] + tol        # not past the end of every segment
+    apex = dist <= grown + tol                     # the apex is inside the grown sphere
+    inside = a >= dist * ca - tol                  # the centre is inside the cone
+    # Distance to the wedge's edge, where the nearest wedge point is not the apex.
+    edge = (a * ca + b * sa >= 0) & (b * ca - a * sa <= grown + tol)
+    return (r >= 0) & reach & (apex | inside | edge)
 
 
 @njit(cache=True)
-def child_count(h, level, node):
-    """Child slots of node ``node`` (index within ``level`` >= 1), including empty ones."""
-    if level == 1:
-        return h.block_start[node + 1] - h.block_start[node]
-    return 4
+def children(h, level, node):
+    """Children of node ``node`` (index within ``level`` >= 1), as indices within level - 1:
+    first + jy * stride + jx for jy < ny, jx < nx (empty ones included).
 
-
-@njit(cache=True)
-def child_of(h, level, node, j):
-    """Index within level-1 of the j-th child of ``node`` at ``level`` >= 1; -1 if off the grid."""
+    Level 1: the block's slots (one row). Coarser: the 2x2 nodes below, clipped at the
+    grid's edge. One integer division per node, none per child.
+    """
     if level == 1:
-        return h.block_start[node] + j
+        first = h.block_start[node]
+        return first, h.block_start[node + 1] - first, 1, 0
     width = h.level_width[level]
-    x = node % width
     y = node // width
-    cx = 2 * x + (j & 1)
-    cy = 2 * y + (j >> 1)
-    if cx >= h.level_width[level - 1] or cy >= h.level_height[level - 1]:
-        return -1
-    return cy * h.level_width[level - 1] + cx
+    x0 = 2 * (node - y * width)
+    y0 = 2 * y
+    below = h.level_width[level - 1]
+    return y0 * below + x0, min(2, below - x0), min(2, h.level_height[level - 1] - y0), below
 
 
 # ---------------------------------------------------------------------------------------
@@ -292,17 +285,16 @@ def _grow_cone(ax, ay, az, a, bx, by, bz, b):
 def _merge_children(h, parent, level, local):
     """Parent node ``parent`` (global) from the children of node ``local`` at ``level`` >= 1."""
     base = h.level_offset[level - 1]
-    n_children = child_count(h, level, local)
+    first, nx, ny, stride = children(h, level, local)
     # Pass 1: merged sphere and cone, children taken one by one.
     found = False
     cx = cy = cz = rad = 0.0
     ax = ay = az = 0.0
     alpha = 0.0
-    for j in range(n_children):
-        c = child_of(h, level, local, j)
-        if c < 0 or h.radius[base + c] < 0:
+    for j in range(nx * ny):
+        n = base + first + (j // nx) * stride + j % nx
+        if h.radius[n] < 0:
             continue
-        n = base + c
         ocx, ocy, ocz = np.float64(h.centre[n, 0]), np.float64(h.centre[n, 1]), np.float64(h.centre[n, 2])
         oax, oay, oaz = np.float64(h.axis[n, 0]), np.float64(h.axis[n, 1]), np.float64(h.axis[n, 2])
         if not found:
@@ -325,11 +317,10 @@ def _merge_children(h, parent, level, local):
     qx, qy, qz = np.float64(h.centre[parent, 0]), np.float64(h.centre[parent, 1]), np.float64(h.centre[parent, 2])
     rad = 0.0
     far = 0.0
-    for j in range(n_children):
-        c = child_of(h, level, local, j)
-        if c < 0 or h.radius[base + c] < 0:
+    for j in range(nx * ny):
+        n = base + first + (j // nx) * stride + j % nx
+        if h.radius[n] < 0:
             continue
-        n = base + c
         gx = np.float64(h.centre[n, 0]) - qx
         gy = np.float64(h.centre[n, 1]) - qy
         gz = np.float64(h.centre[n, 2]) - qz

@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from .cone_sphere import child_count, child_of, cone_sphere_overlap
+from .cone_sphere import children, cone_sphere_overlap
 
 BLOCK = 2048      # pairs per prange task
 MASK_BITS = 63    # children per pair a bit mask can remember (int64, sign bit unused)
@@ -31,7 +31,7 @@ MASK_BITS = 63    # children per pair a bit mask can remember (int64, sign bit u
 class StepReport(NamedTuple):
     """What one level step did.
 
-    slots: child slots before compaction (input pairs x children per node, empty ones too);
+    slots: child slots before compaction (input pairs x their in-grid children, empty ones too);
     tests: cone-sphere tests run (non-empty children); survivors: pairs after compaction;
     count_seconds, compact_seconds: wall time of phase 1 and of phases 2-3.
     """
@@ -62,19 +62,22 @@ def _count(h, level, nodes, tris, sphere_c, sphere_r, abs_tol, use_mask, masks, 
             parent = nodes[p]
             tri = tris[p]
             sx, sy, sz, rho = sphere_c[tri, 0], sphere_c[tri, 1], sphere_c[tri, 2], sphere_r[tri]
-            n_children = child_count(h, level, parent)
-            slots += n_children
+            first, nx, ny, stride = children(h, level, parent)
+            slots += nx * ny
             bits = 0
-            for j in range(n_children):
-                c = child_of(h, level, parent, j)
-                if c < 0 or h.radius[base + c] < 0:
-                    continue  # off the grid or no rays: nothing to test
-                tests += 1
-                if cone_sphere_overlap(h, base + c, sx, sy, sz, rho, abs_tol):
-                    kept += 1
-                    if use_mask:
-                        bits |= 1 << j
-            masks[p] = bits
+            j = 0
+            for jy in range(ny):
+                row = base + first + jy * stride
+                for jx in range(nx):
+                    # Counted without branches: the outcome is unpredictable.
+                    tests += h.radius[row + jx] >= 0  # an empty node is no test (and fails)
+                    hit = cone_sphere_overlap(h, row + jx, sx, sy, sz, rho, abs_tol)
+                    kept += hit
+                    if j < MASK_BITS:  # always true when masks are used
+                        bits |= np.int64(hit) << j
+                    j += 1
+            if use_mask:
+                masks[p] = bits  # (bits past MASK_BITS are never read)
         block_counts[b] = kept
         block_tests[b] = tests
         block_slots[b] = slots
@@ -106,19 +109,24 @@ def _scatter(h, level, nodes, tris, sphere_c, sphere_r, abs_tol, use_mask, masks
         for p in range(b * BLOCK, min(n_pairs, (b + 1) * BLOCK)):
             parent = nodes[p]
             tri = tris[p]
-            for j in range(child_count(h, level, parent)):
-                if use_mask:
-                    keep = ((masks[p] >> j) & 1) == 1
-                    c = child_of(h, level, parent, j) if keep else -1
-                else:
-                    c = child_of(h, level, parent, j)
-                    keep = c >= 0 and h.radius[base + c] >= 0 and cone_sphere_overlap(
-                        h, base + c, sphere_c[tri, 0], sphere_c[tri, 1], sphere_c[tri, 2],
-                        sphere_r[tri], abs_tol)
-                if keep:
-                    out_nodes[pos] = c
-                    out_tris[pos] = tri
-                    pos += 1
+            if use_mask and masks[p] == 0:
+                continue
+            first, nx, ny, stride = children(h, level, parent)
+            j = 0
+            for jy in range(ny):
+                row = first + jy * stride
+                for jx in range(nx):
+                    if use_mask:
+                        keep = ((masks[p] >> j) & 1) == 1
+                    else:
+                        keep = cone_sphere_overlap(
+                            h, base + row + jx, sphere_c[tri, 0], sphere_c[tri, 1], sphere_c[tri, 2],
+                            sphere_r[tri], abs_tol)
+                    if keep:
+                        out_nodes[pos] = row + jx
+                        out_tris[pos] = tri
+                        pos += 1
+                    j += 1
 
 
 def expand(h, level: int, nodes, tris, sphere_c, sphere_r, abs_tol: float, capacity: int):

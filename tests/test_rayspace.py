@@ -525,16 +525,17 @@ def test_parents_hold_their_children(seed):
     d = rng.normal(size=(n, 3)).astype(np.float32)
     tmax = rng.uniform(0.5, 10, n).astype(np.float32)
     h = build_hierarchy(org, d, np.zeros(n, np.float32), tmax, np.arange(n, dtype=np.int32), width, height)
-    from engine.cone_sphere import child_count, child_of
+    from engine.cone_sphere import children
 
+    seen = 0
     for level in range(1, h.levels + 1):
         for local in range(h.level_offset[level + 1] - h.level_offset[level]):
             parent = h.level_offset[level] + local
-            for j in range(child_count(h, level, local)):
-                c = child_of(h, level, local, j)
-                if c < 0 or h.radius[h.level_offset[level - 1] + c] < 0:
+            first, nx, ny, stride = children(h, level, local)
+            for child in (h.level_offset[level - 1] + first + jy * stride + jx for jy in range(ny) for jx in range(nx)):
+                seen += 1
+                if h.radius[child] < 0:
                     continue
-                child = h.level_offset[level - 1] + c
                 gap = np.linalg.norm(h.centre[child].astype(np.float64) - h.centre[parent])
                 assert gap + h.radius[child] <= h.radius[parent]
                 assert gap + h.far[child] <= h.far[parent]
@@ -542,3 +543,4 @@ def test_parents_hold_their_children(seed):
                 theta = math.atan2(np.linalg.norm(np.cross(ac, ap)), np.dot(ac, ap))  # exact near 0 and pi
                 full = h.alpha[parent] >= np.float32(math.pi)  # every direction
                 assert full or theta + h.alpha[child] <= h.alpha[parent] + 1e-6
+    assert seen == h.level_offset[-2]  # every node below the root is exactly one node's child
