@@ -192,6 +192,37 @@ def test_several_rays_per_pixel(rayspace):
     np.testing.assert_array_equal(got_o, ref_o)
 
 
+def test_crowded_pixels_without_child_masks(rayspace):
+    """More rays under one 2x2 block than a child bit mask holds: the scatter re-tests."""
+    from engine.pair_stream import MASK_BITS
+
+    rng = np.random.default_rng(7)
+    verts = (rng.uniform(-3, 3, (40, 1, 3)) + rng.normal(0, 0.8, (40, 3, 3))).reshape(-1, 3)
+    tris = make_triangles(verts, np.arange(120).reshape(-1, 3), 0)
+    pixel = np.repeat(np.arange(9, dtype=np.int32), 30)  # 3x3 screen: 120 rays in block 0
+    n = len(pixel)
+    org = rng.uniform(-5, 5, (n, 3)).astype(np.float32)
+    aim = verts[rng.integers(0, len(verts), n)] + rng.normal(0, 0.3, (n, 3))  # mostly at triangles
+    d = (aim - org).astype(np.float32)
+    rays, packets = make_batch("reflection", org, d, np.zeros(n), np.full(n, np.inf), pixel, np.ones((n, 3)), 3, 3, 2)
+    h = build_hierarchy(rays.org, rays.dir, rays.tmin, rays.tmax, rays.pixel, 3, 3)
+    assert h.max_block_rays > MASK_BITS
+    bvh = build_bvh(tris)
+    ref = empty_hits(len(rays.org))
+    get_traversal("single").intersect(bvh, tris, rays, packets, None, ref, None)
+    got = empty_hits(len(rays.org))
+    rayspace.intersect(bvh, tris, rays, packets, None, got, None)
+    assert_same_hits(ref, got)
+    assert (ref.prim >= 0).sum() > n // 4
+
+
+def test_answer_arrays_must_match_the_batch(rayspace):
+    setup = setup_for("cornell-box")
+    rays, packets = setup.reflection()
+    with pytest.raises(ValueError, match="one entry per ray"):
+        rayspace.intersect(setup.bvh, setup.tris, rays, packets, None, empty_hits(len(rays.org) - 2), None)
+
+
 def test_dead_lanes_are_misses(rayspace):
     setup = setup_for("cornell-box")
     rays, packets = setup.reflection()

@@ -202,6 +202,11 @@ class RaySpaceTraversal:
 
     # -- the work ----------------------------------------------------------------------
     def _trace(self, tris, rays, packets, any_hit, out_t, out_prim, out_u, out_v, stats):
+        n_rays = rays.org.shape[0]
+        if not out_t.shape[0] == out_prim.shape[0] == out_u.shape[0] == out_v.shape[0] == n_rays:
+            # The kernels index the answer by ray: a short array would be written past its end.
+            raise ValueError(f"answer arrays must have one entry per ray ({n_rays}), got "
+                             f"{[a.shape[0] for a in (out_t, out_prim, out_u, out_v)]}")
         out_t[:] = np.inf
         out_prim[:] = -1
         out_u[:] = 0
