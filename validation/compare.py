@@ -7,6 +7,8 @@ floating point may decide either way) when:
 - both hit, at t within tolerance, and each hit point lies within a small distance of
   the other answer's triangle as well as its own: a hit on or next to an edge or vertex
   shared by or bordering both triangles (or on coincident, overlapping surfaces);
+- both hit, and one of the hits lies at the very start of the segment (t = tmin within that
+  distance): the ray starts on another surface, as a secondary ray leaving a corner does;
 - one hits and the other misses, and the hit point lies within that distance of its
   triangle's boundary (the ray grazes an outer edge), or at the very ends of the ray's
   [tmin, tmax] segment.
@@ -106,6 +108,11 @@ def compare_hits(rays: RayBatch, ours: Hits, oracle: Hits, tris: Triangles) -> C
         d_ab, _ = point_triangle_distance(p_a, *_corners(tris, oracle.prim[both]))
         d_ba, _ = point_triangle_distance(p_b, *_corners(tris, ours.prim[both]))
         tie[both[close_t & (d_ab <= tol) & (d_ba <= tol)]] = True
+        # A ray whose origin lies on another surface (a secondary ray leaving a corner) may
+        # report that surface at t = tmin or skip it: both are valid.
+        start = rays.tmin[both].astype(np.float64)
+        at_start = (np.abs(t_a - start) * speed[both] <= tol) | (np.abs(t_b - start) * speed[both] <= tol)
+        tie[both[at_start]] = True
     for side, other in ((ours, oracle), (oracle, ours)):
         one = np.flatnonzero(live & (side.prim >= 0) & (other.prim < 0))
         if one.size:
