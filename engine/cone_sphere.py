@@ -101,12 +101,17 @@ def cone_sphere_overlap(h, node, sx, sy, sz, rho, abs_tol):
     ca, sa = h.cos_a[node], h.sin_a[node]
     # Every clause is evaluated and combined with & and | rather than branched on: the
     # outcome is unpredictable, and a mispredicted branch costs more than the arithmetic.
-    reach = dist - rho <= h.far[node] + tol        # not past the end of every segment
-    apex = dist <= grown + tol                     # the apex is inside the grown sphere
-    inside = a >= dist * ca - tol                  # the centre is inside the cone
-    # Distance to the wedge's edge, where the nearest wedge point is not the apex.
+    reach = dist - rho <= h.far[node] + tol   # not past the end of every segment
+    apex = dist <= grown + tol                # the apex is inside the grown sphere
+    # Signed distance to the wedge's edge line, negative inside the cone; it is the distance
+    # to the wedge where the nearest wedge point is not the apex (a ca + b sa >= 0), which
+    # covers the cone's inside up to 90 degrees from its edge.
     edge = (a * ca + b * sa >= 0) & (b * ca - a * sa <= grown + tol)
-    return (r >= 0) & reach & (apex | inside | edge)
+    # Deeper inside a spread beyond 90 degrees. No slack here: the clause only decides far
+    # from the edge, and a length slack on a cosine would widen a narrow cone by
+    # sqrt(2 tol / dist) radians.
+    inside = a >= dist * ca
+    return (r >= 0) & reach & (apex | edge | inside)
 
 
 @njit(cache=True)

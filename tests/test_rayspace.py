@@ -454,6 +454,45 @@ def test_cone_sphere_test_never_culls_a_hit(e1, e2, size, bary, **ray):
     assert cone_sphere_overlap(node, 0, sc[0, 0], sc[0, 1], sc[0, 2], sr[0], abs_tol)
 
 
+def distance_to_node(node: RayHierarchy, s) -> tuple[float, float]:
+    """(distance from s to the cone with apex at the node centre, distance to the centre),
+    in float64: the exact quantities the test bounds."""
+    v = np.asarray(s, np.float64) - node.centre[0].astype(np.float64)
+    axis = node.axis[0].astype(np.float64)
+    dist = float(np.linalg.norm(v))
+    theta = math.atan2(np.linalg.norm(np.cross(v, axis)), np.dot(v, axis))
+    alpha = float(node.alpha[0])
+    if theta <= alpha:
+        return 0.0, dist
+    if theta - alpha >= math.pi / 2:
+        return dist, dist
+    return dist * math.sin(theta - alpha), dist
+
+
+@settings(max_examples=400, deadline=None)
+@given(centre=vec, radius=st.one_of(st.just(0.0), st.floats(0, 3)), axis=direction,
+       alpha=st.one_of(st.just(0.0), st.floats(0, math.pi)), far=st.one_of(st.just(math.inf), st.floats(0.5, 80)),
+       spin=direction, log_off=st.floats(-4, 0.15), distance=st.floats(0.01, 60), excess=st.floats(1.5, 20))
+def test_cone_sphere_test_is_tight(centre, radius, axis, alpha, far, spin, log_off, distance, excess):
+    """The other direction: a sphere just clear of the node (outside the cone by a few times
+    0.1 % of its distance, plus 0.01 % of the coordinates' size) is culled, so the slack that
+    makes the test conservative stays small. The sphere sits 10^log_off radians outside the
+    cone's edge."""
+    off = 10.0 ** log_off
+    c = np.asarray(centre, np.float64)
+    a = unit(axis)
+    q = perpendicular(a, np.asarray(spin))
+    theta = min(alpha + off, math.pi)
+    s = (c + distance * (math.cos(theta) * a + math.sin(theta) * q)).astype(np.float32)
+    node = one_node(c.astype(np.float32), radius, a, alpha, far)
+    cone, dist = distance_to_node(node, s)
+    margin = 1e-3 * dist + 1e-4 * float(np.abs(s).max() + np.abs(node.centre).max())
+    rho = cone - float(node.radius[0]) - excess * margin * (1 + float(node.radius[0]))
+    assume(rho >= 0)
+    abs_tol = np.float32(absolute_slack(node, s[None, :], np.array([rho], np.float32)))
+    assert not cone_sphere_overlap(node, 0, s[0], s[1], s[2], np.float32(rho), abs_tol)
+
+
 def ancestors(h: RayHierarchy, slot: int) -> list:
     """Global node indices of a slot and every node above it, up to the root."""
     block = int(np.searchsorted(h.block_start, slot, side="right") - 1)

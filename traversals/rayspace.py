@@ -19,12 +19,14 @@ How it works
 
 Shadow rays
     A ``shadow`` batch whose rays all aim at one point (a point light) is indexed reversed, as
-    segments that leave the light: the hierarchy then has (rounding-)zero spatial extent and
-    only the cones differ. The reversed segment of a ray ends where its original one starts,
-    at tmin (a surface offset): it keeps the original [tmin, tmax] range, mirrored, so the
-    surface a ray leaves is never in reach of its own reversal's far end. The final tests
-    still use the original rays with their own [tmin, tmax], so the occlusion answer is the
-    original ray's, exactly. Rays aiming at different lights are not reversed.
+    segments that leave the light: the leaves then have (rounding-)zero spatial extent and
+    only the cones differ. The reversal changes the indexing only. A reversed leaf covers
+    exactly the original segment: from the light it starts after the gap that tmax leaves
+    before the light and stops at the original tmin offset, not at the surface point behind
+    it. The exact tests then use the original rays with their own [tmin, tmax], so the answer
+    is the original ray's, bit for bit; testing the reversed ray instead would reach the
+    surface it leaves at the far end, where the tmin offset has no reversed counterpart.
+    Rays of a batch that aim at different lights are not reversed.
 
 Options (``[options.rayspace]`` in a config, or ``configure``)
     pair_budget = 4194304   most (node, triangle) pairs one stream may hold (1 .. 2^31-1).
