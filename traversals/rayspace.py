@@ -37,7 +37,8 @@ Options (``[options.rayspace]`` in a config, or ``configure``)
 Statistics (``stats.extra["rayspace"]``, summed over calls; lists are indexed by level,
 0 = rays, last = root): ``cone_sphere_tests``, ``pairs_before`` (child slots before
 compaction), ``pairs_after``, ``candidates`` and ``candidates_per_ray`` (final triangle
-tests per live ray), ``rays``, ``batches``, ``retries`` (batches abandoned for overflow),
+tests per live ray), ``rays``, ``batches``, ``retries`` (batches abandoned for overflow; their
+work is in the counts and times),
 ``peak_pairs``, ``reversed_batches``, and ``seconds`` for each phase (triangle_spheres, build,
 traversal, compaction, sort, final). Triangle tests also go to ``stats.counters[:, 1, 0]``.
 
@@ -67,6 +68,9 @@ MAX_PAIR_BUDGET = 2**31 - 1   # stream indices are i32
 # segment of one point; the leftover distance becomes the leaf radius, so this is about
 # efficiency, never correctness.
 APEX_TOLERANCE = 1e-4
+BATCH_FILL = 0.8          # aim each triangle batch at this fraction of the pair budget
+OVERFLOW_GROWTH = 4       # after an overflow, expect the levels below to need this many times more
+PROBE_SHARE = 256         # the first batch has at most budget / PROBE_SHARE triangles
 PHASES = ("triangle_spheres", "build", "traversal", "compaction", "sort", "final")
 
 
@@ -167,6 +171,38 @@ def _accumulate(stats, record: dict) -> None:
     total["candidates_per_ray"] = total["candidates"] / total["rays"] if total["rays"] else 0.0
 
 
+def _descend(h, first, last, centre, radius, abs_tol, budget, record, seconds):
+    """Stream triangles first .. last-1 from the root down to the rays.
+
+    Returns (slots i32[P], tris i32[P], None, peak) with the final (slot, triangle) pairs and
+    the largest stream on the way, or (None, None, (level, pairs needed), peak) as soon as a
+    level would exceed ``budget``. The work done is added to ``record`` and ``seconds``.
+    """
+    nodes, tris = root_stream(first, last)
+    peak = last - first
+    record["pairs_before"][h.levels] += last - first
+    record["pairs_after"][h.levels] += last - first
+    for level in range(h.levels, 0, -1):
+        out_nodes, out_tris, step = expand(h, level, nodes, tris, centre, radius, abs_tol, budget)
+        record["cone_sphere_tests"][level - 1] += step.tests
+        record["pairs_before"][level - 1] += step.slots
+        seconds["traversal"] += step.count_seconds
+        seconds["compaction"] += step.compact_seconds
+        if out_nodes is None:
+            return None, None, (level - 1, step.survivors), peak
+        record["pairs_after"][level - 1] += step.survivors
+        peak = max(peak, step.survivors)
+        nodes, tris = out_nodes, out_tris
+    return nodes, tris, None, peak
+
+
+def _batch_size(budget: int, triangles: int, pairs: int) -> int:
+    """Triangles per batch that would fill BATCH_FILL of the budget, had ``triangles``
+    triangles needed ``pairs`` pairs at their fullest level (neighbouring triangles in a mesh
+    need similar numbers, so the last batch predicts the next)."""
+    return max(1, int(BATCH_FILL * budget * triangles / max(pairs, 1)))
+
+
 @register_traversal("rayspace")
 class RaySpaceTraversal:
     """Ray-space cone-sphere hierarchy over the batch's rays (Roger et al. 2007); no scene hierarchy."""
@@ -232,24 +268,13 @@ class RaySpaceTraversal:
         record = _new_record(h.levels)
         record.update(calls=1, rays=int(live.sum()), triangles=n_tris, reversed_batches=int(apex is not None))
         budget = self.pair_budget
-        first, size = 0, min(n_tris, budget)
+        # A first batch small enough to pass unless a triangle meets hundreds of nodes per
+        # level; its peak then sizes the batches that follow.
+        first, size = 0, min(n_tris, max(1, budget // PROBE_SHARE))
         while first < n_tris:
             last = min(n_tris, first + size)
-            nodes, cand_tris = root_stream(first, last)
-            overflow = None
-            batch_peak = last - first
-            for level in range(h.levels, 0, -1):
-                out_nodes, out_tris, step = expand(h, level, nodes, cand_tris, centre, radius, abs_tol, budget)
-                record["cone_sphere_tests"][level - 1] += step.tests
-                record["pairs_before"][level - 1] += step.slots
-                seconds["traversal"] += step.count_seconds
-                seconds["compaction"] += step.compact_seconds
-                if out_nodes is None:
-                    overflow = (level - 1, step.survivors)
-                    break
-                record["pairs_after"][level - 1] += step.survivors
-                batch_peak = max(batch_peak, step.survivors)
-                nodes, cand_tris = out_nodes, out_tris
+            slots, cand_tris, overflow, peak = _descend(h, first, last, centre, radius, abs_tol, budget,
+                                                        record, seconds)
             if overflow is not None:
                 level, needed = overflow
                 if last - first == 1:
@@ -258,14 +283,13 @@ class RaySpaceTraversal:
                         f"needs {needed} (node, triangle) pairs at level {level} of the ray hierarchy "
                         f"({record['rays']} rays); set pair_budget to at least {needed}")
                 record["retries"] += 1
-                # Shrink in proportion to the overflow, at least by half.
-                size = max(1, min((last - first) // 2, (last - first) * budget // needed))
+                # ``needed`` counts only down to the overflowing level; deeper levels usually
+                # need more, and a retry wastes far more than a batch too small costs.
+                size = min((last - first) // 2, _batch_size(budget, last - first, OVERFLOW_GROWTH * needed))
                 continue
-            record["pairs_before"][h.levels] += last - first
-            record["pairs_after"][h.levels] += last - first
-            record["peak_pairs"] = max(record["peak_pairs"], batch_peak)
+            record["peak_pairs"] = max(record["peak_pairs"], peak)
             clock = time.perf_counter()
-            start, cand = group_by_slot(nodes, cand_tris, h.slot_ray.shape[0])
+            start, cand = group_by_slot(slots, cand_tris, h.slot_ray.shape[0])
             seconds["sort"] += time.perf_counter() - clock
             clock = time.perf_counter()
             _final_tests(h.slot_ray, start, cand, tris.v0, tris.v1, tris.v2, rays.org, rays.dir,
@@ -274,9 +298,8 @@ class RaySpaceTraversal:
             seconds["final"] += time.perf_counter() - clock
             record["candidates"] += int(cand.shape[0])
             record["batches"] += 1
+            size = _batch_size(budget, last - first, peak)
             first = last
-            if 2 * batch_peak <= budget:  # room to spare: try larger batches again
-                size = min(n_tris, 2 * size)
         record["seconds"] = seconds
         if stats is not None:
             _accumulate(stats, record)
