@@ -38,32 +38,35 @@ FRUSTUM_SLACK = 2.0 ** -16
 def choose_axis(g, m):
     """Dominant axis of the m vectors g[:m] (f64[>=m,3]): (axis, sign) with sign * g[i, axis] > 0
     for every i, picking the axis whose worst vector is least oblique; (-1, 0.0) when no axis has
-    one strict sign for all of them (or a vector is zero or not finite)."""
+    one strict sign for all of them (or a vector is zero or not finite). One pass, no roots:
+    obliqueness is compared as the squared cosine g_a^2 / |g|^2."""
+    lo_x = lo_y = lo_z = np.inf
+    hi_x = hi_y = hi_z = -np.inf
+    cos2_x = cos2_y = cos2_z = np.inf
+    for i in range(m):
+        x, y, z = g[i, 0], g[i, 1], g[i, 2]
+        length2 = x * x + y * y + z * z
+        if not (length2 > 0.0 and length2 < np.inf):
+            return -1, 0.0
+        inv = 1.0 / length2
+        lo_x, hi_x, cos2_x = min(lo_x, x), max(hi_x, x), min(cos2_x, x * x * inv)
+        lo_y, hi_y, cos2_y = min(lo_y, y), max(hi_y, y), min(cos2_y, y * y * inv)
+        lo_z, hi_z, cos2_z = min(lo_z, z), max(hi_z, z), min(cos2_z, z * z * inv)
     best_axis = -1
     best_sign = 0.0
-    best_cos = 0.0
-    for a in range(3):
-        total = 0.0
-        for i in range(m):
-            total += g[i, a]
-        sign = 1.0 if total >= 0.0 else -1.0
-        worst = np.inf
-        for i in range(m):
-            length = math.sqrt(g[i, 0] * g[i, 0] + g[i, 1] * g[i, 1] + g[i, 2] * g[i, 2])
-            if not (length > 0.0 and length < np.inf):
-                return -1, 0.0
-            worst = min(worst, sign * g[i, a] / length)
-        if worst > best_cos:
+    best_cos2 = 0.0
+    for a, lo, hi, cos2 in ((0, lo_x, hi_x, cos2_x), (1, lo_y, hi_y, cos2_y), (2, lo_z, hi_z, cos2_z)):
+        if (lo > 0.0 or hi < 0.0) and cos2 > best_cos2:
             best_axis = a
-            best_sign = sign
-            best_cos = worst
+            best_sign = 1.0 if lo > 0.0 else -1.0
+            best_cos2 = cos2
     return best_axis, best_sign
 
 
 @njit(cache=True)
 def side_planes(axis, sign, wn, wf, near_rect, far_rect, margin, out):
     """The four side planes joining the rectangles near_rect at w' = wn and far_rect at w' = wf
-    (each f64[4] = u0, u1, v0, v1; w' = sign * coordinate[axis]; wf > wn) into out (f32[4,4]
+    (each a tuple u0, u1, v0, v1; w' = sign * coordinate[axis]; wf > wn) into out (f32[4,4]
     rows nx, ny, nz, d, inward), each moved outwards by ``margin``."""
     span = wf - wn
     for p in range(4):
@@ -118,13 +121,13 @@ def apex_frustum(apex, g, m, scale, reach, extra, out):
     lo_v = np.inf
     hi_v = -np.inf
     for i in range(m):
-        w = sign * g[i, axis]
-        lo_u = min(lo_u, g[i, u] / w)
-        hi_u = max(hi_u, g[i, u] / w)
-        lo_v = min(lo_v, g[i, v] / w)
-        hi_v = max(hi_v, g[i, v] / w)
-    near_rect = np.array([apex[u], apex[u], apex[v], apex[v]])
-    far_rect = np.array([apex[u] + lo_u, apex[u] + hi_u, apex[v] + lo_v, apex[v] + hi_v])
+        inv_w = sign / g[i, axis]
+        lo_u = min(lo_u, g[i, u] * inv_w)
+        hi_u = max(hi_u, g[i, u] * inv_w)
+        lo_v = min(lo_v, g[i, v] * inv_w)
+        hi_v = max(hi_v, g[i, v] * inv_w)
+    near_rect = (apex[u], apex[u], apex[v], apex[v])
+    far_rect = (apex[u] + lo_u, apex[u] + hi_u, apex[v] + lo_v, apex[v] + hi_v)
     wn = sign * apex[axis]
     side_planes(axis, sign, wn, wn + 1.0, near_rect, far_rect,
                 FRUSTUM_SLACK * (scale + reach) + extra, out)
@@ -153,27 +156,22 @@ def slab_frustum(p0, g, m, bounds, out):
     if not wf > wn:
         # Every start lies on one plane with the whole scene behind it: any positive span will do.
         wf = wn + 1.0 + scale
-    near_rect = np.array([np.inf, -np.inf, np.inf, -np.inf])
-    far_rect = np.array([np.inf, -np.inf, np.inf, -np.inf])
-    reach = 0.0
+    un0 = vn0 = uf0 = vf0 = np.inf
+    un1 = vn1 = uf1 = vf1 = -np.inf
+    reach2 = 0.0
     for i in range(m):
         w0 = sign * p0[i, axis]
-        gw = sign * g[i, axis]
-        tn = (wn - w0) / gw
-        tf = (wf - w0) / gw
+        inv_w = sign / g[i, axis]
+        tn = (wn - w0) * inv_w
+        tf = (wf - w0) * inv_w
         un = p0[i, u] + tn * g[i, u]
         vn = p0[i, v] + tn * g[i, v]
         uf = p0[i, u] + tf * g[i, u]
         vf = p0[i, v] + tf * g[i, v]
-        near_rect[0] = min(near_rect[0], un)
-        near_rect[1] = max(near_rect[1], un)
-        near_rect[2] = min(near_rect[2], vn)
-        near_rect[3] = max(near_rect[3], vn)
-        far_rect[0] = min(far_rect[0], uf)
-        far_rect[1] = max(far_rect[1], uf)
-        far_rect[2] = min(far_rect[2], vf)
-        far_rect[3] = max(far_rect[3], vf)
-        length = math.sqrt(g[i, 0] * g[i, 0] + g[i, 1] * g[i, 1] + g[i, 2] * g[i, 2])
-        reach = max(reach, (tf - tn) * length)
-    side_planes(axis, sign, wn, wf, near_rect, far_rect, FRUSTUM_SLACK * (scale + reach), out)
+        un0, un1, vn0, vn1 = min(un0, un), max(un1, un), min(vn0, vn), max(vn1, vn)
+        uf0, uf1, vf0, vf1 = min(uf0, uf), max(uf1, uf), min(vf0, vf), max(vf1, vf)
+        reach2 = max(reach2, (tf - tn) * (tf - tn) * (g[i, 0] * g[i, 0] + g[i, 1] * g[i, 1] + g[i, 2] * g[i, 2]))
+    near_rect = (un0, un1, vn0, vn1)
+    far_rect = (uf0, uf1, vf0, vf1)
+    side_planes(axis, sign, wn, wf, near_rect, far_rect, FRUSTUM_SLACK * (scale + math.sqrt(reach2)), out)
     return True

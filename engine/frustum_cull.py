@@ -6,7 +6,7 @@ builders (``frusta/``) already widen the planes by a margin that covers float32 
 and in the watertight triangle test, so these tests are plain evaluations:
 
 - ``load_frustum``: copy packet k's planes into a local f32[16] in SoA order (nx[4], ny[4],
-  nz[4], d[4]) so the 4-plane loops below vectorise;
+  nz[4], d[4]) so the tests below handle the four planes as one vector (``engine.simd4``);
 - ``frustum_misses_box``: the box lies entirely outside one plane (its corner farthest along
   the plane normal is outside), so no ray of the packet can hit anything in it;
 - ``frustum_misses_triangle``: all three corners lie outside one plane.
@@ -15,13 +15,12 @@ Both are conservative only: "False" never means that some ray hits.
 """
 from __future__ import annotations
 
-import numpy as np
 from numba import njit
 
-F32_ZERO = np.float32(0.0)
+from .simd4 import planes4_box, planes4_triangle
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def load_frustum(planes, valid, k, fr):
     """Copy packet k's planes (f32[K,4,4]) into fr (f32[16]); False when valid[k] is False."""
     if not valid[k]:
@@ -34,37 +33,15 @@ def load_frustum(planes, valid, k, fr):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def frustum_misses_box(fr, bmin, bmax, node):
-    """True when box ``node`` (bmin, bmax: f32[N,3]) is outside one of the planes in fr."""
-    b0x = bmin[node, 0]
-    b0y = bmin[node, 1]
-    b0z = bmin[node, 2]
-    b1x = bmax[node, 0]
-    b1y = bmax[node, 1]
-    b1z = bmax[node, 2]
-    outside = False
-    for p in range(4):
-        nx = fr[p]
-        ny = fr[4 + p]
-        nz = fr[8 + p]
-        # The box corner farthest along n: the per-axis max of the two products.
-        s = max(nx * b0x, nx * b1x) + max(ny * b0y, ny * b1y) + max(nz * b0z, nz * b1z) + fr[12 + p]
-        outside |= s < F32_ZERO
-    return outside
+    """True when box ``node`` (bmin, bmax: f32[N,3]) is outside one of the planes in fr: the box
+    corner farthest along the plane normal is outside it."""
+    return planes4_box(fr, bmin[node, 0], bmin[node, 1], bmin[node, 2], bmax[node, 0], bmax[node, 1], bmax[node, 2])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def frustum_misses_triangle(fr, v0, v1, v2, tri):
     """True when triangle ``tri`` (corners v0, v1, v2: f32[T,3]) is outside one plane in fr."""
-    outside = False
-    for p in range(4):
-        nx = fr[p]
-        ny = fr[4 + p]
-        nz = fr[8 + p]
-        d = fr[12 + p]
-        s0 = nx * v0[tri, 0] + ny * v0[tri, 1] + nz * v0[tri, 2]
-        s1 = nx * v1[tri, 0] + ny * v1[tri, 1] + nz * v1[tri, 2]
-        s2 = nx * v2[tri, 0] + ny * v2[tri, 1] + nz * v2[tri, 2]
-        outside |= max(s0, max(s1, s2)) + d < F32_ZERO
-    return outside
+    return planes4_triangle(fr, v0[tri, 0], v0[tri, 1], v0[tri, 2], v1[tri, 0], v1[tri, 1], v1[tri, 2],
+                            v2[tri, 0], v2[tri, 1], v2[tri, 2])

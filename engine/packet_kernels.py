@@ -8,7 +8,8 @@ partition -- differ only in how a packet walks the BVH. What they share lives he
   floats 4i .. 4i+3 of every row: the layout the fixed 4-lane loops vectorise on. It also does
   the per-ray set-up of the watertight test once (``engine.kernels.ray_shear``) and picks the
   packet's near-child order from its direction signs.
-- ``slab_mask4``: the 4-lane ray-box test of one SIMD ray, a bit mask of the lanes that hit.
+- ``slab_mask4``: the 4-lane ray-box test of one SIMD ray (``engine.simd4.slab4``), a bit mask
+  of the lanes that hit.
 - ``first_hit``: Overbeck's getFirstHit (the first SIMD ray at or after ``lo`` that hits a box,
   the frustum as early reject).
 - ``leaf_triangles`` / ``intersect_lanes``: the leaf, frustum-culled, then the shared
@@ -31,7 +32,8 @@ import numpy as np
 from numba import njit
 
 from .frustum_cull import frustum_misses_box, frustum_misses_triangle
-from .kernels import F32_INF, closer, intersect_triangle, ray_shear, slab_test
+from .kernels import F32_INF, closer, intersect_triangle, ray_shear
+from .simd4 import slab4
 from .types import MAX_BVH_DEPTH
 
 OX, OY, OZ, IX, IY, IZ, TLO, THI, SX, SY, SZ, OKX, OKY, OKZ, BEST_T, BEST_U, BEST_V = range(17)
@@ -102,7 +104,7 @@ def child_order_keys(bmin, bmax, first, count):
     return keys
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def load_packet(org, inv, dirs, tmin, tmax, start, n, rf, ri, near):
     """Transpose rays start .. start+n (org, inv, dirs: f32[R,3]; tmin, tmax: f32[R]) into the
     packet-local rows rf, ri and set the near-child table from the live rays' summed direction.
@@ -162,23 +164,15 @@ def load_packet(org, inv, dirs, tmin, tmax, start, n, rf, ri, near):
     return live
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def slab_mask4(rf, lane0, bmin, bmax, node):
-    """4-bit mask of the lanes of SIMD ray lane0 .. lane0+3 whose live segment meets box ``node``.
-
-    The per-lane test is ``engine.kernels.slab_test`` on the packet-local rows; the fixed
-    4-iteration loop over consecutive lanes, with no stores, is what LLVM vectorises.
-    """
-    mask = 0
-    for lane in range(4):
-        r = lane0 + lane
-        tn = slab_test(rf[OX, r], rf[OY, r], rf[OZ, r], rf[IX, r], rf[IY, r], rf[IZ, r],
-                       rf[TLO, r], rf[THI, r], bmin, bmax, node)
-        mask |= (1 << lane) if tn < F32_INF else 0
-    return mask
+    """4-bit mask of the lanes of SIMD ray lane0 .. lane0+3 whose live segment meets box ``node``:
+    ``engine.kernels.slab_test`` on all four lanes at once, in SSE-style vector code."""
+    return slab4(rf, lane0, bmin[node, 0], bmin[node, 1], bmin[node, 2],
+                 bmax[node, 0], bmax[node, 1], bmax[node, 2])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def live_mask4(rf, lane0):
     """4-bit mask of the lanes of SIMD ray lane0 that are still live (TLO <= THI)."""
     mask = 0
@@ -187,7 +181,7 @@ def live_mask4(rf, lane0):
     return mask
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def first_hit(rf, lo, hi, bmin, bmax, node, fr, cull):
     """Overbeck's getFirstHit over SIMD rays lo .. hi-1: (index of the first one that hits box
     ``node``, or hi; ray-box tests done). SIMD ray ``lo`` is tried first (early accept); if it
@@ -206,7 +200,7 @@ def first_hit(rf, lo, hi, bmin, bmax, node, fr, cull):
     return hi, tests
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def leaf_triangles(first, count, prim, node, v0, v1, v2, fr, cull, leaf_tris):
     """Copy leaf ``node``'s triangles into leaf_tris, dropping those the packet frustum culls;
     returns how many remain."""
@@ -220,7 +214,7 @@ def leaf_triangles(first, count, prim, node, v0, v1, v2, fr, cull, leaf_tris):
     return n
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def intersect_lanes(rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit):
     """Test the live lanes of SIMD ray lane0 selected by ``mask`` against leaf_tris[:n_tris].
 
@@ -263,7 +257,7 @@ def intersect_lanes(rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit)
     return tests, finished
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def store_hits(rf, ri, start, n, out_t, out_prim, out_u, out_v):
     """Write the packet's best hits to rays start .. start+n of the output arrays (f32/i32[R])."""
     for i in range(n):

@@ -51,8 +51,12 @@ def pointlight_frusta(org, dirs, tmin, tmax, offsets, bounds, n_chunks, planes, 
             if m == 0:
                 continue
             light /= m
-            spread = 0.0
-            shortest = np.inf
+            if not (math.isfinite(light[0]) and math.isfinite(light[1]) and math.isfinite(light[2])):
+                continue  # a ray without an end (infinite tmax) meets no light
+            # Squared lengths: one root per packet, not per ray.
+            spread2 = 0.0
+            shortest2 = np.inf
+            reach2 = 0.0
             scale = max(scene_scale, abs_max3(light[0], light[1], light[2]))
             m = 0
             for r in range(offsets[k], offsets[k + 1]):
@@ -61,20 +65,19 @@ def pointlight_frusta(org, dirs, tmin, tmax, offsets, bounds, n_chunks, planes, 
                 ex = org[r, 0] + np.float64(tmax[r]) * dirs[r, 0] - light[0]
                 ey = org[r, 1] + np.float64(tmax[r]) * dirs[r, 1] - light[1]
                 ez = org[r, 2] + np.float64(tmax[r]) * dirs[r, 2] - light[2]
-                spread = max(spread, math.sqrt(ex * ex + ey * ey + ez * ez))
+                spread2 = max(spread2, ex * ex + ey * ey + ez * ez)
                 for a in range(3):
                     # Vector from the light back to where the ray's segment starts.
                     g[m, a] = org[r, a] + np.float64(tmin[r]) * dirs[r, a] - light[a]
-                shortest = min(shortest, math.sqrt(g[m, 0] ** 2 + g[m, 1] ** 2 + g[m, 2] ** 2))
+                length2 = g[m, 0] * g[m, 0] + g[m, 1] * g[m, 1] + g[m, 2] * g[m, 2]
+                shortest2 = min(shortest2, length2)
+                reach2 = max(reach2, length2)
                 scale = max(scale, abs_max3(org[r, 0], org[r, 1], org[r, 2]))
                 m += 1
-            # NaN-safe: an infinite tmax makes the spread NaN and fails this test.
-            if not spread <= END_SPREAD * shortest:
+            if not spread2 <= END_SPREAD * END_SPREAD * shortest2:
                 continue
-            reach = 0.0
-            for i in range(m):
-                reach = max(reach, math.sqrt(g[i, 0] ** 2 + g[i, 1] ** 2 + g[i, 2] ** 2))
-            valid[k] = apex_frustum(light, g, m, scale, reach, spread, planes[k])
+            spread = math.sqrt(spread2)
+            valid[k] = apex_frustum(light, g, m, scale, math.sqrt(reach2), spread, planes[k])
 
 
 @register_frustum("pointlight")

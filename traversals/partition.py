@@ -26,7 +26,7 @@ from engine.registry import register_traversal
 from engine.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def part_rays(rf, ids, masks, m, bmin, bmax, node):
     """Overbeck's partRays: move the SIMD rays among ids[:m] that hit box ``node`` to the front,
     with their lane masks in masks[:live]; returns live."""

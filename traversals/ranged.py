@@ -25,7 +25,7 @@ from engine.registry import register_traversal
 from engine.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def last_hit(rf, ia, hi, bmin, bmax, node):
     """Overbeck's getLastHit: (one past the last SIMD ray in (ia, hi) that hits box ``node``, or
     ia + 1 when only ``ia`` does; ray-box tests done)."""

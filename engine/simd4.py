@@ -1,0 +1,172 @@
+"""Four-wide SIMD kernels written directly as LLVM vector IR (numba intrinsics).
+
+Numba builds its LLVM pipeline without the SLP vectoriser (``NUMBA_SLP_VECTORIZE`` defaults to
+0) and fully unrolls a fixed 4-iteration loop before the loop vectoriser could see it, so the
+4-lane loops of a 2x2 SIMD ray stay scalar code however they are written. These intrinsics
+emit the <4 x float> operations themselves, as the paper's SSE code does:
+
+- ``slab4(rf, lane0, b0x, b0y, b0z, b1x, b1y, b1z)``: the ray-box test of the 2x2 SIMD ray whose
+  lanes are columns lane0 .. lane0+3 of the packet-local rows rf (f32[rows, L], C order, rows
+  OX, OY, OZ, IX, IY, IZ, TLO, THI = 0..7 as in ``engine.packet_kernels``) against the box
+  (b0, b1). Returns the 4-bit mask of the lanes that hit. Every operation, operand order and
+  compare matches ``engine.kernels.slab_test`` (numba's min/max are selects on ordered
+  compares), so each lane's answer is exactly slab_test's.
+- ``planes4_box(fr, b0x, ..., b1z)`` / ``planes4_triangle(fr, ax, ..., cz)``: a box / triangle
+  against the four planes of a packet frustum stored in SoA order (fr: f32[16] = nx[4], ny[4],
+  nz[4], d[4]); True when it lies wholly outside one of them. Same arithmetic as the scalar
+  reference in ``engine.frustum_cull``.
+"""
+from __future__ import annotations
+
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.core.errors import TypingError
+from numba.extending import intrinsic
+
+from .kernels import SLAB_SLACK
+
+_F32 = ir.FloatType()
+_I32 = ir.IntType(32)
+_I64 = ir.IntType(64)
+_V4 = ir.VectorType(_F32, 4)
+_ZERO4 = ir.Constant(ir.VectorType(_I32, 4), [0, 0, 0, 0])
+
+#: Rows of the packet-local float block that ``slab4`` reads (engine.packet_kernels layout).
+_ROW_OX, _ROW_OY, _ROW_OZ, _ROW_IX, _ROW_IY, _ROW_IZ, _ROW_TLO, _ROW_THI = range(8)
+
+
+def _splat(builder, scalar):
+    """<4 x float> with every lane = scalar."""
+    one = builder.insert_element(ir.Constant(_V4, ir.Undefined), scalar, ir.Constant(_I32, 0))
+    return builder.shuffle_vector(one, ir.Constant(_V4, ir.Undefined), _ZERO4)
+
+
+def _min(builder, a, b):
+    """numba's min(a, b) for floats: b < a ? b : a."""
+    return builder.select(builder.fcmp_ordered("<", b, a), b, a)
+
+
+def _max(builder, a, b):
+    """numba's max(a, b) for floats: b > a ? b : a."""
+    return builder.select(builder.fcmp_ordered(">", b, a), b, a)
+
+
+def _fabs(builder, v):
+    fabs = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V4, [_V4]), "llvm.fabs.v4f32")
+    return builder.call(fabs, [v])
+
+
+def _float32_args(context, builder, sig, args, first):
+    return [context.cast(builder, a, t, types.float32) for a, t in zip(args[first:], sig.args[first:])]
+
+
+def _vector_row(builder, data, row_elems, row, offset):
+    """Load <4 x float> from data[row * row_elems + offset] (data: float*)."""
+    index = builder.add(builder.mul(ir.Constant(_I64, row), row_elems), offset)
+    ptr = builder.gep(data, [index])
+    return builder.load(builder.bitcast(ptr, _V4.as_pointer()), align=4)
+
+
+def _check_f32_array(value, ndim, what):
+    if not (isinstance(value, types.Array) and value.dtype == types.float32 and value.ndim == ndim
+            and value.layout == "C"):
+        raise TypingError(f"{what} must be a C-contiguous float32 array of {ndim} dimension(s), got {value}")
+
+
+def _check_scalars(values):
+    for v in values:
+        if not isinstance(v, (types.Float, types.Integer)):
+            raise TypingError(f"expected a number, got {v}")
+
+
+@intrinsic
+def slab4(typingctx, rf, lane0, b0x, b0y, b0z, b1x, b1y, b1z):
+    """4-bit mask of the lanes lane0 .. lane0+3 of rf whose segment meets the box (b0, b1)."""
+    _check_f32_array(rf, 2, "rf")
+    if not isinstance(lane0, types.Integer):
+        raise TypingError(f"lane0 must be an integer, got {lane0}")
+    _check_scalars((b0x, b0y, b0z, b1x, b1y, b1z))
+    sig = types.int64(rf, lane0, b0x, b0y, b0z, b1x, b1y, b1z)
+
+    def codegen(context, builder, signature, args):
+        arr = context.make_array(signature.args[0])(context, builder, args[0])
+        itemsize = ir.Constant(_I64, 4)
+        row_elems = builder.udiv(builder.extract_value(arr.strides, 0), itemsize)
+        offset = context.cast(builder, args[1], signature.args[1], types.int64)
+
+        def row(k):
+            return _vector_row(builder, arr.data, row_elems, k, offset)
+
+        lo = [_splat(builder, v) for v in _float32_args(context, builder, signature, args, 2)[:3]]
+        hi = [_splat(builder, v) for v in _float32_args(context, builder, signature, args, 2)[3:]]
+        origin = [row(_ROW_OX), row(_ROW_OY), row(_ROW_OZ)]
+        inverse = [row(_ROW_IX), row(_ROW_IY), row(_ROW_IZ)]
+        tn = tf = None
+        for axis in range(3):
+            t0 = builder.fmul(builder.fsub(lo[axis], origin[axis]), inverse[axis])
+            t1 = builder.fmul(builder.fsub(hi[axis], origin[axis]), inverse[axis])
+            near, far = _min(builder, t0, t1), _max(builder, t0, t1)
+            tn = near if tn is None else _max(builder, tn, near)
+            tf = far if tf is None else _min(builder, tf, far)
+        slack = _splat(builder, ir.Constant(_F32, float(SLAB_SLACK)))
+        tn = _max(builder, builder.fsub(tn, builder.fmul(_fabs(builder, tn), slack)), row(_ROW_TLO))
+        tf = _min(builder, builder.fadd(tf, builder.fmul(_fabs(builder, tf), slack)), row(_ROW_THI))
+        hit = builder.fcmp_ordered("<=", tn, tf)
+        return builder.zext(builder.bitcast(hit, ir.IntType(4)), _I64)
+
+    return sig, codegen
+
+
+def _plane_vectors(context, builder, fr_type, fr_value):
+    """(nx, ny, nz, d) <4 x float> from the SoA frustum fr: f32[16]."""
+    arr = context.make_array(fr_type)(context, builder, fr_value)
+    rows = ir.Constant(_I64, 4)
+    return [_vector_row(builder, arr.data, rows, k, ir.Constant(_I64, 0)) for k in range(4)]
+
+
+def _any_negative(builder, v):
+    """True when some lane of v is < 0."""
+    below = builder.fcmp_ordered("<", v, ir.Constant(_V4, [0.0] * 4))
+    return builder.icmp_unsigned("!=", builder.bitcast(below, ir.IntType(4)), ir.Constant(ir.IntType(4), 0))
+
+
+@intrinsic
+def planes4_box(typingctx, fr, b0x, b0y, b0z, b1x, b1y, b1z):
+    """True when the box (b0, b1) is outside one of the four SoA planes in fr (f32[16])."""
+    _check_f32_array(fr, 1, "fr")
+    _check_scalars((b0x, b0y, b0z, b1x, b1y, b1z))
+    sig = types.boolean(fr, b0x, b0y, b0z, b1x, b1y, b1z)
+
+    def codegen(context, builder, signature, args):
+        nx, ny, nz, d = _plane_vectors(context, builder, signature.args[0], args[0])
+        b = [_splat(builder, v) for v in _float32_args(context, builder, signature, args, 1)]
+        total = None
+        for axis, n in enumerate((nx, ny, nz)):
+            # The corner farthest along n: per axis the larger of the two products.
+            term = _max(builder, builder.fmul(n, b[axis]), builder.fmul(n, b[axis + 3]))
+            total = term if total is None else builder.fadd(total, term)
+        return _any_negative(builder, builder.fadd(total, d))
+
+    return sig, codegen
+
+
+@intrinsic
+def planes4_triangle(typingctx, fr, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """True when the triangle (a, b, c) is outside one of the four SoA planes in fr (f32[16])."""
+    _check_f32_array(fr, 1, "fr")
+    _check_scalars((ax, ay, az, bx, by, bz, cx, cy, cz))
+    sig = types.boolean(fr, ax, ay, az, bx, by, bz, cx, cy, cz)
+
+    def codegen(context, builder, signature, args):
+        nx, ny, nz, d = _plane_vectors(context, builder, signature.args[0], args[0])
+        coords = [_splat(builder, v) for v in _float32_args(context, builder, signature, args, 1)]
+        farthest = None
+        for corner in range(3):
+            x, y, z = coords[3 * corner: 3 * corner + 3]
+            s = builder.fadd(builder.fadd(builder.fmul(nx, x), builder.fmul(ny, y)), builder.fmul(nz, z))
+            farthest = s if farthest is None else _max(builder, farthest, s)
+        return _any_negative(builder, builder.fadd(farthest, d))
+
+    return sig, codegen
+
