@@ -182,15 +182,30 @@ def _store_length(x):
 
 
 @njit(cache=True)
+def reversed_segment(org, dirs, tmin, tmax, r, ax, ay, az):
+    """Ray r (o + t d, t in [tmin, tmax]) seen from the point a, in float64: (gap, reach).
+
+    The segment is P - s d for s in [tP - tmax, tP - tmin], where P = o + tP d is the point
+    of the ray's line nearest a, or the segment's end if that lies further on. gap = |P - a|
+    (rounding-small when the ray aims at a); reach bounds |x - a| over the segment. The
+    direction must not be zero.
+    """
+    ox, oy, oz = np.float64(org[r, 0]), np.float64(org[r, 1]), np.float64(org[r, 2])
+    dx, dy, dz = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
+    length2 = dx * dx + dy * dy + dz * dz
+    tp = max(((ax - ox) * dx + (ay - oy) * dy + (az - oz) * dz) / length2, np.float64(tmax[r]))
+    gx, gy, gz = ox + tp * dx - ax, oy + tp * dy - ay, oz + tp * dz - az
+    gap = np.sqrt(gx * gx + gy * gy + gz * gz)
+    return gap, gap + (tp - np.float64(tmin[r])) * np.sqrt(length2)
+
+
+@njit(cache=True)
 def _leaf_node(h, s, org, dirs, tmin, tmax, reverse, ax, ay, az):
     """Level-0 node of slot ``s``: its exact ray (radius 0, spread 0), or the ray reversed
     to leave the point a.
 
     Forward: apex at the origin; a negative tmin puts the part behind the origin in the
-    sphere. Reversed: apex at a, direction -dir; the segment is P - s dir, s in
-    [tP - tmax, tP - tmin], where P = org + tP dir is the point of the ray's line nearest a
-    (or its end if that lies further on), and the radius is |P - a| (rounding-small when the
-    ray aims at a).
+    sphere. Reversed: apex at a, direction -dir, radius and reach from ``reversed_segment``.
     """
     r = h.slot_ray[s]
     dx, dy, dz = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
@@ -198,16 +213,12 @@ def _leaf_node(h, s, org, dirs, tmin, tmax, reverse, ax, ay, az):
     lo, hi = np.float64(tmin[r]), np.float64(tmax[r])
     sign = 1.0
     if reverse and length > 0:
-        ox, oy, oz = np.float64(org[r, 0]), np.float64(org[r, 1]), np.float64(org[r, 2])
-        t_near = ((ax - ox) * dx + (ay - oy) * dy + (az - oz) * dz) / (length * length)
-        tp = max(t_near, hi)
-        gx, gy, gz = ox + tp * dx - ax, oy + tp * dy - ay, oz + tp * dz - az
-        gap = np.sqrt(gx * gx + gy * gy + gz * gz)
+        gap, reach = reversed_segment(org, dirs, tmin, tmax, r, ax, ay, az)
         h.centre[s, 0] = ax
         h.centre[s, 1] = ay
         h.centre[s, 2] = az
         h.radius[s] = _store_length(gap)
-        h.far[s] = _store_length(gap + (tp - lo) * length)
+        h.far[s] = _store_length(reach)
         sign = -1.0
     else:
         h.centre[s, 0] = org[r, 0]

@@ -54,7 +54,7 @@ import time
 import numpy as np
 from numba import get_thread_id, njit, prange
 
-from engine.cone_sphere import absolute_slack, build_hierarchy
+from engine.cone_sphere import absolute_slack, build_hierarchy, reversed_segment
 from engine.errors import ConfigError
 from engine.kernels import F32_INF, closer, intersect_triangle, ray_shear
 from engine.pair_stream import expand, group_by_slot, root_stream
@@ -117,6 +117,48 @@ def live_lanes(rays) -> np.ndarray:
     return (rays.pixel >= 0) & (rays.tmin <= rays.tmax)
 
 
+@njit(cache=True)
+def _line_sums(org, dirs, tmin, tmax, live):
+    """Normal equations of the point nearest to every live ray's line, sum over rays of
+    (I - u u^T)(p - o) = 0 with u = d / |d|: returns (m f64[3,3], b f64[3]), or a zero m when
+    a live ray has a zero direction or an unbounded segment (no shared endpoint then)."""
+    m = np.zeros((3, 3))
+    b = np.zeros(3)
+    u = np.empty(3)
+    for r in range(org.shape[0]):
+        if not live[r]:
+            continue
+        length = 0.0
+        for i in range(3):
+            length += np.float64(dirs[r, i]) ** 2
+        length = np.sqrt(length)
+        if not (length > 0 and np.isfinite(tmax[r]) and np.isfinite(tmin[r])):
+            return np.zeros((3, 3)), b
+        along = 0.0
+        for i in range(3):
+            u[i] = dirs[r, i] / length
+            along += u[i] * org[r, i]
+        for i in range(3):
+            b[i] += org[r, i] - u[i] * along
+            m[i, i] += 1.0
+            for j in range(3):
+                m[i, j] -= u[i] * u[j]
+    return m, b
+
+
+@njit(cache=True)
+def _apex_spread(org, dirs, tmin, tmax, live, ax, ay, az):
+    """(largest gap, largest reach) of the live rays reversed from the point a."""
+    gap_max = 0.0
+    reach_max = 0.0
+    for r in range(org.shape[0]):
+        if live[r]:
+            gap, reach = reversed_segment(org, dirs, tmin, tmax, r, ax, ay, az)
+            gap_max = max(gap_max, gap)
+            reach_max = max(reach_max, reach)
+    return gap_max, reach_max
+
+
 def shared_apex(rays, live: np.ndarray):
     """The point every live ray aims at (f64[3]), or None when they do not share one.
 
@@ -125,26 +167,13 @@ def shared_apex(rays, live: np.ndarray):
     """
     if not live.any():
         return None
-    o = rays.org[live].astype(np.float64)
-    d = rays.dir[live].astype(np.float64)
-    lo = rays.tmin[live].astype(np.float64)
-    hi = rays.tmax[live].astype(np.float64)
-    length = np.linalg.norm(d, axis=1)
-    if not (np.isfinite(hi).all() and np.isfinite(lo).all() and (length > 0).all()):
+    m, b = _line_sums(rays.org, rays.dir, rays.tmin, rays.tmax, live)
+    if not m.any():
         return None
-    u = d / length[:, None]
-    # sum over rays of (I - u u^T)(p - o) = 0
-    m = len(u) * np.eye(3) - u.T @ u
-    b = o.sum(axis=0) - u.T @ np.einsum("ij,ij->i", u, o)
     p = np.linalg.lstsq(m, b, rcond=None)[0]
     p = p.astype(np.float32).astype(np.float64)  # the build stores the apex as float32
-    t_near = np.einsum("ij,ij->i", p - o, d) / (length * length)
-    tp = np.maximum(t_near, hi)
-    radius = np.linalg.norm(o + tp[:, None] * d - p, axis=1)
-    reach = (tp - lo) * length
-    if radius.max() <= APEX_TOLERANCE * reach.max():
-        return p
-    return None
+    gap, reach = _apex_spread(rays.org, rays.dir, rays.tmin, rays.tmax, live, p[0], p[1], p[2])
+    return p if gap <= APEX_TOLERANCE * reach else None
 
 
 def _new_record(levels: int) -> dict:
