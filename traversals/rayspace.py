@@ -15,7 +15,10 @@ How it works
        with a parallel prefix sum. The test is conservative: a pair is dropped only when no
        ray under the node can touch the triangle.
     3. Final tests: the candidate triangles of each ray get the shared watertight test and the
-       shared tie rule, so the hits are bit-identical to ``single``'s.
+       shared tie rule, so the hits are the kernel's own answer over all triangles, bit for
+       bit: ``single``'s, except where a box test of ``single`` culls a hit that the kernel
+       accepts within its rounding (a ray leaving a surface at a tiny offset can see it at
+       t = -0.0 >= tmin; the tests show one in the Cornell box).
 
 Shadow rays
     A ``shadow`` batch whose rays all aim at one point (a point light) is indexed reversed, as
@@ -37,15 +40,24 @@ Options (``[options.rayspace]`` in a config, or ``configure``)
 Statistics (``stats.extra["rayspace"]``, summed over calls; lists are indexed by level,
 0 = rays, last = root): ``cone_sphere_tests``, ``pairs_before`` (child slots before
 compaction), ``pairs_after``, ``candidates`` and ``candidates_per_ray`` (final triangle
-tests per live ray), ``rays``, ``batches``, ``retries`` (batches abandoned for overflow; their
-work is in the counts and times),
-``peak_pairs``, ``reversed_batches``, and ``seconds`` for each phase (triangle_spheres, build,
-traversal, compaction, sort, final). Triangle tests also go to ``stats.counters[:, 1, 0]``.
+tests per live ray), ``rays``, ``batches``, ``retries`` (batches abandoned for overflow;
+their work is in the counts and times), ``peak_pairs``, ``reversed_batches``, and
+``seconds`` per phase (triangle_spheres, build, traversal, compaction, sort, final).
+Triangle tests also go to ``stats.counters[:, 1, 0]``.
 
-When it pays (measured in benchmarks/rayspace_notes.md terms: see the project report)
-    Work grows with triangles x screen area covered, not log(triangles): it suits few
-    triangles, coherent secondary rays and shadow rays from one light; it loses to a BVH on
-    large meshes, where the top levels pair almost every triangle with many nodes.
+When it pays (measured: one thread, bunny as the reflector, hits identical to ``single``)
+    The final tests match a BVH's: 5.2-6.3 candidate triangles per ray on the bunny (the
+    paper reports 2.5-4.5), 20-33 in the Cornell box, whose big walls have big spheres. The
+    cost is the traversal: a triangle is paired with every node whose cone can reach it, and
+    reflection cones off a curved, finely tessellated surface open wide (median spread 10
+    degrees at 2x2 pixels, 49 at 8x8), so cone-sphere tests grow with the triangle count:
+    at 512^2, 24 per ray for 948 triangles, 1,190 for 69,451, and the time against
+    ``single`` from 3x to 27x. Reversed shadow rays stay tight (10-70 tests per ray): 2-3x
+    ``single``. Growth with resolution is sub-linear, as the paper says: 16x the rays
+    (256^2 -> 1024^2) cost 3.5x the time for bunny reflections, 4.2x for its shadows,
+    against 12x for ``single``. It beats no BVH traversal here, even with a per-frame BVH
+    rebuild (42 ms for 69,451 triangles) added to theirs; closest are shadow rays at
+    1024^2: 194 ms against 136 ms for rebuild plus ``single``.
 """
 from __future__ import annotations
 
