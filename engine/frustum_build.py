@@ -37,29 +37,28 @@ FRUSTUM_SLACK = 2.0 ** -16
 @njit(cache=True)
 def choose_axis(g, m):
     """Dominant axis of the m vectors g[:m] (f64[>=m,3]): (axis, sign) with sign * g[i, axis] > 0
-    for every i, picking the axis whose worst vector is least oblique; (-1, 0.0) when no axis has
-    one strict sign for all of them (or a vector is zero or not finite). One pass, no roots:
-    obliqueness is compared as the squared cosine g_a^2 / |g|^2."""
+    for every i, the one (of those) along which their sum is longest; (-1, 0.0) when no axis has
+    one strict sign for all of them (or a vector is not finite). Any such axis gives a correct
+    frustum; the longest sum keeps the (u, v) slopes, and so the frustum, small. One pass, no
+    divisions: this runs for every ray of every packet."""
     lo_x = lo_y = lo_z = np.inf
     hi_x = hi_y = hi_z = -np.inf
-    cos2_x = cos2_y = cos2_z = np.inf
+    sum_x = sum_y = sum_z = 0.0
     for i in range(m):
         x, y, z = g[i, 0], g[i, 1], g[i, 2]
-        length2 = x * x + y * y + z * z
-        if not (length2 > 0.0 and length2 < np.inf):
-            return -1, 0.0
-        inv = 1.0 / length2
-        lo_x, hi_x, cos2_x = min(lo_x, x), max(hi_x, x), min(cos2_x, x * x * inv)
-        lo_y, hi_y, cos2_y = min(lo_y, y), max(hi_y, y), min(cos2_y, y * y * inv)
-        lo_z, hi_z, cos2_z = min(lo_z, z), max(hi_z, z), min(cos2_z, z * z * inv)
+        lo_x, hi_x, sum_x = min(lo_x, x), max(hi_x, x), sum_x + x
+        lo_y, hi_y, sum_y = min(lo_y, y), max(hi_y, y), sum_y + y
+        lo_z, hi_z, sum_z = min(lo_z, z), max(hi_z, z), sum_z + z
+    if not (abs(sum_x) + abs(sum_y) + abs(sum_z) < np.inf):
+        return -1, 0.0
     best_axis = -1
     best_sign = 0.0
-    best_cos2 = 0.0
-    for a, lo, hi, cos2 in ((0, lo_x, hi_x, cos2_x), (1, lo_y, hi_y, cos2_y), (2, lo_z, hi_z, cos2_z)):
-        if (lo > 0.0 or hi < 0.0) and cos2 > best_cos2:
+    best_sum = 0.0
+    for a, lo, hi, total in ((0, lo_x, hi_x, sum_x), (1, lo_y, hi_y, sum_y), (2, lo_z, hi_z, sum_z)):
+        if (lo > 0.0 or hi < 0.0) and abs(total) > best_sum:
             best_axis = a
             best_sign = 1.0 if lo > 0.0 else -1.0
-            best_cos2 = cos2
+            best_sum = abs(total)
     return best_axis, best_sign
 
 

@@ -34,10 +34,10 @@ def load_frustum(planes, valid, k, fr):
 
 
 @njit(cache=True, inline="always")
-def frustum_misses_box(fr, bmin, bmax, node):
-    """True when box ``node`` (bmin, bmax: f32[N,3]) is outside one of the planes in fr: the box
+def frustum_misses_box(fr, box):
+    """True when ``box`` (x0, y0, z0, x1, y1, z1) is outside one of the planes in fr: the box
     corner farthest along the plane normal is outside it."""
-    return planes4_box(fr, bmin[node, 0], bmin[node, 1], bmin[node, 2], bmax[node, 0], bmax[node, 1], bmax[node, 2])
+    return planes4_box(fr, box[0], box[1], box[2], box[3], box[4], box[5])
 
 
 @njit(cache=True, inline="always")

@@ -32,7 +32,8 @@ import numpy as np
 from numba import njit
 
 from .frustum_cull import frustum_misses_box, frustum_misses_triangle
-from .kernels import F32_INF, closer, intersect_triangle, ray_shear
+from .kernels import F32_INF, closer, ray_shear
+from .kernels import intersect_triangle_inlined as intersect_triangle
 from .simd4 import slab4
 from .types import MAX_BVH_DEPTH
 
@@ -165,11 +166,18 @@ def load_packet(org, inv, dirs, tmin, tmax, start, n, rf, ri, near):
 
 
 @njit(cache=True, inline="always")
-def slab_mask4(rf, lane0, bmin, bmax, node):
-    """4-bit mask of the lanes of SIMD ray lane0 .. lane0+3 whose live segment meets box ``node``:
-    ``engine.kernels.slab_test`` on all four lanes at once, in SSE-style vector code."""
-    return slab4(rf, lane0, bmin[node, 0], bmin[node, 1], bmin[node, 2],
-                 bmax[node, 0], bmax[node, 1], bmax[node, 2])
+def node_box(bmin, bmax, node):
+    """Box ``node`` as a tuple (x0, y0, z0, x1, y1, z1), read once per visit: loops that also
+    store (partitions, hits) would otherwise reload it for every SIMD ray."""
+    return bmin[node, 0], bmin[node, 1], bmin[node, 2], bmax[node, 0], bmax[node, 1], bmax[node, 2]
+
+
+@njit(cache=True, inline="always")
+def slab_mask4(rf, lane0, box):
+    """4-bit mask of the lanes of SIMD ray lane0 .. lane0+3 whose live segment meets ``box`` (a
+    ``node_box`` tuple): ``engine.kernels.slab_test`` on all four lanes at once, in SSE-style
+    vector code."""
+    return slab4(rf, lane0, box[0], box[1], box[2], box[3], box[4], box[5])
 
 
 @njit(cache=True, inline="always")
@@ -182,20 +190,20 @@ def live_mask4(rf, lane0):
 
 
 @njit(cache=True, inline="always")
-def first_hit(rf, lo, hi, bmin, bmax, node, fr, cull):
-    """Overbeck's getFirstHit over SIMD rays lo .. hi-1: (index of the first one that hits box
-    ``node``, or hi; ray-box tests done). SIMD ray ``lo`` is tried first (early accept); if it
+def first_hit(rf, lo, hi, box, fr, cull):
+    """Overbeck's getFirstHit over SIMD rays lo .. hi-1: (index of the first one that hits
+    ``box``, or hi; ray-box tests done). SIMD ray ``lo`` is tried first (early accept); if it
     misses, a valid frustum that misses the box rejects the rest at once."""
     if lo >= hi:
         return hi, 0
-    if slab_mask4(rf, 4 * lo, bmin, bmax, node) != 0:
+    if slab_mask4(rf, 4 * lo, box) != 0:
         return lo, 4
-    if cull and frustum_misses_box(fr, bmin, bmax, node):
+    if cull and frustum_misses_box(fr, box):
         return hi, 4
     tests = 4
     for i in range(lo + 1, hi):
         tests += 4
-        if slab_mask4(rf, 4 * i, bmin, bmax, node) != 0:
+        if slab_mask4(rf, 4 * i, box) != 0:
             return i, tests
     return hi, tests
 
@@ -218,8 +226,8 @@ def leaf_triangles(first, count, prim, node, v0, v1, v2, fr, cull, leaf_tris):
 def intersect_lanes(rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit):
     """Test the live lanes of SIMD ray lane0 selected by ``mask`` against leaf_tris[:n_tris].
 
-    Each test is ``intersect_triangle`` with the lane's own shear and segment and the update is
-    ``closer``, exactly as in ``single``, so the best hit is bit-identical whatever the order.
+    Each test is ``intersect_triangle`` (its inlined build) with the lane's own shear and segment
+    and the update is ``closer``, exactly as in ``single``, so the best hit is bit-identical whatever the order.
     For ``any_hit`` a lane dies (THI = -inf) at its first hit. Returns (ray-triangle tests done,
     lanes that died).
     """

@@ -3,14 +3,14 @@
 Overbeck, Ramamoorthi, Mark 2008, Section 4: shadow rays to a point light share the light as a
 common point, so their frustum is the pinhole frustum seen from the light. In packetrt a shadow
 ray starts at the surface and runs towards the light, stopping at tmax just short of it, so the
-light is recovered as the mean of the rays' end points org + tmax dir. From it, along the
-dominant axis of the vectors light -> segment start, the extremal (u, v) slopes at unit
+light is recovered as the end point org + tmax dir of the packet's first live ray. From it,
+along the dominant axis of the vectors light -> segment start, the extremal (u, v) slopes at unit
 distance give the four corner rays and the side planes through the light. The planes are widened
 by the spread of the end points around the light (the rays stop a little short, by different
 amounts) on top of the margin of ``engine.frustum_build``.
 
-Invalid (no culling) when the rays do not meet at one point (end points spread by more than
-END_SPREAD of the shortest ray, or an infinite tmax), have no common dominant axis sign, are
+Invalid (no culling) when the rays do not meet at one point (end points more than END_SPREAD of
+the shortest ray from the first one, or an infinite tmax), have no common dominant axis sign, are
 degenerate (a ray starting at the light), or none is live.
 """
 from __future__ import annotations
@@ -25,8 +25,8 @@ from engine.packet_kernels import longest_packet
 from engine.packet_plugin import PacketFrustum
 from engine.registry import register_frustum
 
-#: How far the end points may scatter around their mean, relative to the shortest ray, for the
-#: rays to count as meeting at one light.
+#: How far the end points may scatter around the first one, relative to the shortest ray, for
+#: the rays to count as meeting at one light.
 END_SPREAD = 1e-2
 
 
@@ -41,16 +41,16 @@ def pointlight_frusta(org, dirs, tmin, tmax, offsets, bounds, n_chunks, planes, 
         light = np.empty(3)
         for k in range(chunk, n_packets, n_chunks):
             valid[k] = False
-            light[:] = 0.0
+            # The light: the end point of the first live ray (the others' spread is measured below).
             m = 0
             for r in range(offsets[k], offsets[k + 1]):
                 if tmin[r] <= tmax[r]:
                     for a in range(3):
-                        light[a] += org[r, a] + np.float64(tmax[r]) * dirs[r, a]
-                    m += 1
+                        light[a] = org[r, a] + np.float64(tmax[r]) * dirs[r, a]
+                    m = 1
+                    break
             if m == 0:
                 continue
-            light /= m
             if not (math.isfinite(light[0]) and math.isfinite(light[1]) and math.isfinite(light[2])):
                 continue  # a ray without an end (infinite tmax) meets no light
             # Squared lengths: one root per packet, not per ray.

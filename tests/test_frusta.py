@@ -17,6 +17,7 @@ from numba import njit
 
 from engine.frustum_cull import frustum_misses_box, frustum_misses_triangle, load_frustum
 from engine.kernels import F32_INF, intersect_triangle, ray_shear, safe_inverse, slab_test
+from engine.packet_kernels import node_box
 from engine.registry import get_frustum
 from engine.types import Packets, RayBatch
 
@@ -109,7 +110,7 @@ def culled_yet_hit(planes, valid, org, dirs, inv, tmin, tmax, bmin, bmax, v0, v1
     n_rays = org.shape[0]
     boxes = box_errors = tris = tri_errors = 0
     for g in range(bmin.shape[0]):
-        if frustum_misses_box(fr, bmin, bmax, g):
+        if frustum_misses_box(fr, node_box(bmin, bmax, g)):
             boxes += 1
             for r in range(n_rays):
                 if slab_test(org[r, 0], org[r, 1], org[r, 2], inv[r, 0], inv[r, 1], inv[r, 2],

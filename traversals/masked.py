@@ -17,7 +17,8 @@ from numba import get_thread_id, njit, prange
 
 from engine.frustum_cull import frustum_misses_box, load_frustum
 from engine.packet_kernels import (STACK_SIZE, first_hit, intersect_lanes, largest_leaf, leaf_triangles,
-                                   load_packet, longest_packet, packet_scratch, slab_mask4, store_hits)
+                                   load_packet, longest_packet, node_box, packet_scratch, slab_mask4,
+                                   store_hits)
 from engine.packet_plugin import PacketTraversal
 from engine.registry import register_traversal
 from engine.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI
@@ -53,13 +54,14 @@ def trace_masked(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmi
                 depth = stack_depth[top]
                 if counters is not None:
                     counters[thread, COUNTER_NODES, depth] += 1
+                box = node_box(bmin, bmax, node)
                 if count[node] > 0:
-                    if cull and frustum_misses_box(fr, bmin, bmax, node):
+                    if cull and frustum_misses_box(fr, box):
                         continue
                     n_tris = leaf_triangles(first, count, prim, node, v0, v1, v2, fr, cull, leaf_tris)
                     tri_tests = 0
                     for i in range(n_simd):
-                        mask = slab_mask4(rf, 4 * i, bmin, bmax, node)
+                        mask = slab_mask4(rf, 4 * i, box)
                         if mask != 0:
                             done, died = intersect_lanes(rf, ri, 4 * i, mask, leaf_tris, n_tris,
                                                          v0, v1, v2, any_hit)
@@ -69,7 +71,7 @@ def trace_masked(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmi
                         counters[thread, COUNTER_RAY_AABB, depth] += 4 * n_simd
                         counters[thread, COUNTER_RAY_TRI, depth] += tri_tests
                     continue
-                hit, tests = first_hit(rf, 0, n_simd, bmin, bmax, node, fr, cull)
+                hit, tests = first_hit(rf, 0, n_simd, box, fr, cull)
                 if counters is not None:
                     counters[thread, COUNTER_RAY_AABB, depth] += tests
                 if hit >= n_simd:

@@ -19,7 +19,7 @@ from numba import get_thread_id, njit, prange
 
 from engine.frustum_cull import frustum_misses_box, load_frustum
 from engine.packet_kernels import (STACK_SIZE, intersect_lanes, largest_leaf, leaf_triangles,
-                                   live_mask4, load_packet, longest_packet, packet_scratch,
+                                   live_mask4, load_packet, longest_packet, node_box, packet_scratch,
                                    slab_mask4, store_hits)
 from engine.packet_plugin import PacketTraversal
 from engine.registry import register_traversal
@@ -27,13 +27,13 @@ from engine.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI
 
 
 @njit(cache=True, inline="always")
-def part_rays(rf, ids, masks, m, bmin, bmax, node):
-    """Overbeck's partRays: move the SIMD rays among ids[:m] that hit box ``node`` to the front,
+def part_rays(rf, ids, masks, m, box):
+    """Overbeck's partRays: move the SIMD rays among ids[:m] that hit ``box`` to the front,
     with their lane masks in masks[:live]; returns live."""
     live = 0
     for j in range(m):
         i = ids[j]
-        mask = slab_mask4(rf, 4 * i, bmin, bmax, node)
+        mask = slab_mask4(rf, 4 * i, box)
         if mask != 0:
             ids[j] = ids[live]
             ids[live] = i
@@ -80,9 +80,10 @@ def trace_partition(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, 
                 m_in = stack_m[top]
                 if counters is not None:
                     counters[thread, COUNTER_NODES, depth] += 1
-                if cull and frustum_misses_box(fr, bmin, bmax, node):
+                box = node_box(bmin, bmax, node)
+                if cull and frustum_misses_box(fr, box):
                     continue
-                m = part_rays(rf, ids, masks, m_in, bmin, bmax, node)
+                m = part_rays(rf, ids, masks, m_in, box)
                 if counters is not None:
                     counters[thread, COUNTER_RAY_AABB, depth] += 4 * m_in
                 if m == 0:

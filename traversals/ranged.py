@@ -17,8 +17,8 @@ import numpy as np
 from numba import get_thread_id, njit, prange
 
 from engine.packet_kernels import (ALL_LANES, STACK_SIZE, first_hit, intersect_lanes, largest_leaf,
-                                   leaf_triangles, load_packet, longest_packet, packet_scratch,
-                                   slab_mask4, store_hits)
+                                   leaf_triangles, load_packet, longest_packet, node_box,
+                                   packet_scratch, slab_mask4, store_hits)
 from engine.frustum_cull import load_frustum
 from engine.packet_plugin import PacketTraversal
 from engine.registry import register_traversal
@@ -26,13 +26,13 @@ from engine.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI
 
 
 @njit(cache=True, inline="always")
-def last_hit(rf, ia, hi, bmin, bmax, node):
-    """Overbeck's getLastHit: (one past the last SIMD ray in (ia, hi) that hits box ``node``, or
+def last_hit(rf, ia, hi, box):
+    """Overbeck's getLastHit: (one past the last SIMD ray in (ia, hi) that hits ``box``, or
     ia + 1 when only ``ia`` does; ray-box tests done)."""
     tests = 0
     for i in range(hi - 1, ia, -1):
         tests += 4
-        if slab_mask4(rf, 4 * i, bmin, bmax, node) != 0:
+        if slab_mask4(rf, 4 * i, box) != 0:
             return i + 1, tests
     return ia + 1, tests
 
@@ -68,13 +68,14 @@ def trace_ranged(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmi
                 depth = stack_depth[top]
                 if counters is not None:
                     counters[thread, COUNTER_NODES, depth] += 1
-                ia, tests = first_hit(rf, stack_ia[top], n_simd, bmin, bmax, node, fr, cull)
+                box = node_box(bmin, bmax, node)
+                ia, tests = first_hit(rf, stack_ia[top], n_simd, box, fr, cull)
                 if counters is not None:
                     counters[thread, COUNTER_RAY_AABB, depth] += tests
                 if ia >= n_simd:
                     continue
                 if count[node] > 0:
-                    ie, tests = last_hit(rf, ia, n_simd, bmin, bmax, node)
+                    ie, tests = last_hit(rf, ia, n_simd, box)
                     n_tris = leaf_triangles(first, count, prim, node, v0, v1, v2, fr, cull, leaf_tris)
                     tri_tests = 0
                     for i in range(ia, ie):

@@ -14,7 +14,8 @@ from numba import get_thread_id, njit, prange
 
 from engine.frustum_cull import frustum_misses_box, load_frustum
 from engine.packet_kernels import (STACK_SIZE, intersect_lanes, largest_leaf, leaf_triangles, live_mask4,
-                                   load_packet, longest_packet, packet_scratch, slab_mask4, store_hits)
+                                   load_packet, longest_packet, node_box, packet_scratch, slab_mask4,
+                                   store_hits)
 from engine.packet_plugin import PacketTraversal
 from engine.registry import register_traversal
 from engine.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI
@@ -52,9 +53,10 @@ def trace_simd(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin,
                     depth = stack_depth[top]
                     if counters is not None:
                         counters[thread, COUNTER_NODES, depth] += 1
-                    if cull and frustum_misses_box(fr, bmin, bmax, node):
+                    box = node_box(bmin, bmax, node)
+                    if cull and frustum_misses_box(fr, box):
                         continue
-                    mask = slab_mask4(rf, lane0, bmin, bmax, node)
+                    mask = slab_mask4(rf, lane0, box)
                     if counters is not None:
                         counters[thread, COUNTER_RAY_AABB, depth] += 4
                     if mask == 0:
