@@ -627,7 +627,7 @@ def test_triangle_spheres_hold_their_corners(corners):
     assert float(r[0]) <= longest / math.sqrt(3) * (1 + 1e-5) + 4e-7 * float(np.abs(v).max())
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=300, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1))
 def test_parents_hold_their_children(seed):
     """Every node's sphere holds its children's spheres, its cone their cones, its reach theirs."""
