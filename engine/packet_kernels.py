@@ -71,9 +71,13 @@ def largest_leaf(count):
 @njit(cache=True)
 def packet_scratch(max_rays, max_leaf):
     """Per-worker buffers: (rf f32[RF_ROWS,L], ri i32[RI_ROWS,L], near i64[6], fr f32[16],
-    leaf_tris i32[max_leaf])."""
-    rf = np.empty((RF_ROWS, max_rays), np.float32)
-    ri = np.empty((RI_ROWS, max_rays), np.int32)
+    leaf_tris i32[max_leaf]), L = max_rays rounded up to an odd number of 64-byte lines: with a
+    row stride of a multiple of 4 KiB (1024 rays) the rows one lane touches would all fall in the
+    same L1 cache set and evict each other."""
+    lines = (max_rays + 15) // 16
+    stride = 16 * (lines + 1 - lines % 2)
+    rf = np.empty((RF_ROWS, stride), np.float32)
+    ri = np.empty((RI_ROWS, stride), np.int32)
     near = np.zeros(6, np.int64)
     fr = np.zeros(16, np.float32)
     leaf_tris = np.empty(max(max_leaf, 1), np.int32)
