@@ -14,7 +14,8 @@ endif
 
 .PHONY: render test bench clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml .ci/system-deps
+	bash .ci/system-deps
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test]'
