@@ -2,6 +2,9 @@
 
     packetrt render  [CONFIG] [selectors] [-o OUT.png] [--stats OUT.json] [--audit]
     packetrt audit   [CONFIG] [selectors] [--json OUT.json] [--report DIR]
+    packetrt bench   MATRIX.toml [--out DIR] [--repeat N] [--resume]
+    packetrt show    [CONFIG] [selectors] [--kind K] [--packet-index I] [-o OUT.png]
+    packetrt view    [CONFIG] [selectors]
     packetrt plugins [--json]
     packetrt scenes  [--json]
 
@@ -129,12 +132,12 @@ def cmd_render(args) -> int:
     return 0
 
 
-def _run_audit(scene, config, image_path, json_path, report_dir, stats_path) -> int:
+def _run_audit(scene, config, image_path, json_path, report_dir, stats_path, oracle="embree") -> int:
     from validation.audit import audit
 
     from .image import save_png
 
-    report, result, bad_pixels = audit(scene, config)
+    report, result, bad_pixels = audit(scene, config, oracle=oracle)
     if image_path:
         save_png(result.image, image_path)
     if json_path:
@@ -158,7 +161,16 @@ def _run_audit(scene, config, image_path, json_path, report_dir, stats_path) -> 
 def cmd_audit(args) -> int:
     config = _config_from(args)
     scene = _load_scene(config)
-    return _run_audit(scene, config, None, args.json, args.report, None)
+    return _run_audit(scene, config, None, args.json, args.report, None, oracle=args.oracle)
+
+
+def _delegate(module: str, function: str):
+    """A subcommand whose code lives in its own module, imported only when that command runs."""
+    def run(args) -> int:
+        import importlib
+
+        return getattr(importlib.import_module(module), function)(args)
+    return run
 
 
 def cmd_plugins(args) -> int:
@@ -208,7 +220,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_selectors(p)
     p.add_argument("--json", help="write the audit report as JSON")
     p.add_argument("--report", help="write a report folder (JSON + mismatch image)")
+    p.add_argument("--oracle", choices=["embree", "open3d", "both"], default="embree",
+                   help="ground truth: Embree (default), Open3D's RaycastingScene, or both")
     p.set_defaults(run=cmd_audit)
+    _add_bench_parser(sub)
+    _add_show_parser(sub)
+    _add_view_parser(sub)
     p = sub.add_parser("plugins", help="list traversal and frustum plugins")
     p.add_argument("--json", action="store_true")
     p.set_defaults(run=cmd_plugins)
@@ -216,6 +233,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.set_defaults(run=cmd_scenes)
     return parser
+
+
+def _add_bench_parser(sub) -> None:
+    p = sub.add_parser("bench", help="run a benchmark matrix (Embree on the same rays in every cell)")
+    p.add_argument("matrix", help="matrix TOML, e.g. benchmarks/smoke.toml")
+    p.add_argument("--out", help="output folder (default: out/bench-<matrix name>)")
+    p.add_argument("--repeat", type=int, help="timed repeats per cell (default: the matrix's, else 5)")
+    p.add_argument("--resume", action="store_true", help="skip cells already in DIR/results.jsonl")
+    p.set_defaults(run=_delegate("engine.bench", "cmd_bench"))
+
+
+def _add_show_parser(sub) -> None:
+    p = sub.add_parser("show", help="debug picture of one packet: rays, frustum, visited BVH nodes (PNG)")
+    _add_selectors(p)
+    p.add_argument("--kind", default="primary", help="ray kind of the packet: primary, shadow, reflection, refraction")
+    p.add_argument("--packet-index", type=int, default=None, help="which packet (default: one near the image centre)")
+    p.add_argument("-o", "--output", default="out/show.png", help="PNG to write")
+    p.set_defaults(run=_delegate("engine.show", "cmd_show"))
+
+
+def _add_view_parser(sub) -> None:
+    p = sub.add_parser("view", help="interactive Open3D window with the live ray-traced image")
+    _add_selectors(p)
+    p.set_defaults(run=_delegate("engine.view", "cmd_view"))
 
 
 def main(argv=None) -> int:

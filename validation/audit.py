@@ -76,8 +76,15 @@ class AuditObserver:
                 "mismatches": self.mismatches}
 
 
-def audit(scene, config) -> tuple[dict, object, list]:
-    """(report, RenderResult, mismatching pixels) for one render of ``scene`` with ``config``."""
+def audit(scene, config, oracle: str = "embree") -> tuple[dict, object, list]:
+    """(report, RenderResult, mismatching pixels) for one render of ``scene`` with ``config``.
+
+    ``oracle``: "embree" (default); "open3d" and "both" are wired by the Open3D oracle work.
+    """
+    if oracle != "embree":
+        from engine.errors import ConfigError
+
+        raise ConfigError(f"--oracle {oracle!r} is not available yet; allowed: embree")
     renderer = WhittedRenderer(scene, config)
     oracle = EmbreeOracle(scene.triangles)
     observer = AuditObserver(scene, renderer.bvh, oracle)
