@@ -20,6 +20,12 @@ TRAVERSAL_COST = np.float32(1.0)
 
 SPLIT_SAH, SPLIT_MEDIAN = 0, 1
 
+#: Node boxes are widened by this fraction of the scene's largest |coordinate|. A slab test
+#: computes (box - origin) in float32, which is off by up to half an ulp of the larger of the
+#: two; its relative slack on t cannot cover that when the origin sits next to the box (a
+#: secondary ray leaving a surface into a corner), so the box carries the absolute part.
+BOX_PAD_SCALE = np.float32(2.0 ** -20)
+
 
 @njit(cache=True)
 def _half_area(lo, hi):
@@ -206,6 +212,13 @@ def triangle_bounds(tris: Triangles):
     return np.ascontiguousarray(pmin), np.ascontiguousarray(pmax), cent
 
 
+def _pad_boxes(bmin, bmax, pmin, pmax) -> None:
+    """Widen every node box (f32[N,3], in place) by ``BOX_PAD_SCALE`` x the largest |coordinate|."""
+    pad = BOX_PAD_SCALE * np.float32(max(np.abs(pmin).max(), np.abs(pmax).max()))
+    bmin -= pad
+    bmax += pad
+
+
 def build_bvh(tris: Triangles, *, leaf_size: int = 4, bins: int = 16, split: str = "sah") -> BVH:
     """Build a BVH over ``tris``: binned SAH with ``bins`` bins, leaves of <= ``leaf_size``.
 
@@ -223,6 +236,7 @@ def build_bvh(tris: Triangles, *, leaf_size: int = 4, bins: int = 16, split: str
     if pmin.shape[0] == 0:
         raise ConfigError("cannot build a BVH over a scene with no triangles")
     bmin, bmax, first, count, prim, depth = _build(pmin, pmax, cent, bins, leaf_size, methods[split])
+    _pad_boxes(bmin, bmax, pmin, pmax)
     return BVH(bmin, bmax, first, count, prim, int(depth), time.perf_counter() - start)
 
 
@@ -232,6 +246,7 @@ def refit_bvh(bvh: BVH, tris: Triangles) -> BVH:
     pmin, pmax, _ = triangle_bounds(tris)
     bmin, bmax = bvh.bmin.copy(), bvh.bmax.copy()
     _refit(bmin, bmax, bvh.first, bvh.count, bvh.prim, pmin, pmax)
+    _pad_boxes(bmin, bmax, pmin, pmax)
     return bvh._replace(bmin=bmin, bmax=bmax, build_seconds=time.perf_counter() - start)
 
 

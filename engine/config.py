@@ -6,6 +6,7 @@
                                          # scene's own parameters (e.g. lod = 2 for "bunny")
     [render]     width = 512  height = 512  max_depth = 5  packet = 16  threads = 0
                  leaf_size = 4  bins = 16
+                 max_reflection_depth = 64   # mirror reflections only off hits of depth < this
     [traversal]  primary = "ranged"  shadow = "partition"  reflection = "partition"  refraction = "partition"
     [frustum]    primary = "pinhole" shadow = "pointlight" reflection = "general"    refraction = "general"
     [materials]  override = "none"       # or "reflective" / "refractive"
@@ -61,6 +62,9 @@ class RenderConfig:
     threads: int = 0
     leaf_size: int = 4
     bins: int = 16
+    # Mirror reflections spawn only off hits at depth < this (and < max_depth): the papers'
+    # "1-bounce reflections, 4-deep refractions" is max_depth = 4, max_reflection_depth = 1.
+    max_reflection_depth: int = MAX_DEPTH
 
 
 def _defaults(table: dict) -> dict:
@@ -146,6 +150,8 @@ def validate(config: Config) -> Config:
                           f"batches, more than this machine's {available_memory() / 2**30:.1f} GiB; render smaller")
     if not 0 <= r.max_depth <= MAX_DEPTH:
         raise ConfigError(f"render.max_depth must be in 0..{MAX_DEPTH}, got {r.max_depth}")
+    if not 0 <= r.max_reflection_depth <= MAX_DEPTH:
+        raise ConfigError(f"render.max_reflection_depth must be in 0..{MAX_DEPTH}, got {r.max_reflection_depth}")
     if r.packet not in PACKET_SIZES:
         raise ConfigError(f"render.packet must be one of {', '.join(map(str, PACKET_SIZES))}, got {r.packet}")
     if not 0 <= r.threads <= 1024:

@@ -7,7 +7,8 @@ Wavefront by depth:
 3. local Phong (ambient, diffuse with textures, specular) into the image;
 4. a reflection batch (reflectance > 0; total internal reflection joins it) and a refraction
    batch (transmission > 0, Snell), kept in ancestral packet order, dead rays compacted out;
-5. repeat from 2 with the secondary batches, up to ``max_depth`` generations.
+5. repeat from 2 with the secondary batches, up to ``max_depth`` generations (mirror
+   reflections only off hits of depth < ``max_reflection_depth``).
 
 The traversal and frustum for each ray kind come from the config. Shading is vectorised
 numpy over a whole batch; the hot loops are the traversals' numba kernels.
@@ -27,7 +28,7 @@ import numpy as np
 
 from .bvh import build_bvh, scene_bounds
 from .config import Config
-from .offset import offset_origin
+from .offset import coordinate_magnitude, hit_points, offset_origin
 from .packets import gather_batch, make_batch, packet_order
 from .registry import get_frustum, get_traversal
 from .scene import Scene
@@ -92,6 +93,20 @@ def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return texture[y, x]
 
 
+def _summarise_stats(per_kind: dict) -> tuple[dict, dict, dict]:
+    """{kind: Stats} of a counting render -> (counters {name: {kind: n}}, per-depth counters
+    {name: {kind: [n per BVH depth]}}, plugin extras {kind: stats.extra})."""
+    counters, by_depth, extra = {}, {}, {}
+    for kind, stats in per_kind.items():
+        for name, value in stats_totals(stats).items():
+            counters.setdefault(name, dict.fromkeys(RAY_KINDS, 0))[kind] = value
+        for name, values in stats_by_depth(stats).items():
+            by_depth.setdefault(name, {k: [] for k in RAY_KINDS})[kind] = list(values)
+        if stats.extra:
+            extra[kind] = stats.extra
+    return counters, by_depth, extra
+
+
 class WhittedRenderer:
     """Renders one scene with one config. Build once, ``render()`` as often as wanted."""
 
@@ -118,7 +133,8 @@ class WhittedRenderer:
     # -- tracing -------------------------------------------------------------------------
     def _trace(self, kind, rays, packets, query, acc):
         traversal, frustum = self.traversal[kind], self.frustum[kind]
-        stats = new_stats(numba.get_num_threads()) if self.count else None
+        # One Stats per ray kind per render: plugins accumulate into it across batches.
+        stats = acc["stats"].setdefault(kind, new_stats(numba.get_num_threads())) if self.count else None
         start = time.perf_counter()
         frusta = frustum.build(rays, packets, self.bounds)
         if query == "intersect":
@@ -129,17 +145,6 @@ class WhittedRenderer:
             traversal.occluded(self.bvh, self.tris, rays, packets, frusta, answer, stats)
         acc["trace"][kind] += time.perf_counter() - start
         acc["rays"][kind] += int(np.count_nonzero(rays.tmin <= rays.tmax))
-        if stats is not None:
-            for name, value in stats_totals(stats).items():
-                acc["counters"].setdefault(name, dict.fromkeys(RAY_KINDS, 0))[kind] += value
-            per_depth = stats_by_depth(stats)
-            for name, values in per_depth.items():
-                mine = acc["by_depth"].setdefault(name, {k: [] for k in RAY_KINDS})[kind]
-                mine.extend([0] * (len(values) - len(mine)))
-                for d, v in enumerate(values):
-                    mine[d] += v
-            for key, value in stats.extra.items():
-                acc["extra"].setdefault(kind, {})[key] = value
         if self.observer is not None:
             self.observer(kind, query, rays, packets, answer)
         return answer
@@ -149,7 +154,7 @@ class WhittedRenderer:
         cfg = self.config.render
         width, height, n = cfg.width, cfg.height, cfg.packet
         acc = {"trace": dict.fromkeys(RAY_KINDS, 0.0), "rays": dict.fromkeys(RAY_KINDS, 0),
-               "counters": {}, "by_depth": {}, "extra": {}}
+               "stats": {}}
         start = time.perf_counter()
         image = np.zeros((width * height, 3), np.float32)
         org, dirs = camera_rays(self.scene, width, height)
@@ -166,7 +171,8 @@ class WhittedRenderer:
                 hits = self._trace(rays.kind, rays, packets, "intersect", acc)
                 shade_start = time.perf_counter()
                 trace_before = sum(acc["trace"].values())
-                spawned = self._shade(rays, packets, hits, image, depth < cfg.max_depth, acc)
+                spawned = self._shade(rays, packets, hits, image, depth < cfg.max_depth, acc,
+                                      reflect=depth < cfg.max_reflection_depth)
                 shade_seconds += time.perf_counter() - shade_start - (sum(acc["trace"].values()) - trace_before)
                 for kind, parts in spawned.items():
                     children[kind].append(parts)
@@ -181,14 +187,15 @@ class WhittedRenderer:
             if not batches:
                 break
         total = time.perf_counter() - start
+        counters, by_depth, extra = _summarise_stats(acc["stats"])
         seconds = {"bvh": self.bvh.build_seconds, "trace": acc["trace"], "shade": shade_seconds, "total": total,
                    "plugin_build": self.prepare_seconds}
-        return RenderResult(image.reshape(height, width, 3), seconds, acc["rays"], acc["counters"],
-                            acc["by_depth"], acc["extra"])
+        return RenderResult(image.reshape(height, width, 3), seconds, acc["rays"], counters, by_depth, extra)
 
-    def _shade(self, rays: RayBatch, packets, hits: Hits, image, spawn: bool, acc) -> dict:
+    def _shade(self, rays: RayBatch, packets, hits: Hits, image, spawn: bool, acc, reflect: bool = True) -> dict:
         """Add this batch's direct light and background to ``image``; return its children as
-        {"reflection": (org, dir, pixel, weight), "refraction": (...)}."""
+        {"reflection": (org, dir, pixel, weight), "refraction": (...)}. ``reflect`` False: no
+        mirror reflections (total internal reflection still continues a refraction path)."""
         m, tris, scene = self.materials, self.tris, self.scene
         live = rays.pixel >= 0
         miss = live & (hits.prim < 0)
@@ -201,9 +208,9 @@ class WhittedRenderer:
         prim = hits.prim[idx]
         d = rays.dir[idx]
         d = d / np.linalg.norm(d, axis=1, keepdims=True)
-        t = hits.t[idx][:, None]
-        p = (rays.org[idx] + t * rays.dir[idx]).astype(np.float32)
         u, v = hits.u[idx][:, None], hits.v[idx][:, None]
+        p = hit_points(tris, prim, hits.u[idx], hits.v[idx])
+        magnitude = coordinate_magnitude(tris, prim, p)
         ng = tris.ng[prim]
         entering = np.einsum("ij,ij->i", ng, d) < 0
         ng_ff = np.where(entering[:, None], ng, -ng)  # geometric normal facing the ray
@@ -231,7 +238,7 @@ class WhittedRenderer:
                 texel[sel] = sample_texture(tex, uv)
 
         color = np.asarray(scene.ambient_light, np.float32) * m.ambient[mat] * texel
-        leave = offset_origin(p, ng_ff)
+        leave = offset_origin(p, ng_ff, magnitude)
         width, height, n = self.config.render.width, self.config.render.height, self.config.render.packet
         for light in scene.lights:
             to_light = np.asarray(light.position, np.float32) - leave
@@ -265,7 +272,7 @@ class WhittedRenderer:
         cos_g = -np.einsum("ij,ij->i", d, ng_ff)
         refl[bad] = d[bad] + 2 * cos_g[bad, None] * ng_ff[bad]
         refl_w = weight * m.reflectance[mat]
-        want_refl = refl_w.max(axis=1) > MIN_WEIGHT
+        want_refl = (refl_w.max(axis=1) > MIN_WEIGHT) & reflect
 
         trans = m.transmission[mat]
         want_trans = (trans > 0) & (weight.max(axis=1) * trans > MIN_WEIGHT)
@@ -277,7 +284,7 @@ class WhittedRenderer:
         refr_bad = ok & (np.einsum("ij,ij->i", refr, ng_ff) >= 0)
         refr[refr_bad] = d[refr_bad]  # grazing smooth-normal case: continue straight through
         trans_w = weight * trans[:, None]
-        enter = offset_origin(p, -ng_ff)
+        enter = offset_origin(p, -ng_ff, magnitude)
 
         r_sel = np.flatnonzero(want_refl)
         t_sel = np.flatnonzero(tir)

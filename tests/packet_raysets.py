@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from engine.bvh import build_bvh
-from engine.offset import offset_origin
+from engine.offset import coordinate_magnitude, hit_points, offset_origin
 from engine.packets import make_batch
 from engine.registry import get_traversal
 from engine.types import empty_hits
@@ -68,16 +68,15 @@ def scene_rays(scene, width: int, height: int) -> SceneRays:
     get_traversal("single").intersect(bvh, tris, rays, packets, None, hits, None)
     idx = np.flatnonzero(hits.prim >= 0)
     prim = hits.prim[idx]
-    u, v = hits.u[idx, None].astype(np.float64), hits.v[idx, None].astype(np.float64)
-    # Hit points from the barycentrics: their error is relative to the vertex coordinates, which
-    # is what offset_origin's few-ulp offset assumes (org + t dir can land on the wrong side).
-    p = ((1 - u - v) * tris.v0[prim] + u * tris.v1[prim] + v * tris.v2[prim]).astype(np.float32)
+    # Origins as the Whitted loop makes them (engine.offset).
+    p = hit_points(tris, prim, hits.u[idx], hits.v[idx])
+    magnitude = coordinate_magnitude(tris, prim, p)
     d = rays.dir[idx]
     ng = tris.ng[prim]
     cos = np.einsum("ij,ij->i", ng, d)
     facing = np.where((cos < 0)[:, None], ng, -ng)  # geometric normal on the incoming side
-    front = offset_origin(p, facing)
-    back = offset_origin(p, -facing)
+    front = offset_origin(p, facing, magnitude)
+    back = offset_origin(p, -facing, magnitude)
     hit_pixel = rays.pixel[idx]
     m = len(idx)
 

@@ -8,12 +8,11 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
-from numba import njit, prange
 
 from engine.bvh import build_bvh
 from engine.cone_sphere import RayHierarchy, absolute_slack, build_hierarchy, cone_sphere_overlap
 from engine.errors import ConfigError
-from engine.kernels import F32_INF, closer, intersect_triangle, ray_shear
+from engine.kernels import F32_INF, intersect_triangle, ray_shear
 from engine.offset import offset_origin
 from engine.packets import make_batch
 from engine.registry import get_traversal
@@ -22,6 +21,7 @@ from engine.triangle_spheres import triangle_spheres
 from engine.types import COUNTER_RAY_TRI, empty_hits, new_stats
 from engine.whitted import camera_rays
 
+from brute_force import brute_force
 from conftest import needs_shared_scenes
 
 SIZE = 64
@@ -158,22 +158,6 @@ def test_occlusion_matches_single(rayspace, scene, kind):
     rays, packets = getattr(setup, kind)()
     ref, got = occluded_both(rayspace, setup, rays, packets)
     np.testing.assert_array_equal(got, ref)
-
-
-@njit(cache=True, parallel=True)
-def brute_force(org, dirs, tmin, tmax, v0, v1, v2, out_t, out_prim):
-    """Closest hit of every ray over every triangle with the shared kernel and tie rule."""
-    for r in prange(org.shape[0]):
-        best_t, best_prim = F32_INF, -1
-        if tmin[r] <= tmax[r]:
-            kx, ky, kz, sx, sy, sz = ray_shear(dirs[r, 0], dirs[r, 1], dirs[r, 2])
-            for tri in range(v0.shape[0]):
-                t, _, _ = intersect_triangle(org[r, kx], org[r, ky], org[r, kz], kx, ky, kz, sx, sy, sz,
-                                             tmin[r], tmax[r], v0, v1, v2, tri)
-                if t < F32_INF and closer(t, tri, best_t, best_prim):
-                    best_t, best_prim = t, tri
-        out_t[r] = best_t
-        out_prim[r] = best_prim
 
 
 @pytest.mark.parametrize("scene", ["cornell-box", "bunny"])

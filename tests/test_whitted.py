@@ -51,3 +51,25 @@ def test_png_is_gamma_encoded_and_clamped(tmp_path):
     assert to_srgb8(image).tolist() == [[[0, round(0.5 ** (1 / 2.2) * 255), 255]]]
     save_png(image, str(tmp_path / "sub" / "x.png"))
     assert (tmp_path / "sub" / "x.png").stat().st_size > 0
+
+
+def test_counting_render_sums_plugin_stats_over_every_batch():
+    """Reflection rays come in one batch per depth: the rayspace record must hold them all,
+    not just the last batch's."""
+    config = with_overrides(Config(), traversal=["single", "reflection=rayspace"], frustum=["none"],
+                            size=(64, 48), depth=3)
+    calls = []
+    renderer = WhittedRenderer(load_named("whitted"), config, count=True,
+                               observer=lambda kind, query, rays, packets, answer:
+                               calls.append(int((rays.tmin <= rays.tmax).sum())) if kind == "reflection" else None)
+    result = renderer.render()
+    record = result.extra["reflection"]["rayspace"]
+    assert len(calls) >= 2
+    assert record["calls"] == len(calls)
+    assert record["rays"] == sum(calls) == result.rays["reflection"]
+
+
+def test_counters_sum_over_batches_and_threads():
+    one = render("single", count=True)
+    per_depth = one.counters_by_depth["ray_tri"]["reflection"]
+    assert sum(per_depth) == one.counters["ray_tri"]["reflection"] > 0
