@@ -26,7 +26,7 @@ import numba
 import numpy as np
 
 from .packet_kernels import child_order_keys
-from .types import Frusta
+from .types import Frusta, check_answer_arrays
 
 #: Packet decks per thread: packet k goes to deck k % n_chunks, so neighbouring (similarly
 #: expensive) tiles land on different threads and the threads finish together.
@@ -58,6 +58,7 @@ class PacketTraversal:
         occluded[:] = prim >= 0
 
     def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats):
+        check_answer_arrays(rays.org.shape[0], out_t, out_prim, out_u, out_v)
         offsets = np.ascontiguousarray(packets.offsets, np.int32)
         n_packets = offsets.shape[0] - 1
         if offsets[-1] != rays.org.shape[0] or np.any(np.diff(offsets) % 4):

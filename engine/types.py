@@ -151,6 +151,17 @@ def empty_hits(n: int) -> Hits:
     )
 
 
+def check_answer_arrays(n_rays: int, *arrays) -> None:
+    """Raise ValueError unless every answer array has one entry per ray.
+
+    Kernels index answers by ray without bounds checks, so a short array would be written
+    past its end: every traversal checks before it calls one.
+    """
+    lengths = [a.shape[0] for a in arrays]
+    if any(length != n_rays for length in lengths):
+        raise ValueError(f"answer arrays must have one entry per ray ({n_rays}), got {lengths}")
+
+
 def new_stats(threads: int) -> Stats:
     """Zeroed counters for ``threads`` worker threads."""
     return Stats(np.zeros((max(threads, 1), 3, MAX_BVH_DEPTH), np.int64), {})

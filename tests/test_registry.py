@@ -35,3 +35,24 @@ def test_entry_points_are_loaded_only_when_asked(monkeypatch):
     assert registry.load_entry_points() == ["packetrt.traversals:fake"]
     assert "fake-from-entry-point" in registry.traversal_names()
     registry.TRAVERSALS.pop("fake-from-entry-point")
+
+
+@pytest.mark.parametrize("name", ["single", "simd", "masked", "ranged", "partition", "rayspace", "embree"])
+def test_short_answer_arrays_are_refused_not_overrun(name):
+    """Kernels index answers by ray without bounds checks: every traversal checks first."""
+    import numpy as np
+
+    from engine.bvh import build_bvh
+    from engine.packets import make_batch
+    from engine.registry import get_traversal
+    from engine.scene import make_triangles
+    from engine.types import empty_hits
+
+    tris = make_triangles(np.float32([[0, 0, 1], [1, 0, 1], [0, 1, 1]]), np.array([[0, 1, 2]]), 0)
+    n = 16
+    org = np.zeros((n, 3), np.float32)
+    d = np.tile(np.float32([0.1, 0.1, 1]), (n, 1))
+    rays, packets = make_batch("reflection", org, d, np.zeros(n), np.full(n, np.inf), np.arange(n, dtype=np.int32),
+                               np.ones((n, 3)), 4, 4, 4)
+    with pytest.raises(ValueError, match="one entry per ray"):
+        get_traversal(name).intersect(build_bvh(tris), tris, rays, packets, None, empty_hits(n - 4), None)

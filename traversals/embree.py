@@ -12,6 +12,7 @@ import numba
 
 from engine.embree_backend import EmbreeScene
 from engine.registry import register_traversal
+from engine.types import check_answer_arrays
 
 
 @register_traversal("embree")
@@ -52,6 +53,7 @@ class EmbreeTraversal:
                                      "robust": scene.robust, "build_seconds": scene.build_seconds}
 
     def intersect(self, bvh, tris, rays, packets, frusta, hits, stats):
+        check_answer_arrays(rays.org.shape[0], hits.t, hits.prim, hits.u, hits.v)
         scene = self.scene_for(tris)
         answer = scene.intersect(rays)
         hits.t[:], hits.prim[:], hits.u[:], hits.v[:] = answer.t, answer.prim, answer.u, answer.v

@@ -72,7 +72,7 @@ from engine.kernels import F32_INF, closer, intersect_triangle, ray_shear
 from engine.pair_stream import expand, group_by_slot, root_stream
 from engine.registry import register_traversal
 from engine.triangle_spheres import triangle_spheres
-from engine.types import COUNTER_RAY_TRI
+from engine.types import COUNTER_RAY_TRI, check_answer_arrays
 
 CHUNK = 256               # slots per prange task of the final tests
 MAX_PAIR_BUDGET = 2**31 - 1   # stream indices are i32
@@ -282,10 +282,7 @@ class RaySpaceTraversal:
     # -- the work ----------------------------------------------------------------------
     def _trace(self, tris, rays, packets, any_hit, out_t, out_prim, out_u, out_v, stats):
         n_rays = rays.org.shape[0]
-        if not out_t.shape[0] == out_prim.shape[0] == out_u.shape[0] == out_v.shape[0] == n_rays:
-            # The kernels index the answer by ray: a short array would be written past its end.
-            raise ValueError(f"answer arrays must have one entry per ray ({n_rays}), got "
-                             f"{[a.shape[0] for a in (out_t, out_prim, out_u, out_v)]}")
+        check_answer_arrays(n_rays, out_t, out_prim, out_u, out_v)
         out_t[:] = np.inf
         out_prim[:] = -1
         out_u[:] = 0

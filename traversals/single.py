@@ -10,7 +10,7 @@ from numba import get_thread_id, njit, prange
 
 from engine.kernels import F32_INF, closer, intersect_triangle, ray_shear, slab_test
 from engine.registry import register_traversal
-from engine.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI, MAX_BVH_DEPTH
+from engine.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI, MAX_BVH_DEPTH, check_answer_arrays
 
 CHUNK = 256  # rays per prange task: one stack allocation per chunk
 
@@ -103,6 +103,7 @@ class SingleRayTraversal:
     """One ray at a time, stack-based, near child first; the reference CPU traversal."""
 
     def intersect(self, bvh, tris, rays, packets, frusta, hits, stats):
+        check_answer_arrays(rays.org.shape[0], hits.t, hits.prim, hits.u, hits.v)
         trace_single(bvh.bmin, bvh.bmax, bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
                      rays.org, rays.inv_dir, rays.dir, rays.tmin, rays.tmax, False,
                      hits.t, hits.prim, hits.u, hits.v, None if stats is None else stats.counters)
