@@ -148,13 +148,26 @@ def _run_audit(scene, config, image_path, json_path, report_dir, stats_path, ora
         from validation.report import write_report
 
         write_report(report_dir, report, result.image, bad_pixels, config.render.width, config.render.height)
-    print(f"audit {scene.name} ({scene.n_triangles:,} triangles) against {report['oracle']['name']} "
-          f"{report['oracle']['version']} (robust={report['oracle']['robust']}):")
-    for kind, row in report["by_kind"].items():
-        if row["checked"]:
-            print(f"  {kind:<10} checked {row['checked']:>9,}  agree {row['agree']:>9,}  "
-                  f"ties {row['ties']:>7,}  mismatches {row['mismatches']:>6,}")
-    print(f"  agreement {report['agreement']:.6f}, max |dt| on agreeing hits {report['max_abs_t_err']:.3g}")
+    def rows(by_kind, bad="mismatches", indent="  "):
+        for kind, row in by_kind.items():
+            if row["checked"]:
+                print(f"{indent}{kind:<10} checked {row['checked']:>9,}  agree {row['agree']:>9,}  "
+                      f"ties {row['ties']:>7,}  {bad} {row[bad]:>6,}")
+
+    one_each = report.get("oracles", {"": report})
+    against = " and ".join(f"{r['oracle']['name']} {r['oracle']['version']} (robust={r['oracle']['robust']})"
+                           for r in one_each.values())
+    print(f"audit {scene.name} ({scene.n_triangles:,} triangles) against {against}:")
+    for name, sub in one_each.items():
+        if name:
+            print(f"  against {name}:")
+        rows(sub["by_kind"], indent="    " if name else "  ")
+        print(f"{'    ' if name else '  '}agreement {sub['agreement']:.6f}, max |dt| on agreeing hits "
+              f"{sub['max_abs_t_err']:.3g}")
+    between = report.get("oracle_disagreements")
+    if between:
+        print(f"  {' vs '.join(between['between'])} (the oracles with each other; does not fail the audit):")
+        rows(between["by_kind"], bad="disagreements", indent="    ")
     return EXIT_MISMATCH if report["mismatch_count"] else 0
 
 
