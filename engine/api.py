@@ -1,0 +1,482 @@
+"""The Python API: ray queries on a mesh with trimesh's names, and renders for notebooks.
+
+>>> import numpy as np, trimesh
+>>> from engine import RayTracer
+>>> tracer = RayTracer(trimesh.creation.icosphere())          # or (vertices, faces), or a Scene
+>>> origins = np.random.default_rng(0).normal(size=(1000, 3)) * 3      # (n, 3)
+>>> directions = -origins + np.random.default_rng(1).normal(size=(1000, 3))  # (n, 3), any length
+>>> tracer.intersects_first(origins, directions)             # (n,) int64, -1 = miss
+>>> tracer.intersects_any(origins, directions)               # (n,) bool
+>>> locations, index_ray, index_tri = tracer.intersects_location(origins, directions)
+>>> hits = tracer.intersect(origins, directions)             # Hits(t, prim, u, v), each (n,)
+>>> image, stats = tracer.render({"render": {"width": 256, "height": 256}})
+
+Conventions
+    - A ray is ``origin + t * direction`` for t in [tmin, tmax] (defaults 0 and inf; both may be
+      given per ray). Directions need not be unit length, as in trimesh; ``Hits.t`` is in units
+      of each ray's own direction length (the hit point is ``origin + t * direction``; it is the
+      distance when the direction is unit). A direction of zero length, or of a length outside
+      1e-18 .. 1e18 (where float32 t or |d|^2 would underflow or overflow), is an error.
+    - Triangle indices are face indices of the mesh (rows of ``faces``), or indices into
+      ``scene.triangles`` for a Scene. Barycentrics: hit = (1-u-v) v0 + u v1 + v v2.
+    - All intersection arithmetic is float32 (the inputs are rounded to float32 first); the
+      answers are those of the shared watertight kernel, equal to Embree's up to floating-point
+      ties (a ray through a shared edge may report either triangle).
+    - ``intersects_location`` and ``intersects_id`` return the first hit per ray only (trimesh's
+      ``multiple_hits=False``), in increasing ray order.
+
+Incoherent rays become packets here: rays are grouped by direction octant, sorted by a Morton
+code over origin and direction inside each octant, and dealt to n x n packets (``packet``) of
+2x2 SIMD rays, each octant starting a new packet, so a packet's rays point the same way and
+start near each other. The packet lanes left over are dead (tmax < tmin), as the packet contract
+says. The sorted rays are also laid out along a Z-order curve on a virtual screen, so the
+``rayspace`` traversal sees neighbouring rays in neighbouring pixels. Answers are mapped back to
+the input order.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+from .errors import ConfigError, PacketrtError
+from .kernels import safe_inverse
+from .types import Hits, Packets, RayBatch, Triangles, empty_hits
+
+#: Direction lengths the float32 kernels handle without underflow or overflow in t or |d|^2.
+MIN_DIRECTION_LENGTH, MAX_DIRECTION_LENGTH = 1e-18, 1e18
+
+#: Bits per coordinate of the 6-D (origin, direction) Morton code; 6 * 9 = 54 bits.
+MORTON_BITS = 9
+
+
+class RayInputError(PacketrtError, ValueError):
+    """Ray arrays given to a query are malformed; the message names the argument and a row."""
+
+
+# -- inputs ----------------------------------------------------------------------------------
+def _vectors(name: str, value, n: int | None = None) -> np.ndarray:
+    """f32[n,3] from an array-like, with a RayInputError naming ``name`` when it is not one."""
+    try:
+        with np.errstate(over="ignore"):
+            f32 = np.ascontiguousarray(value, dtype=np.float32)
+    except (TypeError, ValueError) as exc:
+        raise RayInputError(f"{name} must be a numeric array of shape (n, 3): {exc}") from None
+    if f32.ndim != 2 or f32.shape[1] != 3:
+        raise RayInputError(f"{name} must have shape (n, 3), got {f32.shape}")
+    if n is not None and f32.shape[0] != n:
+        raise RayInputError(f"{name} has {f32.shape[0]} rows but origins has {n}; give one direction per origin")
+    if not np.isfinite(f32).all():
+        bad = ~np.isfinite(f32).all(axis=1)
+        i = int(np.flatnonzero(bad)[0])
+        row = np.asarray(value[i] if hasattr(value, "__getitem__") else f32[i], np.float64)
+        what = "is not finite" if not np.isfinite(row).all() else "overflows float32"
+        raise RayInputError(f"{name}[{i}] {what} ({row.tolist()}); {int(bad.sum())} such row(s) in all")
+    return f32
+
+
+def _segment_bound(name: str, value, n: int, default: float) -> np.ndarray:
+    if value is None:
+        return np.full(n, default, np.float32)
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise RayInputError(f"{name} must be a number or an array of shape (n,): {exc}") from None
+    if arr.ndim > 1 or (arr.ndim == 1 and arr.shape[0] != n):
+        raise RayInputError(f"{name} must be a number or an array of shape ({n},), got shape {arr.shape}")
+    arr = np.broadcast_to(arr, (n,))
+    bad = np.isnan(arr)
+    if bad.any():
+        raise RayInputError(f"{name}[{int(np.flatnonzero(bad)[0])}] is NaN")
+    return np.ascontiguousarray(arr.astype(np.float32))
+
+
+def check_rays(origins, directions, tmin=None, tmax=None):
+    """(org f32[n,3], dir f32[n,3], tmin f32[n], tmax f32[n]) from user input, or RayInputError.
+
+    origins, directions: (n, 3) finite (in float32); direction lengths in 1e-18 .. 1e18.
+    tmin: finite, >= 0;
+    tmax >= tmin (inf allowed). Scalars broadcast to every ray.
+    """
+    org = _vectors("origins", origins)
+    dirs = _vectors("directions", directions, org.shape[0])
+    zero = ~(dirs != 0).any(axis=1)
+    if zero.any():
+        i = int(np.flatnonzero(zero)[0])
+        raise RayInputError(f"directions[{i}] has zero length; {int(zero.sum())} zero direction(s) in all")
+    length = np.sqrt(np.einsum("ij,ij->i", dirs.astype(np.float64), dirs.astype(np.float64)))
+    odd = (length < MIN_DIRECTION_LENGTH) | (length > MAX_DIRECTION_LENGTH)
+    if odd.any():
+        i = int(np.flatnonzero(odd)[0])
+        raise RayInputError(f"directions[{i}] has length {length[i]:.3g}, outside "
+                            f"{MIN_DIRECTION_LENGTH:g} .. {MAX_DIRECTION_LENGTH:g} where float32 t and "
+                            f"squared lengths stay exact enough; normalise the directions")
+    n = org.shape[0]
+    lo = _segment_bound("tmin", tmin, n, 0.0)
+    hi = _segment_bound("tmax", tmax, n, np.inf)
+    bad = ~np.isfinite(lo) | (lo < 0)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise RayInputError(f"tmin[{i}] = {float(lo[i])} must be finite and >= 0")
+    bad = hi < lo
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise RayInputError(f"tmax[{i}] = {float(hi[i])} is below tmin[{i}] = {float(lo[i])}")
+    return org, dirs, lo, hi
+
+
+# -- incoherent rays -> packets --------------------------------------------------------------
+@njit(cache=True)
+def _spread6(q):
+    """The low MORTON_BITS bits of q, bit b moved to bit 6 b."""
+    out = np.uint64(0)
+    for bit in range(MORTON_BITS):
+        out |= ((q >> np.uint64(bit)) & np.uint64(1)) << np.uint64(6 * bit)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def morton_keys_kernel(org, dirs, lo, hi, keys):
+    """keys[i] (u64): direction octant (3 bits, sign bits of x, y, z) above a 6-D Morton code of
+    the origin (quantized within the box lo..hi) and the unit direction (within [-1, 1]^3)."""
+    top = (1 << MORTON_BITS) - 1
+    for i in prange(org.shape[0]):
+        code = np.uint64(0)
+        norm = 0.0
+        for a in range(3):
+            norm += np.float64(dirs[i, a]) * np.float64(dirs[i, a])
+        norm = np.sqrt(norm)
+        octant = np.uint64(0)
+        for a in range(3):
+            span = hi[a] - lo[a]
+            x = (np.float64(org[i, a]) - lo[a]) / span if span > 0 else 0.0
+            qo = min(max(int(np.floor(x * top + 0.5)), 0), top)
+            y = (np.float64(dirs[i, a]) / norm + 1.0) * 0.5
+            qd = min(max(int(np.floor(y * top + 0.5)), 0), top)
+            code |= _spread6(np.uint64(qo)) << np.uint64(5 - a)
+            code |= _spread6(np.uint64(qd)) << np.uint64(2 - a)
+            if np.signbit(dirs[i, a]):
+                octant |= np.uint64(1) << np.uint64(2 - a)
+        keys[i] = code | (octant << np.uint64(6 * MORTON_BITS))
+
+
+@njit(cache=True)
+def _z_order(rank, side):
+    """Pixel y * side + x of position ``rank`` along a Z-order curve (even bits x, odd bits y)."""
+    x = 0
+    y = 0
+    for bit in range(31):
+        x |= ((rank >> (2 * bit)) & 1) << bit
+        y |= ((rank >> (2 * bit + 1)) & 1) << bit
+    return y * side + x
+
+
+@njit(cache=True)
+def incoherent_packets_kernel(order, sorted_keys, block, octant_shift):
+    """Deal rays, sorted by key (``order`` i64[n], ``sorted_keys`` u64[n]), into packets of at
+    most ``block`` rays, each direction octant starting a fresh packet, each packet padded to
+    whole SIMD rays. Returns (gather i64[R]: input ray of each lane or -1, offsets i32[K+1],
+    pixel i32[R]: Z-order virtual pixel or -1, side: the virtual screen's side)."""
+    n = order.shape[0]
+    n_packets = 0
+    n_lanes = 0
+    n_ranks = 0
+    i = 0
+    while i < n:
+        octant = sorted_keys[i] >> octant_shift
+        j = i
+        while j < n and (sorted_keys[j] >> octant_shift) == octant:
+            j += 1
+        n_ranks += (j - i + block - 1) // block * block
+        s = i
+        while s < j:
+            m = min(block, j - s)
+            n_packets += 1
+            n_lanes += (m + 3) // 4 * 4
+            s += m
+        i = j
+    side = 1
+    while side * side < n_ranks:
+        side *= 2
+    gather = np.full(n_lanes, -1, np.int64)
+    pixel = np.full(n_lanes, -1, np.int32)
+    offsets = np.zeros(n_packets + 1, np.int32)
+    k = 0
+    lane = 0
+    base = 0
+    i = 0
+    while i < n:
+        octant = sorted_keys[i] >> octant_shift
+        j = i
+        while j < n and (sorted_keys[j] >> octant_shift) == octant:
+            j += 1
+        s = i
+        while s < j:
+            m = min(block, j - s)
+            for r in range(m):
+                gather[lane + r] = order[s + r]
+                pixel[lane + r] = _z_order(base + s - i + r, side)
+            lane += (m + 3) // 4 * 4
+            k += 1
+            offsets[k] = lane
+            s += m
+        base += (j - i + block - 1) // block * block
+        i = j
+    return gather, offsets, pixel, side
+
+
+@njit(cache=True, parallel=True)
+def gather_rays_kernel(gather, org, dirs, tmin, tmax, out_org, out_dir, out_tmin, out_tmax):
+    """Lane l takes input ray gather[l]; a padding lane (-1) becomes dead: direction (0, 0, 1),
+    tmin 1 > tmax 0."""
+    for lane in prange(gather.shape[0]):
+        g = gather[lane]
+        if g >= 0:
+            for a in range(3):
+                out_org[lane, a] = org[g, a]
+                out_dir[lane, a] = dirs[g, a]
+            out_tmin[lane] = tmin[g]
+            out_tmax[lane] = tmax[g]
+        else:
+            for a in range(3):
+                out_org[lane, a] = 0
+                out_dir[lane, a] = 0
+            out_dir[lane, 2] = 1
+            out_tmin[lane] = 1
+            out_tmax[lane] = 0
+
+
+def incoherent_batch(kind: str, org, dirs, tmin, tmax, n: int):
+    """(RayBatch, Packets, gather i64[R]) for arbitrary rays (f32[M,3], f32[M,3], f32[M], f32[M]):
+    packets of at most n x n rays grouped by direction octant and a Morton code over origin and
+    direction; ``gather[l]`` is the input ray in lane l (-1 for a dead padding lane)."""
+    count = org.shape[0]
+    keys = np.empty(count, np.uint64)
+    morton_keys_kernel(org, dirs, org.min(axis=0).astype(np.float64), org.max(axis=0).astype(np.float64), keys)
+    order = np.argsort(keys)
+    gather, offsets, pixel, side = incoherent_packets_kernel(order, keys[order], n * n,
+                                                             np.uint64(6 * MORTON_BITS))
+    lanes = gather.shape[0]
+    out_org = np.empty((lanes, 3), np.float32)
+    out_dir = np.empty((lanes, 3), np.float32)
+    out_tmin = np.empty(lanes, np.float32)
+    out_tmax = np.empty(lanes, np.float32)
+    gather_rays_kernel(gather, org, dirs, tmin, tmax, out_org, out_dir, out_tmin, out_tmax)
+    weight = np.zeros((lanes, 3), np.float32)
+    weight[gather >= 0] = 1
+    rays = RayBatch(out_org, out_dir, safe_inverse(out_dir), out_tmin, out_tmax, pixel, weight, kind)
+    return rays, Packets(offsets, n, int(side), int(side)), gather
+
+
+# -- the tracer ------------------------------------------------------------------------------
+def _scene_from(mesh_or_scene):
+    from .scene import Scene, SceneBuilder
+
+    if isinstance(mesh_or_scene, Scene):
+        return mesh_or_scene
+    builder = SceneBuilder("mesh", source="RayTracer")
+    if isinstance(mesh_or_scene, Triangles):  # one default material for every triangle
+        builder.add_material(_default_material())
+        builder.add_triangles(mesh_or_scene._replace(material=np.zeros_like(mesh_or_scene.material)))
+        return builder.build()
+    if hasattr(mesh_or_scene, "vertices") and hasattr(mesh_or_scene, "faces"):  # trimesh.Trimesh
+        vertices, faces = mesh_or_scene.vertices, mesh_or_scene.faces
+    elif isinstance(mesh_or_scene, (tuple, list)) and len(mesh_or_scene) == 2:
+        vertices, faces = mesh_or_scene
+    else:
+        raise ConfigError("RayTracer needs a trimesh.Trimesh, a (vertices (V,3), faces (T,3)) pair, "
+                          f"packetrt Triangles or a packetrt Scene; got {type(mesh_or_scene).__name__}")
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
+        raise ConfigError(f"faces must be an integer array of shape (T, 3), got {faces.dtype} {faces.shape}")
+    if len(faces) == 0:
+        raise ConfigError("the mesh has no faces")
+    builder.add_mesh(vertices, faces, builder.add_material(_default_material()), source="RayTracer mesh")
+    return builder.build()
+
+
+def _default_material():
+    from .scene import Material
+
+    return Material()
+
+
+def _as_config(config):
+    from . import config as cfg
+
+    if config is None:
+        return cfg.Config()
+    if isinstance(config, cfg.Config):
+        return cfg.validate(config)
+    if isinstance(config, dict):
+        return cfg.from_dict(config)
+    if isinstance(config, (str, Path)):
+        return cfg.load(str(config))
+    raise ConfigError(f"render config must be a Config, a dict of TOML tables or a TOML path; "
+                      f"got {type(config).__name__}")
+
+
+class RayTracer:
+    """Ray queries and renders over one triangle mesh.
+
+    mesh_or_scene  a ``trimesh.Trimesh``, a ``(vertices f[V,3], faces i[T,3])`` pair, packetrt
+                   ``Triangles`` or a packetrt ``Scene``. A mesh gets one default material, an
+                   auto-framed camera and one point light (for ``render``).
+    traversal      traversal plugin for the queries (``packetrt plugins``): "partition"
+                   (default; the packet traversal that copes best with incoherent rays),
+                   "ranged", "masked", "simd", "single", "rayspace", "embree".
+    frustum        frustum builder for the packets: "general" (default; valid for any origins),
+                   "none", or any registered name (a builder that does not fit marks packets
+                   unculled).
+    packet         n of the n x n packets (2, 4, 8, 16, 32).
+    threads        numba threads for the queries (0 = all cores).
+    leaf_size, bins  BVH build settings, as in a config's [render] table.
+
+    Every query takes ``(origins (n,3), directions (n,3))`` plus optional ``tmin`` / ``tmax``
+    keywords (scalars or (n,) arrays; defaults 0 and inf) and answers in input order.
+
+    The BVH is built once, here; every query reuses it.
+    """
+
+    def __init__(self, mesh_or_scene, traversal: str = "partition", frustum: str = "general",
+                 packet: int = 8, *, threads: int = 0, leaf_size: int = 4, bins: int = 16):
+        from .bvh import build_bvh, scene_bounds
+        from .packets import check_packet_size
+        from .registry import get_frustum, get_traversal
+
+        self.scene = _scene_from(mesh_or_scene)
+        self.triangles: Triangles = self.scene.triangles
+        self.packet = check_packet_size(packet)
+        self.threads = int(threads)
+        if self.threads < 0:
+            raise ConfigError(f"threads must be >= 0 (0 = all cores), got {threads}")
+        self.traversal_name, self.frustum_name = traversal, frustum
+        self.traversal = get_traversal(traversal)
+        self.frustum = get_frustum(frustum)
+        self.bvh = build_bvh(self.triangles, leaf_size=leaf_size, bins=bins)
+        self.bounds = scene_bounds(self.bvh)
+        if hasattr(self.traversal, "prepare"):
+            self.traversal.prepare(self.triangles)
+
+    def __repr__(self) -> str:
+        return (f"RayTracer({self.scene.name!r}, {self.scene.n_triangles:,} triangles, "
+                f"traversal={self.traversal_name!r}, frustum={self.frustum_name!r}, packet={self.packet})")
+
+    # -- the two queries ---------------------------------------------------------------
+    def _batch(self, kind, origins, directions, tmin, tmax):
+        """(RayBatch in packet order, Packets, lane of each input ray i64[n]); None for n = 0."""
+        org, dirs, lo, hi = check_rays(origins, directions, tmin, tmax)
+        count = org.shape[0]
+        if count == 0:
+            return None
+        rays, packets, gather = incoherent_batch(kind, org, dirs, lo, hi, self.packet)
+        lane = np.empty(count, np.int64)
+        live = gather >= 0
+        lane[gather[live]] = np.flatnonzero(live)
+        return rays, packets, lane
+
+    def _set_threads(self):
+        numba.set_num_threads(min(self.threads or numba.config.NUMBA_NUM_THREADS,
+                                  numba.config.NUMBA_NUM_THREADS))
+
+    def intersect(self, origins, directions, tmin=None, tmax=None) -> Hits:
+        """Closest hit of every ray.
+
+        origins, directions: (n, 3); tmin, tmax: scalars or (n,) (defaults 0, inf).
+        Returns ``Hits`` of (n,) arrays in input order: t f32 (inf = miss; hit point =
+        origin + t * direction), prim i32 (triangle index, -1 = miss), u, v f32 (barycentrics
+        of v1 and v2).
+        """
+        batch = self._batch("reflection", origins, directions, tmin, tmax)
+        if batch is None:
+            return empty_hits(0)
+        rays, packets, lane = batch
+        self._set_threads()
+        frusta = self.frustum.build(rays, packets, self.bounds)
+        hits = empty_hits(rays.org.shape[0])
+        self.traversal.intersect(self.bvh, self.triangles, rays, packets, frusta, hits, None)
+        return Hits(*(np.ascontiguousarray(a[lane]) for a in hits))
+
+    def occluded(self, origins, directions, tmin=None, tmax=None) -> np.ndarray:
+        """bool (n,): does ray i hit anything with tmin <= t <= tmax (any hit, early exit)."""
+        batch = self._batch("shadow", origins, directions, tmin, tmax)
+        if batch is None:
+            return np.zeros(0, np.bool_)
+        rays, packets, lane = batch
+        self._set_threads()
+        frusta = self.frustum.build(rays, packets, self.bounds)
+        answer = np.zeros(rays.org.shape[0], np.bool_)
+        self.traversal.occluded(self.bvh, self.triangles, rays, packets, frusta, answer, None)
+        return answer[lane]
+
+    # -- trimesh's names ---------------------------------------------------------------
+    def intersects_first(self, ray_origins, ray_directions, **segment) -> np.ndarray:
+        """int64 (n,): index of the first triangle each ray hits, -1 for a miss."""
+        return self.intersect(ray_origins, ray_directions, **segment).prim.astype(np.int64)
+
+    def intersects_any(self, ray_origins, ray_directions, **segment) -> np.ndarray:
+        """bool (n,): whether each ray hits any triangle."""
+        return self.occluded(ray_origins, ray_directions, **segment)
+
+    def intersects_id(self, ray_origins, ray_directions, multiple_hits: bool = False,
+                      return_locations: bool = False, **segment):
+        """(index_tri int64 (m,), index_ray int64 (m,)[, locations f64 (m, 3)]) for the m rays
+        that hit, first hit only, in increasing ray order."""
+        _first_hit_only(multiple_hits, "intersects_id")
+        hits = self.intersect(ray_origins, ray_directions, **segment)
+        index_ray = np.flatnonzero(hits.prim >= 0).astype(np.int64)
+        index_tri = hits.prim[index_ray].astype(np.int64)
+        if not return_locations:
+            return index_tri, index_ray
+        return index_tri, index_ray, self._locations(hits, index_ray)
+
+    def intersects_location(self, ray_origins, ray_directions, multiple_hits: bool = False, **segment):
+        """(locations f64 (m, 3), index_ray int64 (m,), index_tri int64 (m,)) for the m rays that
+        hit: the first hit per ray (trimesh's ``multiple_hits=False``), in increasing ray order.
+        A location is the hit's barycentric point on its triangle."""
+        index_tri, index_ray, locations = self.intersects_id(ray_origins, ray_directions, multiple_hits,
+                                                             True, **segment)
+        return locations, index_ray, index_tri
+
+    def _locations(self, hits: Hits, index_ray: np.ndarray) -> np.ndarray:
+        prim = hits.prim[index_ray]
+        u = hits.u[index_ray].astype(np.float64)[:, None]
+        v = hits.v[index_ray].astype(np.float64)[:, None]
+        t = self.triangles
+        return ((1 - u - v) * t.v0[prim].astype(np.float64) + u * t.v1[prim].astype(np.float64)
+                + v * t.v2[prim].astype(np.float64))
+
+    # -- renders -----------------------------------------------------------------------
+    def render(self, config=None, *, counters: bool = False):
+        """(image f32[H,W,3] linear RGB, stats dict) of this tracer's scene.
+
+        config: a ``engine.config.Config``, a dict of TOML tables (``{"render": {"width": 256},
+        "materials": {"override": "reflective"}}``) or a TOML file path; None = the defaults
+        (512 x 512, the paper's traversals and frusta). Its [scene] table is ignored: the tracer
+        renders its own geometry (with ``[materials] override`` applied). ``stats`` is the
+        document ``packetrt render --stats`` writes; ``counters=True`` fills its traversal
+        counters from a second, counting render.
+        """
+        from .cli import stats_dict
+        from .scene import override_materials
+        from .whitted import WhittedRenderer
+
+        cfg = _as_config(config)
+        scene = override_materials(self.scene, cfg.override)
+        renderer = WhittedRenderer(scene, cfg)
+        result = renderer.render()
+        if counters:
+            renderer.count = True
+            counted = renderer.render()
+            result.counters, result.counters_by_depth = counted.counters, counted.counters_by_depth
+        stats = stats_dict(scene, cfg, result)
+        stats["config"]["scene"] = {"name": scene.name, "from": "RayTracer"}
+        return result.image, stats
+
+
+def _first_hit_only(multiple_hits: bool, where: str) -> None:
+    if multiple_hits:
+        raise ConfigError(f"{where}: multiple_hits=True is not supported; packetrt answers the first hit "
+                          f"per ray (trimesh's multiple_hits=False)")
