@@ -164,10 +164,9 @@ def test_occlusion_matches_single(rayspace, scene, kind):
 def test_hits_are_the_kernels_own_answer(rayspace, scene):
     """The conservative hierarchy gives exactly the shared kernel's answer over all triangles.
 
-    Cornell-box shadow rays at 256^2 include rays leaving the floor by a 1.5e-5 offset while
-    x and z are in the hundreds: the kernel then accepts the floor at t = -0.0 >= tmin, which
-    a slab test (tight at the box, not at the kernel's rounding) can cull; this is where
-    ``single`` may differ and the kernel's own answer is the reference."""
+    These rays leave from org + t dir with an offset relative to the point only, so some start
+    on the surface they leave (Cornell floor: x, z in the hundreds, y near 0) and the kernel
+    accepts that surface at t = -0.0: a hard case the hierarchy must still answer exactly."""
     needs_shared_scenes()
     from scenes.catalog import load_named
 

@@ -16,9 +16,8 @@ How it works
        ray under the node can touch the triangle.
     3. Final tests: the candidate triangles of each ray get the shared watertight test and the
        shared tie rule, so the hits are the kernel's own answer over all triangles, bit for
-       bit: ``single``'s, except where a box test of ``single`` culls a hit that the kernel
-       accepts within its rounding (a ray leaving a surface at a tiny offset can see it at
-       t = -0.0 >= tmin; the tests show one in the Cornell box).
+       bit, and so ``single``'s and every packet traversal's (tests/test_offset.py checks all
+       of them against a brute-force pass on the Whitted loop's rays).
 
 Shadow rays
     A ``shadow`` batch whose rays all aim at one point (a point light) is indexed reversed, as
