@@ -26,7 +26,7 @@ import numba
 import numpy as np
 
 from .packet_kernels import child_order_keys
-from .types import Frusta, check_answer_arrays
+from .types import Frusta, check_answer_arrays, empty_hits
 
 #: Packet decks per thread: packet k goes to deck k % n_chunks, so neighbouring (similarly
 #: expensive) tiles land on different threads and the threads finish together.
@@ -49,13 +49,9 @@ class PacketTraversal:
 
     def occluded(self, bvh, tris, rays, packets, frusta, occluded, stats):
         """occluded[r] = True when ray r hits anything in [tmin, tmax]."""
-        n = rays.org.shape[0]
-        t = np.empty(n, np.float32)
-        prim = np.empty(n, np.int32)
-        u = np.empty(n, np.float32)
-        v = np.empty(n, np.float32)
-        self._run(bvh, tris, rays, packets, frusta, True, t, prim, u, v, stats)
-        occluded[:] = prim >= 0
+        any_hit = empty_hits(rays.org.shape[0])  # scratch: which triangle stopped each ray
+        self._run(bvh, tris, rays, packets, frusta, True, any_hit.t, any_hit.prim, any_hit.u, any_hit.v, stats)
+        occluded[:] = any_hit.prim >= 0
 
     def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats):
         check_answer_arrays(rays.org.shape[0], out_t, out_prim, out_u, out_v)

@@ -71,7 +71,7 @@ from engine.kernels import F32_INF, closer, intersect_triangle, ray_shear
 from engine.pair_stream import expand, group_by_slot, root_stream
 from engine.registry import register_traversal
 from engine.triangle_spheres import triangle_spheres
-from engine.types import COUNTER_RAY_TRI, check_answer_arrays
+from engine.types import COUNTER_RAY_TRI, check_answer_arrays, empty_hits
 
 CHUNK = 256               # slots per prange task of the final tests
 MAX_PAIR_BUDGET = 2**31 - 1   # stream indices are i32
@@ -270,13 +270,9 @@ class RaySpaceTraversal:
         self._trace(tris, rays, packets, False, hits.t, hits.prim, hits.u, hits.v, stats)
 
     def occluded(self, bvh, tris, rays, packets, frusta, occluded, stats):
-        n = rays.org.shape[0]
-        t = np.empty(n, np.float32)
-        prim = np.empty(n, np.int32)
-        u = np.empty(n, np.float32)
-        v = np.empty(n, np.float32)
-        self._trace(tris, rays, packets, True, t, prim, u, v, stats)
-        occluded[:] = prim >= 0
+        any_hit = empty_hits(rays.org.shape[0])  # scratch: which triangle stopped each ray
+        self._trace(tris, rays, packets, True, any_hit.t, any_hit.prim, any_hit.u, any_hit.v, stats)
+        occluded[:] = any_hit.prim >= 0
 
     # -- the work ----------------------------------------------------------------------
     def _trace(self, tris, rays, packets, any_hit, out_t, out_prim, out_u, out_v, stats):

@@ -10,7 +10,8 @@ from numba import get_thread_id, njit, prange
 
 from engine.kernels import F32_INF, closer, intersect_triangle, ray_shear, slab_test
 from engine.registry import register_traversal
-from engine.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI, MAX_BVH_DEPTH, check_answer_arrays
+from engine.types import (COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI, MAX_BVH_DEPTH, check_answer_arrays,
+                          empty_hits)
 
 CHUNK = 256  # rays per prange task: one stack allocation per chunk
 
@@ -109,12 +110,8 @@ class SingleRayTraversal:
                      hits.t, hits.prim, hits.u, hits.v, None if stats is None else stats.counters)
 
     def occluded(self, bvh, tris, rays, packets, frusta, occluded, stats):
-        n = rays.org.shape[0]
-        t = np.empty(n, np.float32)
-        hit_prim = np.empty(n, np.int32)
-        u = np.empty(n, np.float32)
-        v = np.empty(n, np.float32)
+        any_hit = empty_hits(rays.org.shape[0])  # scratch: which triangle stopped each ray
         trace_single(bvh.bmin, bvh.bmax, bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
                      rays.org, rays.inv_dir, rays.dir, rays.tmin, rays.tmax, True,
-                     t, hit_prim, u, v, None if stats is None else stats.counters)
-        occluded[:] = hit_prim >= 0
+                     any_hit.t, any_hit.prim, any_hit.u, any_hit.v, None if stats is None else stats.counters)
+        occluded[:] = any_hit.prim >= 0
