@@ -19,6 +19,7 @@ MTL mapping (read by this module, since trimesh keeps only part of MTL):
 """
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -85,10 +86,17 @@ def material_from_mtl(name: str, p: dict) -> Material:
                     texture_name=str(p.get("map_Kd", "")))
 
 
-def check_obj_syntax(path: Path) -> None:
-    """Reject a malformed OBJ with file:line before trimesh sees it."""
-    vertices = 0
-    for number, raw in enumerate(path.read_text(errors="replace").splitlines(), 1):
+def checked_obj_text(path: Path) -> str:
+    """The OBJ's text with every relative (negative) face index made absolute; a malformed
+    line is rejected with file:line before trimesh sees it.
+
+    trimesh resolves a negative index against the wrong vertex list once a file has several
+    objects (the Cornell box's ``f -4 -3 -2 -1`` put walls onto the blocks), so it only ever
+    sees absolute indices.
+    """
+    counts = {"v": 0, "vt": 0, "vn": 0}
+    lines = path.read_text(errors="replace").splitlines()
+    for number, raw in enumerate(lines, 1):
         words = raw.split("#", 1)[0].split()
         if not words:
             continue
@@ -102,18 +110,32 @@ def check_obj_syntax(path: Path) -> None:
                 raise SceneError(f"{path}:{number}: vertex {raw.strip()!r} has fewer than 3 coordinates")
             if not np.isfinite(values).all():
                 raise SceneError(f"{path}:{number}: vertex {raw.strip()!r} is not finite")
-            vertices += 1
+        if key in counts:
+            counts[key] += 1
         elif key == "f":
             if len(words) < 4:
                 raise SceneError(f"{path}:{number}: face {raw.strip()!r} has fewer than 3 vertices")
-            for word in words[1:]:
-                try:
-                    index = int(word.split("/")[0])
-                except ValueError:
-                    raise SceneError(f"{path}:{number}: bad face index {word!r} in {raw.strip()!r}") from None
-                if index == 0 or index > vertices or index < -vertices:
-                    raise SceneError(f"{path}:{number}: face index {index} out of range "
-                                     f"(1..{vertices} vertices so far)")
+            corners = [_absolute_corner(path, number, raw, word, counts) for word in words[1:]]
+            lines[number - 1] = "f " + " ".join(corners)
+    return "\n".join(lines) + "\n"
+
+
+def _absolute_corner(path: Path, number: int, raw: str, word: str, counts: dict) -> str:
+    """One face corner ``v[/vt][/vn]`` with negative indices counted back from the lists so far."""
+    parts = word.split("/")
+    for slot, (part, kind) in enumerate(zip(parts, ("v", "vt", "vn"))):
+        if part == "" and slot > 0:
+            continue
+        try:
+            index = int(part)
+        except ValueError:
+            raise SceneError(f"{path}:{number}: bad face index {word!r} in {raw.strip()!r}") from None
+        have = counts[kind]
+        if index == 0 or index > have or index < -have:
+            names = {"v": "vertices", "vt": "texture coordinates", "vn": "normals"}
+            raise SceneError(f"{path}:{number}: face index {index} out of range (1..{have} {names[kind]} so far)")
+        parts[slot] = str(index + have + 1 if index < 0 else index)
+    return "/".join(parts)
 
 
 @scene_loader("mesh")
@@ -128,14 +150,18 @@ def load_mesh_scene(files, params, time):
                          f"supported: {', '.join(sorted(MESH_SUFFIXES))} and .aff")
     mtl = {}
     if suffix == ".obj":
-        check_obj_syntax(path)
+        obj_text = checked_obj_text(path)
         for line in path.read_text(errors="replace").splitlines():
             if line.strip().startswith("mtllib"):
                 lib = path.parent / line.split(None, 1)[1].strip()
                 if lib.is_file():
                     mtl.update(parse_mtl(lib))
     try:
-        loaded = trimesh.load(str(path), process=False, maintain_order=True)
+        if suffix == ".obj":
+            loaded = trimesh.load(io.StringIO(obj_text), file_type="obj", process=False, maintain_order=True,
+                                  resolver=trimesh.resolvers.FilePathResolver(str(path)))
+        else:
+            loaded = trimesh.load(str(path), process=False, maintain_order=True)
     except Exception as exc:  # trimesh raises many types for a malformed file
         raise SceneError(f"{path}: cannot read mesh: {exc}") from None
     geometries = list(loaded.geometry.items()) if isinstance(loaded, trimesh.Scene) else [(path.stem, loaded)]

@@ -137,3 +137,36 @@ def test_catalog_lists_the_library(no_scene_path):
     assert all(catalog[n].animated for n in ("bart-kitchen", "bart-museum", "bart-robots"))
     rows = {row["name"]: row for row in describe(load=False)}
     assert not rows["bart-kitchen"]["files_found"] and rows["erw6"]["files_found"]
+
+
+def test_obj_relative_indices_refer_to_the_vertices_just_before(tmp_path):
+    """``f -4 -3 -2 -1`` after a second object's vertices means those four vertices (trimesh alone
+    resolved them against the wrong list and put the Cornell box's walls onto its blocks)."""
+    from scenes.catalog import load_path
+
+    obj = tmp_path / "two.obj"
+    obj.write_text("o floor\nv 0 0 0\nv 10 0 0\nv 10 0 10\nv 0 0 10\nf -4 -3 -2 -1\n"
+                   "o wall\nv 0 0 10\nv 10 0 10\nv 10 5 10\nv 0 5 10\nf -4 -3 -2 -1\n"
+                   "o roof\nv 0 5 0\nv 10 5 0\nv 10 5 10\nf 9 -2 -1\n")
+    tris = load_path(str(obj)).triangles
+    corners = np.stack([tris.v0, tris.v1, tris.v2], axis=1)
+    assert corners.shape == (5, 3, 3)
+    floor = corners[np.all(corners[:, :, 1] == 0, axis=1)]
+    wall = corners[np.all(corners[:, :, 2] == 10, axis=1) & np.any(corners[:, :, 1] == 5, axis=1)]
+    roof = corners[np.all(corners[:, :, 1] == 5, axis=1)]
+    assert len(floor) == 2 and len(wall) == 2 and len(roof) == 1
+    assert sorted(map(tuple, roof[0].tolist())) == [(0, 5, 0), (10, 5, 0), (10, 5, 10)]
+
+
+def test_cornell_box_walls_span_the_room(scene_path):
+    from scenes.catalog import load_named
+
+    scene = load_named("cornell-box")
+    by_material = {}
+    tris = scene.triangles
+    for m, material in enumerate(scene.materials):
+        sel = tris.material == m
+        by_material[material.name] = np.concatenate([tris.v0[sel], tris.v1[sel], tris.v2[sel]])
+    red, green = by_material["red"], by_material["green"]
+    assert np.all(red[:, 0] > 549) and np.ptp(red[:, 2]) > 559 and np.ptp(red[:, 1]) > 548
+    assert np.all(green[:, 0] == 0) and np.ptp(green[:, 2]) > 559
