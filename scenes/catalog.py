@@ -34,7 +34,7 @@ SCENE_PATH_VARIABLE = "PACKETRT_SCENE_PATH"
 
 #: Modules whose import registers loaders.
 LOADER_MODULES = ["scenes.meshfile", "scenes.whitted", "scenes.aff", "scenes.spd_rings", "scenes.erw6",
-                  "scenes.cosine"]
+                  "scenes.cosine", "scenes.bunny_floor"]
 
 LOADERS: dict = {}
 

@@ -1,0 +1,358 @@
+"""``packetrt bench MATRIX.toml [--out DIR] [--repeat N] [--resume]``: the batch benchmark runner.
+
+Each cell of the matrix (``engine.bench_matrix``) is measured in this process, one after another:
+
+1. a warm-up render that absorbs JIT compilation and records every ray batch the Whitted loop
+   casts (kind, query, rays, packets) through the renderer's ``observer`` hook;
+2. ``repeat`` timed renders: frame time (shading included), per-kind trace time, shading time;
+3. ``repeat`` replays of the recorded batches through the cell's frustum builder and traversal
+   (timed like the render times them: frustum build + query + answer arrays), each followed by
+   Embree (the ``embree`` traversal, same thread count) on exactly the same batches: the
+   ratios to Embree compare the same rays, the same work, minutes apart at most;
+4. one counting render for the counters (ray-AABB and ray-triangle tests, per BVH depth) and
+   the plugins' own statistics (e.g. the ray-space hierarchy's candidates per ray).
+
+Timings are kept as median, min, max and quartiles over the repeats. A finished cell is
+appended to ``DIR/results.jsonl`` at once (see ``engine.bench_results``); ``--resume`` skips
+cells already there; Ctrl-C stops between two writes, rewrites the CSV, tables and plots for
+what is finished, and the same command with ``--resume`` carries on.
+
+Embree's time on a set of batches does not depend on our traversal, so within one run it is
+measured once per distinct batch set (same scene, recursion, size and packet order, checked by
+a digest of the rays) and shared by the cells that trace it.
+"""
+from __future__ import annotations
+
+import datetime
+import gc
+import hashlib
+import os
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+from . import bench_results as results_io
+from .bench_matrix import Cell, Matrix, load_matrix
+from .types import RAY_KINDS, empty_hits
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# -- measurements --------------------------------------------------------------------------
+
+def summarize(values) -> dict:
+    """{median, min, max, q1, q3, runs} of a list of seconds."""
+    a = np.asarray(values, np.float64)
+    q1, median, q3 = np.percentile(a, [25, 50, 75])
+    return {"median": float(median), "min": float(a.min()), "max": float(a.max()),
+            "q1": float(q1), "q3": float(q3), "runs": [float(v) for v in a]}
+
+
+class BatchRecorder:
+    """Renderer observer that keeps every cast batch: list of (kind, query, RayBatch, Packets)."""
+
+    def __init__(self):
+        self.batches = []
+
+    def __call__(self, kind, query, rays, packets, answer):
+        self.batches.append((kind, query, rays, packets))
+
+    def digest(self) -> str:
+        """blake2b over every batch's query, rays (origins, directions, segments) and packet offsets."""
+        h = hashlib.blake2b(digest_size=16)
+        for kind, query, rays, packets in self.batches:
+            h.update(f"{kind}:{query}:{rays.org.shape[0]}".encode())
+            for array in (rays.org, rays.dir, rays.tmin, rays.tmax, packets.offsets):
+                h.update(np.ascontiguousarray(array).data)
+        return h.hexdigest()
+
+
+def replay(batches, trace) -> dict:
+    """{kind: seconds} of ``trace(kind, query, rays, packets)`` over the batches, each timed alone."""
+    seconds = dict.fromkeys(RAY_KINDS, 0.0)
+    for kind, query, rays, packets in batches:
+        start = time.perf_counter()
+        trace(kind, query, rays, packets)
+        seconds[kind] += time.perf_counter() - start
+    return seconds
+
+
+def ours(renderer):
+    """The renderer's own frustum + traversal per kind, as ``WhittedRenderer._trace`` times it."""
+    def trace(kind, query, rays, packets):
+        frusta = renderer.frustum[kind].build(rays, packets, renderer.bounds)
+        _query(renderer.traversal[kind], renderer, query, rays, packets, frusta)
+    return trace
+
+
+def embree(renderer, plugin):
+    """Embree on the same batches (it ignores packets and frusta)."""
+    def trace(kind, query, rays, packets):
+        _query(plugin, renderer, query, rays, packets, None)
+    return trace
+
+
+def _query(traversal, renderer, query, rays, packets, frusta):
+    n = rays.org.shape[0]
+    if query == "intersect":
+        traversal.intersect(renderer.bvh, renderer.tris, rays, packets, frusta, empty_hits(n), None)
+    else:
+        traversal.occluded(renderer.bvh, renderer.tris, rays, packets, frusta, np.zeros(n, np.bool_), None)
+
+
+def _rates(rays: dict, seconds: dict) -> dict:
+    """Mrays/s per kind (None where no rays) and over all kinds."""
+    rates = {k: (rays[k] / seconds[k] / 1e6 if rays[k] and seconds[k] > 0 else None) for k in RAY_KINDS}
+    total = sum(seconds[k] for k in RAY_KINDS if rays[k])
+    rates["all"] = rays["all"] / total / 1e6 if total > 0 else None
+    return rates
+
+
+# -- the machine ---------------------------------------------------------------------------
+
+def _version(package: str) -> str:
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return "absent"
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _git() -> dict:
+    def run(*args):
+        try:
+            return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+    commit = run("rev-parse", "HEAD") or "unknown"
+    return {"commit": commit, "dirty": bool(run("status", "--porcelain", "--untracked-files=no"))}
+
+
+def machine_info() -> dict:
+    """CPU, cores, numba threads, library versions and the project's git commit."""
+    import numba
+
+    from .embree_backend import _new_device
+
+    try:
+        embree_version = _new_device()[1]  # the Embree library itself, not just the binding
+    except Exception:  # no usable Embree: the cells that need it will say so
+        embree_version = "unavailable"
+    return {"cpu": _cpu_model(), "cores": os.cpu_count(), "numba_threads": numba.config.NUMBA_NUM_THREADS,
+            "threading_layer": numba.config.THREADING_LAYER, "platform": platform.platform(),
+            "python": platform.python_version(), "numpy": np.__version__, "numba": numba.__version__,
+            "embreex": _version("embreex"), "embree": embree_version, "packetrt": _version("packetrt"),
+            "git": _git()}
+
+
+# -- one cell --------------------------------------------------------------------------------
+
+class SceneCache:
+    """The last loaded catalog scene (cells come sorted by scene, so one is enough)."""
+
+    def __init__(self):
+        self.key, self.scene = None, None
+
+    def get(self, spec):
+        from scenes.catalog import load_named
+
+        key = (spec.name, spec.params, spec.time)
+        if key != self.key:
+            self.scene = None
+            gc.collect()
+            self.key, self.scene = key, load_named(spec.name, dict(spec.params), spec.time)
+        return self.scene
+
+
+def cell_scene(base, cell: Cell):
+    """The scene a cell renders: its recursion preset's material override, lights on or off."""
+    from .scene import override_materials
+
+    scene = override_materials(base, cell.preset.override)
+    return scene if cell.preset.lights else replace(scene, lights=[])
+
+
+def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, embree_cache: dict, machine: dict,
+             matrix_name: str) -> dict:
+    """Measure one cell (see the module doc); returns its results.jsonl record."""
+    from .registry import get_traversal
+    from .whitted import WhittedRenderer
+
+    wall = time.perf_counter()
+    started = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+    scene = cell_scene(scene_cache.get(cell.scene), cell)
+    config = cell.config()
+    recorder = BatchRecorder()
+    renderer = WhittedRenderer(scene, config, observer=recorder)
+    warm = renderer.render()  # JIT compilation happens here, untimed
+    renderer.observer = None
+    frames = [renderer.render() for _ in range(repeat)]
+
+    trace_ours = ours(renderer)
+    replays = [replay(recorder.batches, trace_ours) for _ in range(repeat)]
+    embree_seconds = None
+    if cell.embree:
+        if set(cell.traversal.names) == {"embree"}:
+            embree_seconds = replays  # the cell is Embree: its replay is the yardstick
+        else:
+            digest = recorder.digest()
+            if digest not in embree_cache:
+                plugin = get_traversal("embree")
+                plugin.prepare(renderer.tris)  # build outside the timing
+                trace_embree = embree(renderer, plugin)
+                if recorder.batches:  # one untimed query: thread pool and first-touch costs
+                    kind, query, rays, packets = recorder.batches[0]
+                    trace_embree(kind, query, rays, packets)
+                embree_cache.clear()  # one batch set alive at a time
+                embree_cache[digest] = [replay(recorder.batches, trace_embree) for _ in range(repeat)]
+            embree_seconds = embree_cache[digest]
+
+    renderer.count = True
+    counted = renderer.render()
+
+    rays = dict(warm.rays)
+    rays["all"] = sum(warm.rays[k] for k in RAY_KINDS)
+    batches = {k: sum(1 for b in recorder.batches if b[0] == k) for k in RAY_KINDS}
+    replay_summary = {k: summarize([r[k] for r in replays]) for k in RAY_KINDS}
+    replay_median = {k: replay_summary[k]["median"] for k in RAY_KINDS}
+    mrays = _rates(rays, replay_median)
+    embree_summary = embree_mrays = ratio = None
+    embree_fps = None
+    if embree_seconds is not None:
+        embree_summary = {k: summarize([r[k] for r in embree_seconds]) for k in RAY_KINDS}
+        embree_mrays = _rates(rays, {k: embree_summary[k]["median"] for k in RAY_KINDS})
+        ratio = {k: (mrays[k] / embree_mrays[k] if mrays[k] and embree_mrays[k] else None) for k in mrays}
+        total = sum(embree_summary[k]["median"] for k in RAY_KINDS)
+        embree_fps = 1.0 / total if total > 0 else None
+    frame = summarize([f.seconds["total"] for f in frames])
+    trace_total = sum(replay_median.values())
+    record = {
+        "schema": results_io.SCHEMA, "id": cell.key, "matrix": matrix_name, "tags": list(cell.tags),
+        "labels": cell.labels(), "cell": cell.identity(), "config": config.to_dict(),
+        "scene": {"name": scene.name, "triangles": scene.n_triangles, "lights": len(scene.lights)},
+        "repeat": repeat, "threads": renderer.threads,
+        "seconds": {"bvh": warm.seconds["bvh"], "plugin_build": warm.seconds["plugin_build"], "frame": frame,
+                    "shade": summarize([f.seconds["shade"] for f in frames]),
+                    "trace": {k: summarize([f.seconds["trace"][k] for f in frames]) for k in RAY_KINDS},
+                    "replay": replay_summary, "embree": embree_summary},
+        "rays": rays, "batches": batches, "mrays_per_s": mrays, "embree_mrays_per_s": embree_mrays,
+        "ratio_to_embree": ratio,
+        "fps": {"frame": 1.0 / frame["median"] if frame["median"] > 0 else None,
+                "trace": 1.0 / trace_total if trace_total > 0 else None, "embree_trace": embree_fps},
+        "counters": counted.counters, "counters_by_depth": counted.counters_by_depth, "extra": counted.extra,
+        "machine": machine, "started": started,
+    }
+    record["wall_seconds"] = time.perf_counter() - wall
+    return record
+
+
+# -- the matrix ------------------------------------------------------------------------------
+
+def _cost(cell: Cell, lights: int, repeat: int) -> float:
+    """Rough relative cost of a cell for the ETA: rays cast times passes over them."""
+    kinds = 1 + (lights if cell.preset.lights else 0)
+    generations = 1 + cell.preset.max_depth
+    slow = 3.0 if cell.packet <= 2 or "single" in cell.traversal.names or "rayspace" in cell.traversal.names else 1.0
+    return cell.width * cell.height * kinds * generations * slow * (2 + 3 * repeat) / 1e6
+
+
+def preflight(cells) -> dict:
+    """Load every distinct scene once before any measurement (a loader's own parameter checks
+    fail here, not halfway through): {(name, params, time): number of lights}."""
+    from scenes.catalog import load_named
+
+    lights = {}
+    for cell in cells:
+        key = (cell.scene.name, cell.scene.params, cell.scene.time)
+        if key not in lights:
+            lights[key] = len(load_named(cell.scene.name, dict(cell.scene.params), cell.scene.time).lights)
+    return lights
+
+
+def write_outputs(out: Path, matrix: Matrix) -> list:
+    """results.csv, tables and plots from results.jsonl (the cells of this matrix that are done)."""
+    from .bench_plots import render_plots
+
+    records, _ = results_io.read_results(out / results_io.RESULTS)
+    tags = {c.key: list(c.tags) for c in matrix.cells}
+    order = {c.key: i for i, c in enumerate(matrix.cells)}
+    mine = sorted((dict(r, tags=tags[r["id"]]) for r in records if r["id"] in tags), key=lambda r: order[r["id"]])
+    results_io.write_csv(out / results_io.CSV, mine)
+    return [out / results_io.CSV] + render_plots(mine, out, matrix.plots)
+
+
+def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool = True, run=None) -> dict:
+    """Run every cell not yet in ``out/results.jsonl``; {"ran", "skipped", "files"}.
+
+    ``run`` measures one cell (default ``run_cell``, looked up at call time). A KeyboardInterrupt
+    stops between cells (a cell in flight is dropped), the outputs are rewritten for what is
+    done, and the interrupt is raised again.
+    """
+    from tqdm import tqdm
+
+    run = run or run_cell
+
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / results_io.RESULTS
+    if resume:
+        results_io.repair(path)
+    elif path.is_file() and path.stat().st_size:
+        backup = path.with_name(results_io.RESULTS + ".prev")
+        os.replace(path, backup)
+        print(f"packetrt bench: starting afresh; earlier results moved to {backup} (--resume keeps them)",
+              file=sys.stderr)
+    done = {r["id"] for r in results_io.read_results(path)[0]}
+    todo = [c for c in matrix.cells if c.key not in done]
+    print(f"{matrix.name}: {len(matrix.cells)} cells, {len(matrix.cells) - len(todo)} already done, "
+          f"{len(todo)} to run, {matrix.repeat} repeats -> {out}", file=sys.stderr)
+    ran, interrupted = 0, False
+    try:
+        if todo:
+            lights = preflight(todo)
+            machine = machine_info()
+            costs = [_cost(c, lights[(c.scene.name, c.scene.params, c.scene.time)], matrix.repeat) for c in todo]
+            scene_cache, embree_cache = SceneCache(), {}
+            bar = tqdm(total=sum(costs), disable=not progress, file=sys.stderr, dynamic_ncols=True,
+                       bar_format="{l_bar}{bar}| {postfix} [{elapsed}<{remaining}]")
+            try:
+                for i, (cell, cost) in enumerate(zip(todo, costs)):
+                    bar.set_postfix_str(f"cell {i + 1}/{len(todo)}: {cell.describe()}")
+                    record = run(cell, matrix.repeat, scene_cache, embree_cache, machine, matrix.name)
+                    results_io.append(path, record)
+                    ran += 1
+                    bar.update(cost)
+            finally:
+                bar.close()
+    except KeyboardInterrupt:
+        interrupted = True
+    files = write_outputs(out, matrix)
+    if interrupted:
+        print(f"packetrt bench: interrupted after {ran} new cell(s); {out / results_io.RESULTS} holds every "
+              f"finished cell; run again with --resume to finish", file=sys.stderr)
+        raise KeyboardInterrupt
+    return {"ran": ran, "skipped": len(matrix.cells) - len(todo), "files": files}
+
+
+def cmd_bench(args) -> int:
+    """The CLI entry: validate the whole matrix, then run it."""
+    matrix = load_matrix(args.matrix, repeat=args.repeat)
+    out = Path(args.out) if args.out else Path("out") / f"bench-{matrix.name}"
+    summary = run_matrix(matrix, out, resume=args.resume)
+    print(f"{matrix.name}: ran {summary['ran']} cell(s), skipped {summary['skipped']}; wrote "
+          f"{', '.join(str(p) for p in summary['files'])}")
+    return 0

@@ -1,0 +1,153 @@
+"""The benchmark's results folder: ``results.jsonl`` (the record) and ``results.csv`` (a flat view).
+
+``results.jsonl`` holds one JSON object per finished cell, appended whole (one write, flushed and
+fsynced, with Ctrl-C held off meanwhile), so an interrupted run leaves only complete lines --
+and a torn last line, should a crash leave one, is ignored on reading and cut off before the
+next append. Everything else in the folder (CSV, plots, tables) is regenerated from it.
+
+One line (schema 1; ``K`` = a ray kind, summaries = {median, min, max, q1, q3, runs}):
+
+    {"schema", "id", "matrix", "tags", "labels": {scene, traversal, frustum, recursion, packet,
+     resolution}, "cell": <the cell's identity: scene, plugins per kind, packet, recursion preset,
+     size, threads, options, embree>, "config": <engine.config.Config.to_dict()>,
+     "scene": {name, triangles, lights}, "repeat", "threads",
+     "seconds": {"bvh", "plugin_build": {plugin: s}, "frame": summary, "shade": summary,
+                 "trace": {K: summary}            # inside the timed renders
+                 "replay": {K: summary},          # our plugins on the recorded batches
+                 "embree": {K: summary} | null},  # Embree on the very same batches
+     "rays": {K: n, "all": n}, "batches": {K: n},
+     "mrays_per_s": {K: x, "all": x}, "embree_mrays_per_s": {...} | null,
+     "ratio_to_embree": {K: ours / Embree Mrays/s, "all": x} | null,
+     "fps": {"frame", "trace", "embree_trace"},
+     "counters": {name: {K: n}}, "counters_by_depth": {name: {K: [n per BVH depth]}},
+     "extra": {K: plugin statistics}, "machine": {...}, "started", "wall_seconds"}
+"""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from .types import RAY_KINDS
+
+RESULTS = "results.jsonl"
+CSV = "results.csv"
+SCHEMA = 1
+
+
+def _plain(value):
+    """json ``default``: numpy scalars and arrays as Python numbers and lists."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def read_results(path: Path) -> tuple[list, int]:
+    """(records, bytes of complete lines) of a results.jsonl; a torn or unreadable line is skipped."""
+    if not path.is_file():
+        return [], 0
+    data = path.read_bytes()
+    complete = data.rfind(b"\n") + 1  # anything after the last newline is a torn write
+    records = []
+    for line in data[:complete].splitlines():
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(record, dict) and "id" in record:
+            records.append(record)
+    return records, complete
+
+
+def repair(path: Path) -> None:
+    """Cut a torn last line off, so the next append starts on a line of its own."""
+    if path.is_file():
+        _, complete = read_results(path)
+        if complete != path.stat().st_size:
+            with open(path, "r+b") as f:
+                f.truncate(complete)
+
+
+@contextmanager
+def _sigint_held():
+    """Hold off Ctrl-C (delivered right after) while a line is written; main thread only."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
+def append(path: Path, record: dict) -> None:
+    """Append one record as one complete line, flushed to disk."""
+    line = json.dumps(record, default=_plain, separators=(",", ":")) + "\n"
+    with _sigint_held():
+        with open(path, "a", encoding="utf-8") as f:
+            f.write(line)
+            f.flush()
+            os.fsync(f.fileno())
+
+
+def _median(summary):
+    return None if summary is None else summary.get("median")
+
+
+def csv_row(r: dict) -> dict:
+    """One flat row of a record (medians of the timings)."""
+    s = r["seconds"]
+    row = {"id": r["id"], "matrix": r["matrix"], "tags": " ".join(r.get("tags", [])),
+           "scene": r["scene"]["name"], "scene_label": r["labels"]["scene"], "triangles": r["scene"]["triangles"],
+           "traversal": r["labels"]["traversal"], "frustum": r["labels"]["frustum"], "packet": r["labels"]["packet"],
+           "recursion": r["labels"]["recursion"], "width": r["cell"]["width"], "height": r["cell"]["height"],
+           "threads": r["threads"], "repeat": r["repeat"],
+           "frame_s": _median(s["frame"]), "frame_min_s": s["frame"]["min"], "frame_max_s": s["frame"]["max"],
+           "shade_s": _median(s["shade"]), "bvh_s": s["bvh"],
+           "fps_frame": r["fps"]["frame"], "fps_trace": r["fps"]["trace"], "fps_embree_trace": r["fps"]["embree_trace"],
+           "rays_all": r["rays"]["all"], "mrays_all": r["mrays_per_s"]["all"],
+           "embree_mrays_all": (r["embree_mrays_per_s"] or {}).get("all"),
+           "ratio_all": (r["ratio_to_embree"] or {}).get("all")}
+    for k in RAY_KINDS:
+        row[f"rays_{k}"] = r["rays"].get(k, 0)
+        row[f"trace_s_{k}"] = _median(s["replay"].get(k))
+        row[f"mrays_{k}"] = r["mrays_per_s"].get(k)
+        row[f"embree_s_{k}"] = _median((s["embree"] or {}).get(k))
+        row[f"embree_mrays_{k}"] = (r["embree_mrays_per_s"] or {}).get(k)
+        row[f"ratio_{k}"] = (r["ratio_to_embree"] or {}).get(k)
+        for name in ("ray_aabb", "ray_tri"):
+            row[f"{name}_{k}"] = r["counters"].get(name, {}).get(k)
+    row["commit"] = r["machine"]["git"]["commit"]
+    row["dirty"] = r["machine"]["git"]["dirty"]
+    return row
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """Write through a temporary file and rename: readers never see half a file."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def write_csv(path: Path, records: list) -> None:
+    """results.csv: one row per record (header only when there is none)."""
+    import io
+
+    rows = [csv_row(r) for r in records]
+    buffer = io.StringIO()
+    if rows:
+        writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
+        writer.writeheader()
+        writer.writerows({k: ("" if v is None else v) for k, v in row.items()} for row in rows)
+    write_atomic(path, buffer.getvalue())

@@ -1,0 +1,286 @@
+"""The benchmark runner: output files and their schema (never the times), --resume, interrupts,
+and bad matrices rejected before any work with the key and the allowed values."""
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+import engine.bench as bench
+from engine.bench_matrix import RECURSION, load_matrix, parse_matrix
+from engine.cli import main
+from engine.types import RAY_KINDS
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ROOT / "benchmarks" / "smoke.toml"
+
+RECORD_KEYS = {"schema", "id", "matrix", "tags", "labels", "cell", "config", "scene", "repeat", "threads",
+               "seconds", "rays", "batches", "mrays_per_s", "embree_mrays_per_s", "ratio_to_embree", "fps",
+               "counters", "counters_by_depth", "extra", "machine", "started", "wall_seconds"}
+SUMMARY_KEYS = {"median", "min", "max", "q1", "q3", "runs"}
+
+
+def lines(path: Path) -> list:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+@pytest.fixture(scope="module")
+def smoke_dir(tmp_path_factory):
+    """benchmarks/smoke.toml run once through the CLI."""
+    out = tmp_path_factory.mktemp("bench") / "smoke"
+    assert main(["bench", str(SMOKE), "--out", str(out)]) == 0
+    return out
+
+
+def test_smoke_writes_jsonl_csv_and_plots(smoke_dir):
+    matrix = load_matrix(str(SMOKE))
+    records = lines(smoke_dir / "results.jsonl")
+    assert sorted(r["id"] for r in records) == sorted(c.key for c in matrix.cells)
+    for r in records:
+        assert set(r) == RECORD_KEYS
+        assert r["schema"] == 1 and r["matrix"] == "smoke" and r["repeat"] == 2
+        s = r["seconds"]
+        for name in ("frame", "shade"):
+            assert set(s[name]) == SUMMARY_KEYS and len(s[name]["runs"]) == 2
+        for part in ("trace", "replay", "embree"):
+            assert set(s[part]) == set(RAY_KINDS) and all(set(v) == SUMMARY_KEYS for v in s[part].values())
+        assert r["rays"]["primary"] == 64 * 64 and r["rays"]["all"] == sum(r["rays"][k] for k in RAY_KINDS)
+        assert set(r["mrays_per_s"]) == set(RAY_KINDS) | {"all"}
+        assert r["ratio_to_embree"]["primary"] > 0 and r["embree_mrays_per_s"]["all"] > 0
+        assert r["counters"]["ray_tri"]["primary"] > 0 and r["counters_by_depth"]["ray_aabb"]["primary"]
+        assert r["fps"]["frame"] > 0 and r["fps"]["trace"] > 0
+        m = r["machine"]
+        assert {"cpu", "cores", "numba_threads", "python", "numpy", "numba", "embreex", "embree", "git"} <= set(m)
+        assert len(m["git"]["commit"]) == 40 or m["git"]["commit"] == "unknown"
+        assert r["config"]["render"]["width"] == 64 and r["cell"]["packet"] == 8
+    by_preset = {}
+    for r in records:
+        by_preset.setdefault(r["labels"]["recursion"], []).append(r)
+    # Recursion presets: "shadows" casts shadow rays and nothing secondary; "reflection2" has its
+    # lights off (no shadow rays) and reflects.
+    assert all(r["rays"]["shadow"] > 0 and r["rays"]["reflection"] == 0 for r in by_preset["shadows"])
+    assert all(r["rays"]["shadow"] == 0 and r["rays"]["reflection"] > 0 for r in by_preset["reflection2"])
+    # Same rays in every cell of a preset, whatever the traversal: the batches Embree re-traces.
+    for rs in by_preset.values():
+        assert len({json.dumps(r["rays"], sort_keys=True) for r in rs}) == 1
+    with open(smoke_dir / "results.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(records)
+    assert {"id", "scene", "traversal", "frustum", "packet", "recursion", "frame_s", "mrays_all", "ratio_all",
+            "rays_primary", "trace_s_shadow", "ratio_reflection", "ray_aabb_primary", "commit"} <= set(rows[0])
+    pngs = list(smoke_dir.glob("*.png"))
+    assert pngs and all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
+    assert "| whitted |" in (smoke_dir / "summary.md").read_text()
+
+
+def test_resume_does_no_work(smoke_dir, tmp_path, monkeypatch):
+    out = tmp_path / "again"
+    shutil.copytree(smoke_dir, out)
+    before = (out / "results.jsonl").read_bytes()
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("--resume ran a finished cell")
+
+    monkeypatch.setattr(bench, "run_cell", refuse)
+    monkeypatch.setattr(bench, "preflight", refuse)
+    assert main(["bench", str(SMOKE), "--out", str(out), "--resume"]) == 0
+    assert (out / "results.jsonl").read_bytes() == before
+    assert list(out.glob("*.png")) and (out / "results.csv").is_file()
+
+
+def test_interrupted_run_is_consistent_and_resumes(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "interrupted"
+    real = bench.run_cell
+    calls = []
+
+    def first_then_ctrl_c(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(bench, "run_cell", first_then_ctrl_c)
+    assert main(["bench", str(SMOKE), "--out", str(out)]) == 130
+    assert "--resume" in capsys.readouterr().err
+    records = lines(out / "results.jsonl")
+    assert len(records) == 1
+    with open(out / "results.csv") as f:
+        assert len(list(csv.DictReader(f))) == 1
+    assert (out / "summary.md").is_file()
+    # A torn last line (a crash in mid-write) is ignored, then cut off before the next append.
+    with open(out / "results.jsonl", "a") as f:
+        f.write('{"schema": 1, "id": "0123')
+    monkeypatch.setattr(bench, "run_cell", real)
+    assert main(["bench", str(SMOKE), "--out", str(out), "--resume"]) == 0
+    records = lines(out / "results.jsonl")
+    matrix = load_matrix(str(SMOKE))
+    assert sorted(r["id"] for r in records) == sorted(c.key for c in matrix.cells)
+
+
+VALID = """
+name = "t"
+repeat = 1
+[axes]
+scene = ["whitted"]
+traversal = ["single"]
+frustum = ["none"]
+packet = [8]
+recursion = ["primary"]
+resolution = [16]
+"""
+
+
+def replace_line(key: str, value: str) -> str:
+    return "\n".join(f"{key} = {value}" if line.startswith(f"{key} =") else line for line in VALID.splitlines())
+
+
+BAD_MATRICES = [
+    (replace_line("scene", '["nowhere"]'), ["axes.scene[0]", "unknown scene 'nowhere'", "catalog scenes:", "whitted"]),
+    (replace_line("traversal", '["warp"]'),
+     ["axes.traversal[0]", "unknown traversal 'warp'", "registered traversals:", "partition"]),
+    (replace_line("frustum", '[{shadow = "cone"}]'), ["axes.frustum[0].shadow", "unknown frustum 'cone'", "pointlight"]),
+    (replace_line("packet", "[]"), ["axes.packet", "axis is empty", "2, 4, 8, 16, 32"]),
+    (replace_line("packet", '["16"]'), ["axes.packet[0]", "must be an integer", "2, 4, 8, 16, 32", "'16'"]),
+    (replace_line("packet", "[6]"), ["axes.packet[0]", "one of 2, 4, 8, 16, 32"]),
+    (replace_line("recursion", '["deep"]'), ["axes.recursion[0]", "unknown recursion preset 'deep'", "reflection2"]),
+    (replace_line("recursion", "[2]"), ["axes.recursion[0]", "must be a recursion preset name", "shadows"]),
+    (replace_line("resolution", "[16.5]"), ["axes.resolution[0]", "must be N (N x N), [W, H]"]),
+    (replace_line("resolution", "[0]"), ["render.width must be in 1..16384"]),
+    (replace_line("scene", '[{name = "whitted", colour = 3}]'), ["axes.scene[0]", "no parameter(s) ['colour']", "checks"]),
+    (replace_line("scene", '[{name = "whitted", checks = "many"}]'), ["axes.scene[0].checks", "must be int"]),
+    (replace_line("repeat", "0"), ["repeat", "1..1000"]),
+    (replace_line("repeat", '"five"'), ["repeat", "must be an integer"]),
+    (VALID + 'plot = ["mrays"]\n', ["axes.plot", "unknown axis", "top-level keys go before [axes]"]),
+    (VALID.replace('repeat = 1', 'repeat = 1\nplot = ["fig9"]'), ["plot[0]", "unknown figure kind 'fig9'", "table2"]),
+    (VALID.replace('repeat = 1', 'repeats = 1'), ["repeats", "unknown key", "allowed: name, description, repeat"]),
+    (VALID.replace("[axes]", "[axes]\ncolour = [1]"), ["axes.colour", "unknown axis", "scene, traversal"]),
+    (VALID.replace('packet = [8]\n', ""), ["axes.packet", "missing axis"]),
+    (VALID + "[[group]]\ntag = 'a'\n[[group]]\npacket = [8, 7]\n", ["group[1].packet[1]", "one of 2, 4, 8, 16, 32"]),
+    (VALID + "[options.rayspace]\npair_budget = 0\n", ["options.rayspace: pair_budget must be an integer"]),
+    ("[axes\n", ["not valid TOML"]),
+]
+
+
+@pytest.mark.parametrize("content,messages", BAD_MATRICES)
+def test_bad_matrix_rejected_before_any_work(tmp_path, monkeypatch, capsys, content, messages):
+    def refuse(*args, **kwargs):
+        raise AssertionError("work started on a bad matrix")
+
+    monkeypatch.setattr(bench, "run_matrix", refuse)
+    path = tmp_path / "bad.toml"
+    path.write_text(content)
+    out = tmp_path / "out"
+    assert main(["bench", str(path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("packetrt: error: ") and err.count("\n") == 1 and str(path) in err
+    for message in messages:
+        assert message in err
+    assert not out.exists()
+
+
+def test_missing_scene_files_are_named_before_work(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("PACKETRT_SCENE_PATH", str(tmp_path))
+    path = tmp_path / "m.toml"
+    path.write_text(replace_line("scene", '[{name = "bunny", lod = 3}]'))
+    assert main(["bench", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "missing file(s) stanford-bunny/bun_zipper_res4.ply" in err and str(tmp_path) in err
+
+
+def test_missing_matrix_file_and_bad_repeat(tmp_path, capsys):
+    assert main(["bench", str(tmp_path / "none.toml")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    path = tmp_path / "m.toml"
+    path.write_text(VALID)
+    assert main(["bench", str(path), "--repeat", "0", "--out", str(tmp_path / "o")]) == 2
+    assert "--repeat: must be in 1..1000" in capsys.readouterr().err
+
+
+def test_cells_are_the_union_of_group_products_with_stable_ids():
+    data = {"repeat": 1, "axes": {"scene": ["whitted"], "traversal": ["single", "paper"], "frustum": ["none"],
+                                  "packet": [8, 16], "recursion": ["primary"], "resolution": [16, [32, 8], "8x4"]},
+            "group": [{"tag": "a"}, {"tag": "b", "packet": [8], "resolution": [16]}]}
+    matrix = parse_matrix(data, "m.toml")
+    assert len(matrix.cells) == 2 * 2 * 3  # group b's cells are all in group a: measured once
+    both = [c for c in matrix.cells if c.tags == ("a", "b")]
+    assert len(both) == 2 and all(c.packet == 8 and (c.width, c.height) == (16, 16) for c in both)
+    assert {(c.width, c.height) for c in matrix.cells} == {(16, 16), (32, 8), (8, 4)}
+    paper = next(c for c in matrix.cells if c.traversal.label == "paper")
+    assert paper.traversal.per_kind() == {"primary": "ranged", "shadow": "partition", "reflection": "partition",
+                                          "refraction": "partition"}
+    # Labels and tags are not part of a cell's identity; its configuration is.
+    relabelled = parse_matrix({**data, "axes": {**data["axes"], "scene": [{"name": "whitted", "label": "W"}]}}, "x")
+    assert {c.key for c in relabelled.cells} == {c.key for c in matrix.cells}
+    deeper = parse_matrix({**data, "axes": {**data["axes"], "recursion": ["shadows"]}}, "x")
+    assert not {c.key for c in deeper.cells} & {c.key for c in matrix.cells}
+    table = parse_matrix({**data, "axes": {**data["axes"], "traversal": [{"label": "mix", "shadow": "single"}]}}, "x")
+    assert table.cells[0].traversal.per_kind()["shadow"] == "single"
+    assert table.cells[0].traversal.per_kind()["primary"] == "ranged"
+
+
+def test_bundled_matrices_parse():
+    """Every bundled matrix is valid where its scenes are available (the smoke one always)."""
+    from scenes.catalog import entries, find_files
+
+    for path in sorted((ROOT / "benchmarks").glob("*.toml")):
+        text = path.read_text()
+        needs = [name for name, entry in entries().items() if f'"{name}"' in text and find_files(entry)[1]]
+        if needs and path != SMOKE:
+            continue
+        matrix = load_matrix(str(path))
+        assert matrix.cells and matrix.plots
+
+
+def test_kitchen_full_limits_reflections_not_refractions():
+    """The Table 2 kitchen preset's max_reflection_depth: mirror reflections only off camera hits."""
+    from dataclasses import replace
+
+    from engine.config import Config, RenderConfig
+    from engine.whitted import WhittedRenderer
+    from scenes.catalog import load_named
+
+    scene = load_named("whitted")  # a mirror sphere and a glass sphere
+    preset = RECURSION["kitchen-full"]
+    assert (preset.max_depth, preset.max_reflection_depth, preset.lights) == (4, 1, True)
+    base = Config(render=RenderConfig(width=32, height=32, max_depth=4, packet=8),
+                  traversal=None, frustum=None)
+    full = WhittedRenderer(scene, base).render().rays
+    limited = WhittedRenderer(scene, replace(base, render=replace(base.render, max_reflection_depth=1))).render().rays
+    assert 0 < limited["reflection"] < full["reflection"]
+    assert limited["refraction"] == full["refraction"] > 0 or limited["refraction"] > 0
+    none = WhittedRenderer(scene, replace(base, render=replace(base.render, max_reflection_depth=0))).render().rays
+    assert none["refraction"] > 0 and none["reflection"] < limited["reflection"]
+
+
+def test_every_plot_kind_draws(tmp_path):
+    """A tiny matrix that feeds every figure and table kind."""
+    data = {"name": "plots", "repeat": 1, "plot": ["mrays", "fig5", "fig6", "fig7", "table2", "roger"],
+            "axes": {"scene": ["whitted"], "recursion": ["reflection1-shadows"], "resolution": [32],
+                     "packet": [16], "frustum": ["none"]},
+            "group": [{"traversal": ["simd"], "packet": [2]},
+                      {"traversal": ["paper", "ranged", "partition"], "frustum": ["paper", "none"], "packet": [8, 16]},
+                      {"tag": "resolution", "traversal": ["rayspace", "single"], "resolution": [16, 32]}]}
+    matrix = parse_matrix(data, "plots.toml")
+    summary = bench.run_matrix(matrix, tmp_path, progress=False)
+    assert summary["ran"] == len(matrix.cells)
+    names = {p.name for p in summary["files"]}
+    assert {"results.csv", "summary.md", "mrays.png", "fig5.png", "fig6-whitted.png", "fig6-totals.png", "fig7.png",
+            "fig7.md", "table2.md", "table2.png", "roger.md", "roger.png"} <= names
+    table = (tmp_path / "table2.md").read_text()
+    assert "| whitted | reflection1-shadows | 32x32 |" in table and "×" in table
+    records = lines(tmp_path / "results.jsonl")
+    rayspace = next(r for r in records if r["labels"]["traversal"] == "rayspace")
+    assert rayspace["extra"]["reflection"]["rayspace"]["candidates_per_ray"] > 0
+    assert "candidates" in (tmp_path / "roger.md").read_text()
+
+
+@pytest.mark.usefixtures("shared_scenes")
+def test_bunny_floor_scene():
+    from scenes.catalog import load_named
+
+    scene = load_named("bunny-floor", {"lod": 3})
+    assert scene.n_triangles == 948 + 128 and len(scene.lights) == 1
+    assert max(scene.materials[1].reflectance) > 0 and max(scene.materials[0].reflectance) == 0
