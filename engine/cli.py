@@ -263,12 +263,16 @@ def _add_show_parser(sub) -> None:
     p.add_argument("--kind", default="primary", help="ray kind of the packet: primary, shadow, reflection, refraction")
     p.add_argument("--packet-index", type=int, default=None, help="which packet (default: one near the image centre)")
     p.add_argument("-o", "--output", default="out/show.png", help="PNG to write")
+    p.add_argument("--picture", default="800x600", metavar="WxH", help="size of the PNG (default 800x600)")
     p.set_defaults(run=_delegate("engine.show", "cmd_show"))
 
 
 def _add_view_parser(sub) -> None:
     p = sub.add_parser("view", help="interactive Open3D window with the live ray-traced image")
     _add_selectors(p)
+    # For tests: the panel's labels and numbers as JSON after every frame; close after S seconds.
+    p.add_argument("--status-file", help=argparse.SUPPRESS)
+    p.add_argument("--exit-after", type=float, help=argparse.SUPPRESS)
     p.set_defaults(run=_delegate("engine.view", "cmd_view"))
 
 
