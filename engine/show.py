@@ -431,26 +431,19 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
 
 @contextmanager
 def _quiet_native_output():
-    """Send the native libraries' prints (Filament's start-up lines) to a file while rendering;
-    on an error they are returned in the message."""
+    """Send the native libraries' chatter on stdout (Open3D's and Filament's start-up lines) to
+    a file while rendering. Their stderr stays: a fatal native error (an abort in the Vulkan
+    set-up, say) still says why."""
     sys.stdout.flush()
-    sys.stderr.flush()
-    saved = os.dup(1), os.dup(2)
+    saved = os.dup(1)
     with tempfile.TemporaryFile(mode="w+b") as sink:
         os.dup2(sink.fileno(), 1)
-        os.dup2(sink.fileno(), 2)
-        log = []
         try:
-            yield log
+            yield
         finally:
             sys.stdout.flush()
-            sys.stderr.flush()
-            os.dup2(saved[0], 1)
-            os.dup2(saved[1], 2)
-            os.close(saved[0])
-            os.close(saved[1])
-            sink.seek(0)
-            log.append(sink.read().decode(errors="replace"))
+            os.dup2(saved, 1)
+            os.close(saved)
 
 
 def import_open3d():
@@ -471,7 +464,7 @@ def render_lines(lines, focus, view_dir, up, size) -> np.ndarray:
     o3d = import_open3d()
     rendering = o3d.visualization.rendering
     width, height = size
-    with _quiet_native_output() as log:
+    with _quiet_native_output():
         try:
             renderer = rendering.OffscreenRenderer(width, height)
         except RuntimeError as exc:
