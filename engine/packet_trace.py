@@ -52,7 +52,7 @@ from traversals.ranged import last_hit  # noqa: E402
 PACKET_WALKS = ("partition", "masked", "ranged", "simd")
 RAY_WALKS = ("single", "embree")
 
-VISITED, CULLED, MISSED, ENTERED = "visited", "culled", "missed", "entered"
+CULLED, MISSED, ENTERED = "culled", "missed", "entered"
 
 
 # -- thin wrappers: the kernels' own inline functions, callable from Python --------------------
