@@ -13,7 +13,8 @@ partition -- differ only in how a packet walks the BVH. What they share lives he
 - ``first_hit``: Overbeck's getFirstHit (the first SIMD ray at or after ``lo`` that hits a box,
   the frustum as early reject).
 - ``leaf_triangles`` / ``intersect_lanes``: the leaf, frustum-culled, then the shared
-  ``intersect_triangle`` and tie rule ``closer`` lane by lane, exactly as ``single`` does.
+  ``intersect_triangle`` and tie rule ``closer`` for each lane, exactly as ``single`` does, run
+  on the four lanes at once (``engine.simd4_triangle.intersect4``).
 - ``store_hits``: the packet's answers back into the batch's Hits arrays.
 
 Packet-local state (L = the longest packet of the batch):
@@ -32,15 +33,19 @@ import numpy as np
 from numba import njit
 
 from .frustum_cull import frustum_misses_box, frustum_misses_triangle
-from .kernels import F32_INF, closer, ray_shear
-from .kernels import intersect_triangle_inlined as intersect_triangle
+from .kernels import F32_INF, ray_shear
 from .simd4 import slab4
+from .simd4_triangle import ROWS_F, ROWS_I, intersect4
 from .types import MAX_BVH_DEPTH
 
 OX, OY, OZ, IX, IY, IZ, TLO, THI, SX, SY, SZ, OKX, OKY, OKZ, BEST_T, BEST_U, BEST_V = range(17)
 RF_ROWS = 17
 KX, KY, KZ, BEST_PRIM = range(4)
 RI_ROWS = 4
+# intersect4 is written against this layout.
+assert ROWS_F == {"TLO": TLO, "THI": THI, "SX": SX, "SY": SY, "SZ": SZ, "OKX": OKX, "OKY": OKY, "OKZ": OKZ,
+                  "BEST_T": BEST_T, "BEST_U": BEST_U, "BEST_V": BEST_V}
+assert ROWS_I == {"KX": KX, "KY": KY, "KZ": KZ, "BEST_PRIM": BEST_PRIM}
 
 #: Depth-first traversal that tests a node when it is popped holds at most two entries per level.
 STACK_SIZE = 2 * MAX_BVH_DEPTH + 2
@@ -230,43 +235,13 @@ def leaf_triangles(first, count, prim, node, v0, v1, v2, fr, cull, leaf_tris):
 def intersect_lanes(rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit):
     """Test the live lanes of SIMD ray lane0 selected by ``mask`` against leaf_tris[:n_tris].
 
-    Each test is ``intersect_triangle`` (its inlined build) with the lane's own shear and segment
-    and the update is ``closer``, exactly as in ``single``, so the best hit is bit-identical whatever the order.
-    For ``any_hit`` a lane dies (THI = -inf) at its first hit. Returns (ray-triangle tests done,
+    Per lane and triangle this is ``intersect_triangle`` with the lane's own shear and segment,
+    then the update ``closer``, exactly as in ``single``, so the best hit is bit-identical whatever
+    the order; ``engine.simd4_triangle.intersect4`` runs it on the four lanes at once. For
+    ``any_hit`` a lane dies (THI = -inf) at its first hit. Returns (ray-triangle tests done,
     lanes that died).
     """
-    tests = 0
-    finished = 0
-    for lane in range(4):
-        r = lane0 + lane
-        t_lo = rf[TLO, r]
-        t_hi = rf[THI, r]
-        if (mask >> lane) & 1 == 0 or not t_lo <= t_hi:
-            continue
-        okx, oky, okz = rf[OKX, r], rf[OKY, r], rf[OKZ, r]
-        kx, ky, kz = ri[KX, r], ri[KY, r], ri[KZ, r]
-        sx, sy, sz = rf[SX, r], rf[SY, r], rf[SZ, r]
-        best_t = rf[BEST_T, r]
-        best_prim = ri[BEST_PRIM, r]
-        best_u = rf[BEST_U, r]
-        best_v = rf[BEST_V, r]
-        for j in range(n_tris):
-            tri = leaf_tris[j]
-            tests += 1
-            t, u, v = intersect_triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi, v0, v1, v2, tri)
-            if t < F32_INF and closer(t, tri, best_t, best_prim):
-                best_t, best_prim, best_u, best_v = t, tri, u, v
-                t_hi = t
-                if any_hit:
-                    t_hi = F32_NEG_INF
-                    finished += 1
-                    break
-        rf[THI, r] = t_hi
-        rf[BEST_T, r] = best_t
-        ri[BEST_PRIM, r] = best_prim
-        rf[BEST_U, r] = best_u
-        rf[BEST_V, r] = best_v
-    return tests, finished
+    return intersect4(rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit)
 
 
 @njit(cache=True, inline="always")

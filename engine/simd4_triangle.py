@@ -1,0 +1,238 @@
+"""The watertight triangle test on the four lanes of a 2x2 SIMD ray at once, as LLVM vector IR.
+
+``intersect4(rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit) -> (tests, died)``
+tests the lanes lane0 .. lane0+3 of the packet-local rows (rf: f32[RF_ROWS, L], ri:
+i32[RI_ROWS, L], the ``engine.packet_kernels`` layout) that ``mask`` (4 bits) selects and that
+are live (TLO <= THI) against the triangles leaf_tris[:n_tris] (i32; corners v0, v1, v2:
+f32[T, 3]), in that order, and updates each lane's THI and BEST_T/U/V/PRIM rows exactly as the
+scalar loop "for each lane: for each triangle: ``intersect_triangle``, then ``closer``" does.
+With ``any_hit`` a lane dies (THI = -inf) at its first hit. Returns (ray-triangle tests done,
+lanes that died), counted as the scalar loop counts them.
+
+Why it is bit-identical to ``engine.kernels.intersect_triangle``: each vector element goes
+through the same IEEE operations in the same order (f32 translate and shear, the three edge
+functions as f64 products and difference rounded once to f32, f32 det, scaled t, 1/det), with
+the same ordered compares. The IR has plain fmul/fsub/fadd/fdiv with no fast-math or
+``contract`` flags, so LLVM may neither fuse them into FMAs nor reassociate. Each lane reads
+its own permutation (kx, ky, kz): a triangle's nine coordinates are loaded once and each lane
+picks its components with selects. Lanes are independent, so one triangle against four lanes
+then the next is the same as the scalar lane-major loop.
+
+Numba has no SLP vectoriser (see ``engine.simd4``), hence the hand-written IR.
+"""
+from __future__ import annotations
+
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.core.errors import TypingError
+from numba.extending import intrinsic
+
+_F32 = ir.FloatType()
+_F64 = ir.DoubleType()
+_I1 = ir.IntType(1)
+_I4 = ir.IntType(4)
+_I32 = ir.IntType(32)
+_I64 = ir.IntType(64)
+_V4F = ir.VectorType(_F32, 4)
+_V4D = ir.VectorType(_F64, 4)
+_V4I = ir.VectorType(_I32, 4)
+_V4B = ir.VectorType(_I1, 4)
+_ZERO4 = ir.Constant(_V4I, [0, 0, 0, 0])
+
+#: Rows of the packet-local blocks this reads and writes (``engine.packet_kernels`` checks them).
+ROWS_F = {"TLO": 6, "THI": 7, "SX": 8, "SY": 9, "SZ": 10, "OKX": 11, "OKY": 12, "OKZ": 13,
+          "BEST_T": 14, "BEST_U": 15, "BEST_V": 16}
+ROWS_I = {"KX": 0, "KY": 1, "KZ": 2, "BEST_PRIM": 3}
+
+
+def _splat(builder, scalar, vtype):
+    """A vtype vector with every lane = scalar."""
+    one = builder.insert_element(ir.Constant(vtype, ir.Undefined), scalar, ir.Constant(_I32, 0))
+    return builder.shuffle_vector(one, ir.Constant(vtype, ir.Undefined), _ZERO4)
+
+
+def _vconst(vtype, value):
+    return ir.Constant(vtype, [value] * 4)
+
+
+def _row_ptr(builder, data, row_elems, row, offset, vtype):
+    """Pointer to the 4 lanes data[row * row_elems + offset ...] as a vtype*."""
+    index = builder.add(builder.mul(ir.Constant(_I64, row), row_elems), offset)
+    return builder.bitcast(builder.gep(data, [index]), vtype.as_pointer())
+
+
+def _any(builder, mask):
+    return builder.icmp_unsigned("!=", builder.bitcast(mask, _I4), ir.Constant(_I4, 0))
+
+
+def _popcount(builder, mask):
+    ctpop = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_I4, [_I4]), "llvm.ctpop.i4")
+    return builder.zext(builder.call(ctpop, [builder.bitcast(mask, _I4)]), _I64)
+
+
+def _edge(builder, ax, by, ay, bx):
+    """f32(f64(ax) * f64(by) - f64(ay) * f64(bx)): the f32 products are exact in f64, so the
+    one rounding is the subtraction's, as in the scalar kernel."""
+    ext = [builder.fpext(x, _V4D) for x in (ax, by, ay, bx)]
+    return builder.fptrunc(builder.fsub(builder.fmul(ext[0], ext[1]), builder.fmul(ext[2], ext[3])), _V4F)
+
+
+def _check(value, dtype, ndim, what, any_layout=False):
+    if not (isinstance(value, types.Array) and value.dtype == dtype and value.ndim == ndim
+            and (any_layout or value.layout == "C")):
+        layout = "" if any_layout else "C-contiguous "
+        raise TypingError(f"{what} must be a {layout}{dtype} array of {ndim} dimension(s), got {value}")
+
+
+@intrinsic
+def intersect4(typingctx, rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit):
+    """(tests, died): the leaf's triangles against the selected live lanes; see the module doc."""
+    _check(rf, types.float32, 2, "rf")
+    _check(ri, types.int32, 2, "ri")
+    _check(leaf_tris, types.int32, 1, "leaf_tris", any_layout=True)
+    for v in (v0, v1, v2):
+        _check(v, types.float32, 2, "v0, v1, v2", any_layout=True)
+    for x in (lane0, mask, n_tris):
+        if not isinstance(x, types.Integer):
+            raise TypingError(f"expected an integer, got {x}")
+    if not isinstance(any_hit, types.Boolean):
+        raise TypingError(f"any_hit must be a boolean, got {any_hit}")
+    sig = types.UniTuple(types.int64, 2)(rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit)
+
+    def codegen(context, builder, signature, args):
+        a_rf, a_ri, a_lane0, a_mask, a_tris, a_n, a_v0, a_v1, a_v2, a_any = args
+        s = signature.args
+        rf_arr = context.make_array(s[0])(context, builder, a_rf)
+        ri_arr = context.make_array(s[1])(context, builder, a_ri)
+        tris_arr = context.make_array(s[4])(context, builder, a_tris)
+        verts = [context.make_array(s[6 + k])(context, builder, a) for k, a in enumerate((a_v0, a_v1, a_v2))]
+        four = ir.Constant(_I64, 4)
+        rf_row = builder.udiv(builder.extract_value(rf_arr.strides, 0), four)
+        ri_row = builder.udiv(builder.extract_value(ri_arr.strides, 0), four)
+        lane0_ = context.cast(builder, a_lane0, s[2], types.int64)
+        mask_ = context.cast(builder, a_mask, s[3], types.int64)
+        n_ = context.cast(builder, a_n, s[5], types.int64)
+        any_hit_ = context.cast(builder, a_any, s[9], types.boolean)
+
+        def fptr(name):
+            return _row_ptr(builder, rf_arr.data, rf_row, ROWS_F[name], lane0_, _V4F)
+
+        def iptr(name):
+            return _row_ptr(builder, ri_arr.data, ri_row, ROWS_I[name], lane0_, _V4I)
+
+        def load(ptr):
+            return builder.load(ptr, align=4)
+
+        # Loop invariants: the lanes' shear, origin and segment start, and which axis each picks.
+        ok = [load(fptr(k)) for k in ("OKX", "OKY", "OKZ")]
+        sx, sy, sz = (load(fptr(k)) for k in ("SX", "SY", "SZ"))
+        tlo = load(fptr("TLO"))
+        axes = []
+        for name in ("KX", "KY", "KZ"):
+            k = load(iptr(name))
+            axes.append((builder.icmp_signed("==", k, _ZERO4),
+                         builder.icmp_signed("==", k, _vconst(_V4I, 1))))
+        lane_bits = ir.Constant(ir.VectorType(_I64, 4), [1, 2, 4, 8])
+        selected = builder.icmp_unsigned("!=", builder.and_(_splat(builder, mask_, ir.VectorType(_I64, 4)), lane_bits),
+                                         ir.Constant(ir.VectorType(_I64, 4), [0] * 4))
+        thi0 = load(fptr("THI"))
+        # The scalar loop skips a lane that is not selected or not live (not TLO <= THI).
+        active = builder.and_(selected, builder.fcmp_ordered("<=", tlo, thi0))
+
+        # Loop-carried state; SROA turns these into registers.
+        state = {}
+        initial = {"thi": thi0, "best_t": load(fptr("BEST_T")), "best_u": load(fptr("BEST_U")),
+                   "best_v": load(fptr("BEST_V")), "best_prim": load(iptr("BEST_PRIM")),
+                   "alive": active, "tests": ir.Constant(_I64, 0), "died": ir.Constant(_I64, 0),
+                   "j": ir.Constant(_I64, 0)}
+        for name, value in initial.items():
+            state[name] = cgutils.alloca_once(builder, value.type, name="tri4." + name)
+            builder.store(value, state[name])
+
+        header = builder.append_basic_block("tri4.header")
+        body = builder.append_basic_block("tri4.body")
+        done = builder.append_basic_block("tri4.done")
+        builder.branch(header)
+
+        builder.position_at_end(header)
+        j = builder.load(state["j"])
+        alive = builder.load(state["alive"])
+        builder.cbranch(builder.and_(builder.icmp_signed("<", j, n_), _any(builder, alive)), body, done)
+
+        builder.position_at_end(body)
+        tri32 = builder.load(cgutils.get_item_pointer(context, builder, s[4], tris_arr, [j]))
+        tri = builder.sext(tri32, _I64)
+        # Corner coordinates, translated by each lane's own permuted origin.
+        corners = []
+        for arr, arr_type in zip(verts, s[6:9]):
+            xyz = [_splat(builder, builder.load(cgutils.get_item_pointer(context, builder, arr_type, arr,
+                                                                          [tri, ir.Constant(_I64, c)])), _V4F)
+                   for c in range(3)]
+            corner = []
+            for (is0, is1), o in zip(axes, ok):
+                picked = builder.select(is0, xyz[0], builder.select(is1, xyz[1], xyz[2]))
+                corner.append(builder.fsub(picked, o))
+            corners.append(corner)
+        (ax_, ay_, az_), (bx_, by_, bz_), (cx_, cy_, cz_) = corners
+        ax = builder.fsub(ax_, builder.fmul(sx, az_))
+        ay = builder.fsub(ay_, builder.fmul(sy, az_))
+        bx = builder.fsub(bx_, builder.fmul(sx, bz_))
+        by = builder.fsub(by_, builder.fmul(sy, bz_))
+        cx = builder.fsub(cx_, builder.fmul(sx, cz_))
+        cy = builder.fsub(cy_, builder.fmul(sy, cz_))
+        eu = _edge(builder, cx, by, cy, bx)
+        ev = _edge(builder, ax, cy, ay, cx)
+        ew = _edge(builder, bx, ay, by, ax)
+        zero = _vconst(_V4F, 0.0)
+
+        def any_of(op):
+            return builder.or_(builder.or_(builder.fcmp_ordered(op, eu, zero), builder.fcmp_ordered(op, ev, zero)),
+                               builder.fcmp_ordered(op, ew, zero))
+
+        mixed = builder.and_(any_of("<"), any_of(">"))
+        det = builder.fadd(builder.fadd(eu, ev), ew)
+        flat = builder.fcmp_ordered("==", det, zero)
+        scaled_t = builder.fadd(builder.fadd(builder.fmul(eu, builder.fmul(sz, az_)),
+                                             builder.fmul(ev, builder.fmul(sz, bz_))),
+                                builder.fmul(ew, builder.fmul(sz, cz_)))
+        rcp = builder.fdiv(_vconst(_V4F, 1.0), det)
+        t = builder.fmul(scaled_t, rcp)
+        thi = builder.load(state["thi"])
+        inside = builder.and_(builder.fcmp_ordered(">=", t, tlo), builder.fcmp_ordered("<=", t, thi))
+        hit = builder.and_(builder.and_(builder.not_(mixed), builder.not_(flat)), inside)
+        # intersect_lanes' update: a finite hit that ``closer`` prefers (smaller t, then index).
+        best_t = builder.load(state["best_t"])
+        best_prim = builder.load(state["best_prim"])
+        tri4 = _splat(builder, tri32, _V4I)
+        closer = builder.or_(builder.fcmp_ordered("<", t, best_t),
+                             builder.and_(builder.fcmp_ordered("==", t, best_t),
+                                          builder.icmp_signed("<", tri4, best_prim)))
+        finite = builder.fcmp_ordered("<", t, _vconst(_V4F, float("inf")))
+        take = builder.and_(builder.and_(hit, alive), builder.and_(finite, closer))
+        u = builder.fmul(ev, rcp)
+        v = builder.fmul(ew, rcp)
+        builder.store(builder.select(take, t, best_t), state["best_t"])
+        builder.store(builder.select(take, tri4, best_prim), state["best_prim"])
+        builder.store(builder.select(take, u, builder.load(state["best_u"])), state["best_u"])
+        builder.store(builder.select(take, v, builder.load(state["best_v"])), state["best_v"])
+        # Closest hit: the segment shrinks to t. Any hit: the lane dies.
+        new_thi = builder.select(any_hit_, _vconst(_V4F, float("-inf")), t)
+        builder.store(builder.select(take, new_thi, thi), state["thi"])
+        dying = builder.and_(take, _splat(builder, any_hit_, _V4B))
+        builder.store(builder.and_(alive, builder.not_(dying)), state["alive"])
+        builder.store(builder.add(builder.load(state["tests"]), _popcount(builder, alive)), state["tests"])
+        builder.store(builder.add(builder.load(state["died"]), _popcount(builder, dying)), state["died"])
+        builder.store(builder.add(j, ir.Constant(_I64, 1)), state["j"])
+        builder.branch(header)
+
+        builder.position_at_end(done)
+        # Unselected lanes get back the values just read.
+        builder.store(builder.load(state["thi"]), fptr("THI"), align=4)
+        for name in ("best_t", "best_u", "best_v"):
+            builder.store(builder.load(state[name]), fptr(name.upper()), align=4)
+        builder.store(builder.load(state["best_prim"]), iptr("BEST_PRIM"), align=4)
+        return context.make_tuple(builder, signature.return_type,
+                                  [builder.load(state["tests"]), builder.load(state["died"])])
+
+    return sig, codegen
