@@ -195,6 +195,7 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, embree_cache: dic
 
     wall = time.perf_counter()
     started = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+    load_at_start = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
     scene = cell_scene(scene_cache.get(cell.scene), cell)
     config = cell.config()
     recorder = BatchRecorder()
@@ -204,7 +205,11 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, embree_cache: dic
     frames = [renderer.render() for _ in range(repeat)]
 
     trace_ours = ours(renderer)
+    # Our share of the CPU while replaying: near 1 on an idle machine (parallel kernels keep
+    # every thread busy), well below when other work competes for the cores.
+    cpu, clock = time.process_time(), time.perf_counter()
     replays = [replay(recorder.batches, trace_ours) for _ in range(repeat)]
+    cpu_share = (time.process_time() - cpu) / max((time.perf_counter() - clock) * renderer.threads, 1e-9)
     embree_seconds = None
     if cell.embree:
         if set(cell.traversal.names) == {"embree"}:
@@ -256,6 +261,7 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, embree_cache: dic
                 "trace": 1.0 / trace_total if trace_total > 0 else None, "embree_trace": embree_fps},
         "counters": counted.counters, "counters_by_depth": counted.counters_by_depth, "extra": counted.extra,
         "machine": machine, "started": started,
+        "load": {"loadavg_at_start": load_at_start, "cpu_share_replay": cpu_share},
     }
     record["wall_seconds"] = time.perf_counter() - wall
     return record

@@ -78,6 +78,8 @@ RECURSION = {
     "refraction2": Recursion(2, False, "refractive", doc="2-deep refraction, every material glass"),
     "reflection1-shadows": Recursion(1, True, "reflective",
                                      doc="1-bounce reflection + shadows, every material a mirror"),
+    "reflection1-native": Recursion(1, False, "none",
+                                    doc="1 generation of reflection/refraction with the scene's own materials"),
     # The first paper's Table 2 configurations, with the scenes' own materials.
     "museum-reflect3": Recursion(3, False, "none", doc="BART Museum: 3-bounce reflections"),
     "kitchen-full": Recursion(4, True, "none", max_reflection_depth=1,

@@ -95,9 +95,11 @@ def summary(records: list, out: Path) -> list:
         lines += [f"Machine: {_machine_line(records)}.", "",
                   "Times are medians over the repeats; trace = frustum build + traversal on the recorded batches "
                   "(all ray kinds, shading excluded); Embree traces the very same batches.", "",
+                  "CPU share = our CPU time / (wall time x threads) while replaying: near 1 on an idle machine, "
+                  "lower when other work competed for the cores (treat such rows with care).", "",
                   "| scene | recursion | size | traversal | frustum | packet | rays | frame ms | trace ms | Mrays/s "
-                  "| Embree Mrays/s | ours / Embree |",
-                  "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+                  "| Embree Mrays/s | ours / Embree | CPU share |",
+                  "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for r in records:
             lab = r["labels"]
             ratio = (r["ratio_to_embree"] or {}).get("all")
@@ -105,7 +107,7 @@ def summary(records: list, out: Path) -> list:
                          f"{lab['frustum']} | {lab['packet']} | {r['rays']['all']:,} | "
                          f"{r['seconds']['frame']['median'] * 1e3:,.1f} | {trace_seconds(r) * 1e3:,.1f} | "
                          f"{_fmt(r['mrays_per_s']['all'])} | {_fmt((r['embree_mrays_per_s'] or {}).get('all'))} | "
-                         f"{_fmt(ratio)} |")
+                         f"{_fmt(ratio)} | {_fmt(r.get('load', {}).get('cpu_share_replay'))} |")
     path = out / "summary.md"
     path.write_text("\n".join(lines) + "\n")
     return [path]

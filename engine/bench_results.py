@@ -20,7 +20,9 @@ One line (schema 1; ``K`` = a ray kind, summaries = {median, min, max, q1, q3, r
      "ratio_to_embree": {K: ours / Embree Mrays/s, "all": x} | null,
      "fps": {"frame", "trace", "embree_trace"},
      "counters": {name: {K: n}}, "counters_by_depth": {name: {K: [n per BVH depth]}},
-     "extra": {K: plugin statistics}, "machine": {...}, "started", "wall_seconds"}
+     "extra": {K: plugin statistics}, "machine": {...}, "started", "wall_seconds",
+     "load": {"loadavg_at_start": [1, 5, 15 min], "cpu_share_replay": our CPU seconds / (wall x
+              threads) while replaying: near 1 on an idle machine, low when others compete}}
 """
 from __future__ import annotations
 
@@ -128,6 +130,7 @@ def csv_row(r: dict) -> dict:
         row[f"ratio_{k}"] = (r["ratio_to_embree"] or {}).get(k)
         for name in ("ray_aabb", "ray_tri"):
             row[f"{name}_{k}"] = r["counters"].get(name, {}).get(k)
+    row["cpu_share_replay"] = r.get("load", {}).get("cpu_share_replay")
     row["commit"] = r["machine"]["git"]["commit"]
     row["dirty"] = r["machine"]["git"]["dirty"]
     return row

@@ -19,7 +19,7 @@ SMOKE = ROOT / "benchmarks" / "smoke.toml"
 
 RECORD_KEYS = {"schema", "id", "matrix", "tags", "labels", "cell", "config", "scene", "repeat", "threads",
                "seconds", "rays", "batches", "mrays_per_s", "embree_mrays_per_s", "ratio_to_embree", "fps",
-               "counters", "counters_by_depth", "extra", "machine", "started", "wall_seconds"}
+               "counters", "counters_by_depth", "extra", "machine", "started", "wall_seconds", "load"}
 SUMMARY_KEYS = {"median", "min", "max", "q1", "q3", "runs"}
 
 
