@@ -19,7 +19,7 @@ what is finished, and the same command with ``--resume`` carries on.
 
 Embree's time on a set of batches does not depend on our traversal, so within one run it is
 measured once per distinct batch set (same scene, recursion, size and packet order, checked by
-a digest of the rays) and shared by the cells that trace it.
+a digest of the rays) and shared by the cells that trace it (``EmbreeYardstick``).
 """
 from __future__ import annotations
 
@@ -89,6 +89,45 @@ def ours(renderer):
         frusta = renderer.frustum[kind].build(rays, packets, renderer.bounds)
         _query(renderer.traversal[kind], renderer, query, rays, packets, frusta)
     return trace
+
+
+class EmbreeYardstick:
+    """Embree's seconds on a recorded batch set, measured once per distinct set (by digest), and
+    the Embree scenes used, closed at the end: an Embree thread-pool worker that Ctrl-C caught
+    half-registered (CPython starts it, then records it for the exit handler) would otherwise
+    keep the interpreter from exiting; closing the pool wakes and ends every worker."""
+
+    def __init__(self):
+        self.digest, self.runs, self.scenes = None, None, {}
+
+    def note(self, renderer) -> None:
+        """Remember the Embree scene a cell used (the plugin keeps it; building it is not repeated)."""
+        from .registry import get_traversal
+
+        scene = get_traversal("embree").scene_for(renderer.tris)
+        self.scenes[id(scene)] = scene
+
+    def seconds(self, renderer, recorder: BatchRecorder, repeat: int) -> list:
+        """``repeat`` dicts {kind: seconds} of Embree on exactly the recorded batches."""
+        from .registry import get_traversal
+
+        digest = recorder.digest()
+        if digest != self.digest:
+            plugin = get_traversal("embree")
+            plugin.prepare(renderer.tris)  # build outside the timing
+            self.note(renderer)
+            trace = embree(renderer, plugin)
+            if recorder.batches:  # one untimed query: thread pool and first-touch costs
+                kind, query, rays, packets = recorder.batches[0]
+                trace(kind, query, rays, packets)
+            self.digest, self.runs = None, None  # one batch set alive at a time
+            self.runs, self.digest = [replay(recorder.batches, trace) for _ in range(repeat)], digest
+        return self.runs
+
+    def close(self) -> None:
+        for scene in self.scenes.values():
+            scene.close()
+        self.scenes.clear()
 
 
 def embree(renderer, plugin):
@@ -187,10 +226,9 @@ def cell_scene(base, cell: Cell):
     return scene if cell.preset.lights else replace(scene, lights=[])
 
 
-def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, embree_cache: dict, machine: dict,
+def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: EmbreeYardstick, machine: dict,
              matrix_name: str) -> dict:
     """Measure one cell (see the module doc); returns its results.jsonl record."""
-    from .registry import get_traversal
     from .whitted import WhittedRenderer
 
     wall = time.perf_counter()
@@ -210,22 +248,14 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, embree_cache: dic
     cpu, clock = time.process_time(), time.perf_counter()
     replays = [replay(recorder.batches, trace_ours) for _ in range(repeat)]
     cpu_share = (time.process_time() - cpu) / max((time.perf_counter() - clock) * renderer.threads, 1e-9)
+    if "embree" in cell.traversal.names:
+        yardstick.note(renderer)
     embree_seconds = None
     if cell.embree:
         if set(cell.traversal.names) == {"embree"}:
             embree_seconds = replays  # the cell is Embree: its replay is the yardstick
         else:
-            digest = recorder.digest()
-            if digest not in embree_cache:
-                plugin = get_traversal("embree")
-                plugin.prepare(renderer.tris)  # build outside the timing
-                trace_embree = embree(renderer, plugin)
-                if recorder.batches:  # one untimed query: thread pool and first-touch costs
-                    kind, query, rays, packets = recorder.batches[0]
-                    trace_embree(kind, query, rays, packets)
-                embree_cache.clear()  # one batch set alive at a time
-                embree_cache[digest] = [replay(recorder.batches, trace_embree) for _ in range(repeat)]
-            embree_seconds = embree_cache[digest]
+            embree_seconds = yardstick.seconds(renderer, recorder, repeat)
 
     renderer.count = True
     counted = renderer.render()
@@ -269,25 +299,31 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, embree_cache: dic
 
 # -- the matrix ------------------------------------------------------------------------------
 
-def _cost(cell: Cell, lights: int, repeat: int) -> float:
-    """Rough relative cost of a cell for the ETA: rays cast times passes over them."""
+def _cost(cell: Cell, scene: tuple, repeat: int) -> float:
+    """Rough relative cost of a cell for the ETA: rays cast times passes over them, times a
+    slowness guess per traversal (measured here: the ray-space hierarchy's cost grows with the
+    triangle count, a BVH's barely). ``scene`` = (lights, triangles)."""
+    lights, triangles = scene
     kinds = 1 + (lights if cell.preset.lights else 0)
     generations = 1 + cell.preset.max_depth
-    slow = 3.0 if cell.packet <= 2 or "single" in cell.traversal.names or "rayspace" in cell.traversal.names else 1.0
+    slow = 3.0 if cell.packet <= 2 or "single" in cell.traversal.names else 1.0
+    if "rayspace" in cell.traversal.names:
+        slow = max(slow, triangles / 1000)
     return cell.width * cell.height * kinds * generations * slow * (2 + 3 * repeat) / 1e6
 
 
 def preflight(cells) -> dict:
     """Load every distinct scene once before any measurement (a loader's own parameter checks
-    fail here, not halfway through): {(name, params, time): number of lights}."""
+    fail here, not halfway through): {(name, params, time): (lights, triangles)}."""
     from scenes.catalog import load_named
 
-    lights = {}
+    found = {}
     for cell in cells:
         key = (cell.scene.name, cell.scene.params, cell.scene.time)
-        if key not in lights:
-            lights[key] = len(load_named(cell.scene.name, dict(cell.scene.params), cell.scene.time).lights)
-    return lights
+        if key not in found:
+            scene = load_named(cell.scene.name, dict(cell.scene.params), cell.scene.time)
+            found[key] = (len(scene.lights), scene.n_triangles)
+    return found
 
 
 def write_outputs(out: Path, matrix: Matrix) -> list:
@@ -300,6 +336,16 @@ def write_outputs(out: Path, matrix: Matrix) -> list:
     mine = sorted((dict(r, tags=tags[r["id"]]) for r in records if r["id"] in tags), key=lambda r: order[r["id"]])
     results_io.write_csv(out / results_io.CSV, mine)
     return [out / results_io.CSV] + render_plots(mine, out, matrix.plots)
+
+
+def _is_interrupt(exc: BaseException) -> bool:
+    """A KeyboardInterrupt, or what numba makes of one: Ctrl-C during a compiled call surfaces
+    as "SystemError: CPUDispatcher(...) returned a result with an exception set", caused by it."""
+    while exc is not None:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool = True, run=None) -> dict:
@@ -329,22 +375,25 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
     ran, interrupted = 0, False
     try:
         if todo:
-            lights = preflight(todo)
+            scenes = preflight(todo)
             machine = machine_info()
-            costs = [_cost(c, lights[(c.scene.name, c.scene.params, c.scene.time)], matrix.repeat) for c in todo]
-            scene_cache, embree_cache = SceneCache(), {}
+            costs = [_cost(c, scenes[(c.scene.name, c.scene.params, c.scene.time)], matrix.repeat) for c in todo]
+            scene_cache, yardstick = SceneCache(), EmbreeYardstick()
             bar = tqdm(total=sum(costs), disable=not progress, file=sys.stderr, dynamic_ncols=True,
                        bar_format="{l_bar}{bar}| {postfix} [{elapsed}<{remaining}]")
             try:
                 for i, (cell, cost) in enumerate(zip(todo, costs)):
                     bar.set_postfix_str(f"cell {i + 1}/{len(todo)}: {cell.describe()}")
-                    record = run(cell, matrix.repeat, scene_cache, embree_cache, machine, matrix.name)
+                    record = run(cell, matrix.repeat, scene_cache, yardstick, machine, matrix.name)
                     results_io.append(path, record)
                     ran += 1
                     bar.update(cost)
             finally:
                 bar.close()
-    except KeyboardInterrupt:
+                yardstick.close()
+    except (KeyboardInterrupt, SystemError) as exc:
+        if not _is_interrupt(exc):
+            raise
         interrupted = True
     files = write_outputs(out, matrix)
     if interrupted:

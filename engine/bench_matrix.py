@@ -390,8 +390,14 @@ def parse_matrix(data: dict, source: str = "<matrix>", repeat: int | None = None
                 cell = Cell(**{**previous.__dict__, "tags": tags})
             cells[cell.key] = cell
     _check_scene_files(source, cells.values())
-    ordered = sorted(cells.values(), key=lambda c: (c.scene.name, c.scene.params, c.scene.time, c.recursion,
-                                                     c.width * c.height, c.packet))
+    # Cells of one scene run together (one scene loaded at a time); scenes and presets keep the
+    # order the matrix gives them, which the plots' rows and columns follow.
+    first = {}
+    for cell in cells.values():
+        first.setdefault(("scene", cell.scene.name, cell.scene.params, cell.scene.time), len(first))
+        first.setdefault(("recursion", cell.recursion), len(first))
+    ordered = sorted(cells.values(), key=lambda c: (first["scene", c.scene.name, c.scene.params, c.scene.time],
+                                                     first["recursion", c.recursion], c.width * c.height, c.packet))
     return Matrix(name, description, source, repeat, threads, embree, tuple(plots), ordered)
 
 

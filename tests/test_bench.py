@@ -99,7 +99,9 @@ def test_interrupted_run_is_consistent_and_resumes(tmp_path, monkeypatch, capsys
     def first_then_ctrl_c(*args, **kwargs):
         calls.append(1)
         if len(calls) == 2:
-            raise KeyboardInterrupt
+            # What numba raises when Ctrl-C lands inside a compiled call.
+            raise SystemError("CPUDispatcher(<function _build>) returned a result with an exception set") \
+                from KeyboardInterrupt()
         return real(*args, **kwargs)
 
     monkeypatch.setattr(bench, "run_cell", first_then_ctrl_c)
