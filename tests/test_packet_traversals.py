@@ -12,10 +12,10 @@ import numba
 import numpy as np
 import pytest
 
-from engine.errors import SceneError
 from engine.packets import PACKET_SIZES, make_batch
 from engine.registry import get_frustum, get_traversal
 from engine.types import COUNTER_NODES, RAY_KINDS, Frusta, empty_hits, new_stats, stats_totals
+from conftest import needs_shared_scenes
 from packet_raysets import scene_rays
 from scenes.catalog import load_named
 
@@ -26,10 +26,9 @@ SIZE = 64
 
 
 def load_scene(name, params):
-    try:
-        return load_named(name, params)
-    except SceneError as exc:  # the bunny and the Cornell box need the shared scene folder
-        pytest.skip(str(exc))
+    if name != "whitted":  # the bunny and the Cornell box need the shared scene folder
+        needs_shared_scenes()
+    return load_named(name, params)
 
 
 @pytest.fixture(scope="module", params=sorted(SCENES))
