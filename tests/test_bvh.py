@@ -59,6 +59,24 @@ def test_refit_follows_moved_vertices():
     check_invariants(refit, tris.v0.shape[0])
 
 
+def test_child_order_is_cached_per_bvh_and_follows_a_refit():
+    """Packet traversals take the near-child table from a per-BVH cache: the kernel's answer,
+    computed once, and computed again for a refit BVH (new arrays), whose order may differ."""
+    from engine.packet_kernels import child_order_keys
+    from engine.packet_plugin import cached_child_order
+
+    tris = load_named("whitted").triangles
+    bvh = build_bvh(tris)
+    keys = cached_child_order(bvh)
+    np.testing.assert_array_equal(keys, child_order_keys(bvh.bmin, bvh.bmax, bvh.first, bvh.count))
+    assert cached_child_order(bvh) is keys
+    mirror = np.array([-1, 1, 1], np.float32)  # left and right swap along x
+    mirrored = refit_bvh(bvh, tris._replace(v0=tris.v0 * mirror, v1=tris.v1 * mirror, v2=tris.v2 * mirror))
+    fresh = child_order_keys(mirrored.bmin, mirrored.bmax, mirrored.first, mirrored.count)
+    assert (fresh != keys).any()
+    np.testing.assert_array_equal(cached_child_order(mirrored), fresh)
+
+
 def test_bad_build_parameters_are_config_errors():
     tris = load_named("whitted").triangles
     with pytest.raises(ConfigError, match="leaf_size"):
