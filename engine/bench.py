@@ -263,6 +263,7 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
     rays = dict(warm.rays)
     rays["all"] = sum(warm.rays[k] for k in RAY_KINDS)
     batches = {k: sum(1 for b in recorder.batches if b[0] == k) for k in RAY_KINDS}
+    packets = {k: sum(len(b[3].offsets) - 1 for b in recorder.batches if b[0] == k) for k in RAY_KINDS}
     replay_summary = {k: summarize([r[k] for r in replays]) for k in RAY_KINDS}
     replay_median = {k: replay_summary[k]["median"] for k in RAY_KINDS}
     mrays = _rates(rays, replay_median)
@@ -285,7 +286,7 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
                     "shade": summarize([f.seconds["shade"] for f in frames]),
                     "trace": {k: summarize([f.seconds["trace"][k] for f in frames]) for k in RAY_KINDS},
                     "replay": replay_summary, "embree": embree_summary},
-        "rays": rays, "batches": batches, "mrays_per_s": mrays, "embree_mrays_per_s": embree_mrays,
+        "rays": rays, "batches": batches, "packets": packets, "mrays_per_s": mrays, "embree_mrays_per_s": embree_mrays,
         "ratio_to_embree": ratio,
         "fps": {"frame": 1.0 / frame["median"] if frame["median"] > 0 else None,
                 "trace": 1.0 / trace_total if trace_total > 0 else None, "embree_trace": embree_fps},

@@ -13,6 +13,8 @@ recorded batches (shading excluded), the same work Embree is timed on.
              traversal; fig6-totals.png: the totals (Figure 6)
     fig7     fig7.png: as fig5 with culling on (solid) and off (dashed); fig7.md: the benefit (Figure 7)
     table2   table2.md + table2.png: 2x2 SIMD vs 16x16 packets, culling benefit, Embree (Table 2)
+    packets  packets.md + packets.png: Mrays/s per ray kind for traversal x packet size x culling,
+             Embree, the issue's targets and a cost model (``engine.bench_packets``)
     roger    roger.png + roger.md: secondary-ray time and candidates per ray vs reflector
              triangles (tag "lod"), image size (tag "resolution") and cosine-n's n (tag "cosine")
              (Roger et al. 2007)
@@ -423,9 +425,16 @@ def roger(records: list, out: Path) -> list:
     return [md, _save(fig, out / "roger.png")]
 
 
+def packets(records: list, out: Path) -> list:
+    """packets.md + packets.png: ``engine.bench_packets`` (its own module; it imports helpers from here)."""
+    from .bench_packets import packets as report
+
+    return report(records, out)
+
+
 #: Figure kinds a matrix may ask for (``plot = [...]``).
 PLOTS = {"summary": summary, "mrays": mrays, "fig5": fig5, "fig6": fig6, "fig7": fig7, "table2": table2,
-         "roger": roger}
+         "roger": roger, "packets": packets}
 
 
 def render_plots(records: list, out: Path, kinds) -> list:

@@ -15,7 +15,7 @@ One line (schema 1; ``K`` = a ray kind, summaries = {median, min, max, q1, q3, r
                  "trace": {K: summary}            # inside the timed renders
                  "replay": {K: summary},          # our plugins on the recorded batches
                  "embree": {K: summary} | null},  # Embree on the very same batches
-     "rays": {K: n, "all": n}, "batches": {K: n},
+     "rays": {K: n, "all": n}, "batches": {K: n}, "packets": {K: n}  # packets traced per frame
      "mrays_per_s": {K: x, "all": x}, "embree_mrays_per_s": {...} | null,
      "ratio_to_embree": {K: ours / Embree Mrays/s, "all": x} | null,
      "fps": {"frame", "trace", "embree_trace"},

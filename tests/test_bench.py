@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "benchmarks" / "smoke.toml"
 
 RECORD_KEYS = {"schema", "id", "matrix", "tags", "labels", "cell", "config", "scene", "repeat", "threads",
-               "seconds", "rays", "batches", "mrays_per_s", "embree_mrays_per_s", "ratio_to_embree", "fps",
+               "seconds", "rays", "batches", "packets", "mrays_per_s", "embree_mrays_per_s", "ratio_to_embree", "fps",
                "counters", "counters_by_depth", "extra", "machine", "started", "wall_seconds", "load"}
 SUMMARY_KEYS = {"median", "min", "max", "q1", "q3", "runs"}
 
@@ -259,7 +259,7 @@ def test_kitchen_full_limits_reflections_not_refractions():
 
 def test_every_plot_kind_draws(tmp_path):
     """A tiny matrix that feeds every figure and table kind."""
-    data = {"name": "plots", "repeat": 1, "plot": ["mrays", "fig5", "fig6", "fig7", "table2", "roger"],
+    data = {"name": "plots", "repeat": 1, "plot": ["mrays", "fig5", "fig6", "fig7", "table2", "roger", "packets"],
             "axes": {"scene": ["whitted"], "recursion": ["reflection1-shadows"], "resolution": [32],
                      "packet": [16], "frustum": ["none"]},
             "group": [{"traversal": ["simd"], "packet": [2]},
@@ -270,13 +270,19 @@ def test_every_plot_kind_draws(tmp_path):
     assert summary["ran"] == len(matrix.cells)
     names = {p.name for p in summary["files"]}
     assert {"results.csv", "summary.md", "mrays.png", "fig5.png", "fig6-whitted.png", "fig6-totals.png", "fig7.png",
-            "fig7.md", "table2.md", "table2.png", "roger.md", "roger.png"} <= names
+            "fig7.md", "table2.md", "table2.png", "roger.md", "roger.png", "packets.md", "packets.png"} <= names
     table = (tmp_path / "table2.md").read_text()
     assert "| whitted | reflection1-shadows | 32x32 |" in table and "×" in table
     records = lines(tmp_path / "results.jsonl")
     rayspace = next(r for r in records if r["labels"]["traversal"] == "rayspace")
     assert rayspace["extra"]["reflection"]["rayspace"]["candidates_per_ray"] > 0
     assert "candidates" in (tmp_path / "roger.md").read_text()
+    # The packet report: only packet-traversal cells (13 here), per-kind rates, the targets
+    # against the 2x2 simd baseline and a cost model fitted on those 13 cells.
+    report = (tmp_path / "packets.md").read_text()
+    assert "| ranged | on | " in report and "| partition | off | " in report and "| Embree | – | " in report
+    assert "over the 2×2 SIMD baseline" in report and "Culling benefit" in report
+    assert "| primary | 13 | " in report and "rayspace" not in report
 
 
 @pytest.mark.usefixtures("shared_scenes")

@@ -1,0 +1,301 @@
+"""The ``packets`` report: the large-packet study (Overbeck, Ramamoorthi, Mark 2008) as the
+issue states it -- Mrays/s per ray kind for every traversal x packet size x culling on/off,
+Embree on the same rays, the targets, and a cost model of where the time goes.
+
+It reads the cells whose every ray kind uses a packet traversal (simd, masked, ranged,
+partition; ``paper`` mixes them), one section per scene x recursion x image size.
+
+packets.md
+    1. One table per ray kind: rows traversal x culling (on = the cell's frustum builders, off =
+       ``none``), columns packet sizes, Mrays/s (median replay); last row Embree on the same
+       batches (per packet size: a frame's rays are ordered packet by packet, so each size is
+       its own batch set).
+    2. Targets: trace FPS of each traversal at 16x16 with culling over the 2x2 SIMD baseline
+       (``simd``, smallest packet, no culling); culling benefit (on / off) on primary and shadow
+       rays; ratio to Embree per kind.
+    3. Cost model: per ray kind, a non-negative least-squares fit over the cells of
+           core seconds = a * rays + b * packets + c * node visits + d * SIMD box tests
+                          + e * SIMD triangle tests
+       (core seconds = replay seconds x threads; a SIMD test = 4 ray tests), in nanoseconds per
+       operation, and for every 16x16 cell the share of its time that the fit puts on ``rays``:
+       the per-ray work every traversal pays alike (loading and shearing the ray, storing the
+       hit, the frustum builder's pass, the answer arrays), which bounds what any traversal can
+       gain over the baseline (Amdahl).
+packets.png
+    Mrays/s vs packet size, one panel per ray kind, a colour per traversal, solid with culling
+    and dashed without, Embree dotted grey.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .bench_plots import _fmt, _machine_line, _ordered, _pyplot, _save, trace_seconds
+from .types import RAY_KINDS
+
+#: Targets of the issue: 16x16 over 2x2 SIMD for the frame, culling benefit (primary and
+#: shadow rays), ours / Embree per kind.
+TARGET_SPEEDUP = 3.0
+TARGET_CULLING = 1.2
+TARGET_EMBREE = {"primary": 1.5, "shadow": 1.5, "reflection": 0.75, "refraction": 0.75}
+LARGE = 16
+PACKET_TRAVERSALS = frozenset({"simd", "masked", "ranged", "partition"})
+COST_TERMS = ("rays", "packets", "node visits", "SIMD box tests", "SIMD triangle tests")
+
+
+def _culling(r: dict) -> str:
+    return "off" if r["labels"]["frustum"] == "none" else "on"
+
+
+def _rate(r: dict, kind: str):
+    return (r["mrays_per_s"] or {}).get(kind)
+
+
+def _embree_rate(r: dict, kind: str):
+    return (r["embree_mrays_per_s"] or {}).get(kind)
+
+
+def _met(value, target) -> str:
+    if value is None:
+        return "–"
+    return "met" if value >= target else "not met"
+
+
+def _baseline(records: list):
+    """The 2x2 SIMD baseline: ``simd`` without culling at its smallest packet, or None."""
+    simd = [r for r in records if r["labels"]["traversal"] == "simd" and _culling(r) == "off"]
+    return min(simd, key=lambda r: r["labels"]["packet"]) if simd else None
+
+
+# -- cost model --------------------------------------------------------------------------------
+
+def cost_features(r: dict, kind: str):
+    """(rays, packets, node visits, SIMD box tests, SIMD triangle tests) of one cell's ``kind``
+    rays per frame, or None when the record lacks counters or packet counts."""
+    counters = r.get("counters") or {}
+    packets = r.get("packets")
+    if not packets or not all(name in counters for name in ("nodes", "ray_aabb", "ray_tri")):
+        return None
+    return (r["rays"][kind], packets[kind], counters["nodes"][kind], counters["ray_aabb"][kind] / 4,
+            counters["ray_tri"][kind] / 4)
+
+
+def nonnegative_fit(a: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Least squares x >= 0 for a @ x ~ y (a: f64[M,N], y: f64[M]): fit, drop the most negative
+    term, refit, until none is negative (an active-set approximation, enough for 5 terms)."""
+    active = list(range(a.shape[1]))
+    x = np.zeros(a.shape[1])
+    while active:
+        sol, *_ = np.linalg.lstsq(a[:, active], y, rcond=None)
+        if sol.min() >= 0:
+            x[active] = sol
+            break
+        active.pop(int(np.argmin(sol)))
+    return x
+
+
+def cost_model(records: list, kind: str):
+    """{"ns": core ns per operation (COST_TERMS order), "median_error": relative, "cells": [(record,
+    predicted core seconds, per-term core seconds)]} over the cells with ``kind`` rays, or None
+    when there are too few cells to fit (fewer than twice the terms)."""
+    rows, times, used = [], [], []
+    for r in records:
+        features = cost_features(r, kind)
+        seconds = r["seconds"]["replay"][kind]["median"]
+        if features is None or not features[0] or seconds <= 0:
+            continue
+        rows.append(features)
+        times.append(seconds * r["threads"])
+        used.append(r)
+    if len(rows) < 2 * len(COST_TERMS):
+        return None
+    a, y = np.asarray(rows, np.float64), np.asarray(times, np.float64)
+    # Scale columns to comparable sizes so the solver is well conditioned.
+    scale = np.maximum(a.max(axis=0), 1.0)
+    x = nonnegative_fit(a / scale, y) / scale
+    predicted = a @ x
+    return {"ns": x * 1e9, "median_error": float(np.median(np.abs(predicted - y) / y)),
+            "cells": [(r, p, row * x) for r, p, row in zip(used, predicted, a)]}
+
+
+# -- report ------------------------------------------------------------------------------------
+
+def _rate_tables(records: list, packets: list, travs: list) -> list:
+    lines = []
+    for kind in RAY_KINDS:
+        if not any(r["rays"][kind] for r in records):
+            continue
+        rays = max(r["rays"][kind] for r in records)
+        lines += [f"**{kind} rays** ({rays:,} per frame), Mrays/s:", "",
+                  "| traversal | culling | " + " | ".join(f"{p}×{p}" for p in packets) + " |",
+                  "|---|---|" + "---:|" * len(packets)]
+        for trav in travs:
+            for culling in ("on", "off"):
+                by_packet = {r["labels"]["packet"]: r for r in records
+                             if r["labels"]["traversal"] == trav and _culling(r) == culling}
+                if by_packet:
+                    lines.append(f"| {trav} | {culling} | " + " | ".join(
+                        _fmt(_rate(by_packet[p], kind)) if p in by_packet else "" for p in packets) + " |")
+        embree = {p: [_embree_rate(r, kind) for r in records
+                      if r["labels"]["packet"] == p and _embree_rate(r, kind)] for p in packets}
+        if any(embree.values()):
+            lines.append("| Embree | – | " + " | ".join(
+                _fmt(float(np.median(embree[p]))) if embree[p] else "" for p in packets) + " |")
+        lines.append("")
+    return lines
+
+
+def _target_lines(records: list, travs: list) -> list:
+    lines = ["### Targets", ""]
+    base = _baseline(records)
+    large = {(r["labels"]["traversal"], _culling(r)): r for r in records if r["labels"]["packet"] == LARGE}
+    if base is not None:
+        p = base["labels"]["packet"]
+        lines += [f"Frame trace FPS (all ray kinds, frustum build + traversal) at {LARGE}×{LARGE} with culling, "
+                  f"over the {p}×{p} SIMD baseline (`simd`, no culling: {1 / trace_seconds(base):.2f} FPS); "
+                  f"target {TARGET_SPEEDUP:g}×.", "",
+                  "| traversal | FPS | speed-up | target |", "|---|---:|---:|---|"]
+        for trav in travs:
+            r = large.get((trav, "on"))
+            if r is not None:
+                speedup = trace_seconds(base) / trace_seconds(r)
+                lines.append(f"| {trav} | {1 / trace_seconds(r):.2f} | {speedup:.2f}× | "
+                             f"{_met(speedup, TARGET_SPEEDUP)} |")
+        lines.append("")
+    lines += [f"Culling benefit at {LARGE}×{LARGE} (Mrays/s with / without); target {TARGET_CULLING:g}× on "
+              "primary and shadow rays.", "",
+              "| traversal | " + " | ".join(RAY_KINDS) + " |", "|---|" + "---:|" * len(RAY_KINDS)]
+    for trav in travs:
+        on, off = large.get((trav, "on")), large.get((trav, "off"))
+        if on is None or off is None:
+            continue
+        cells = []
+        for kind in RAY_KINDS:
+            a, b = _rate(on, kind), _rate(off, kind)
+            benefit = a / b if a and b else None
+            mark = f" ({_met(benefit, TARGET_CULLING)})" if kind in ("primary", "shadow") and benefit else ""
+            cells.append(f"{_fmt(benefit)}×{mark}" if benefit else "–")
+        lines.append(f"| {trav} | " + " | ".join(cells) + " |")
+    lines += ["", f"Ours / Embree at {LARGE}×{LARGE} with culling; targets "
+              + ", ".join(f"{k} {v:g}×" for k, v in TARGET_EMBREE.items()) + ".", "",
+              "| traversal | " + " | ".join(RAY_KINDS) + " |", "|---|" + "---:|" * len(RAY_KINDS)]
+    for trav in travs:
+        r = large.get((trav, "on"))
+        if r is None or not r["ratio_to_embree"]:
+            continue
+        cells = []
+        for kind in RAY_KINDS:
+            ratio = r["ratio_to_embree"].get(kind)
+            cells.append(f"{_fmt(ratio)}× ({_met(ratio, TARGET_EMBREE[kind])})" if ratio else "–")
+        lines.append(f"| {trav} | " + " | ".join(cells) + " |")
+    lines.append("")
+    return lines
+
+
+def _cost_lines(records: list) -> list:
+    lines = ["### Where the time goes (cost model)", "",
+             "Per ray kind, a non-negative least-squares fit over the cells: core seconds (replay × threads) ≈ "
+             "a·rays + b·packets + c·node visits + d·SIMD box tests + e·SIMD triangle tests (counts from the "
+             "counting render). *Per-ray share*: the part of a 16×16 cell's time the fit puts on `rays`, work "
+             "that every traversal pays alike (load and shear the ray, store the hit, the frustum pass, the "
+             "answer arrays), which no traversal can remove.", "",
+             "| ray kind | cells | ns / ray | ns / packet | ns / node | ns / SIMD box | ns / SIMD triangle "
+             "| median error |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    shares, fitted = [], False
+    for kind in RAY_KINDS:
+        model = cost_model(records, kind)
+        if model is None:
+            continue
+        fitted = True
+        lines.append(f"| {kind} | {len(model['cells'])} | " + " | ".join(f"{v:.2f}" for v in model["ns"])
+                     + f" | {model['median_error'] * 100:.1f}% |")
+        for r, predicted, parts in model["cells"]:
+            if r["labels"]["packet"] == LARGE or r is _baseline(records):
+                shares.append((kind, r, parts[0] / predicted if predicted > 0 else None))
+    if not fitted:
+        return []
+    lines += ["", "| ray kind | traversal | culling | packet | per-ray share |", "|---|---|---|---:|---:|"]
+    for kind, r, share in shares:
+        lab = r["labels"]
+        lines.append(f"| {kind} | {lab['traversal']} | {_culling(r)} | {lab['packet']} | "
+                     f"{_fmt(None if share is None else share * 100, 0)}% |")
+    lines.append("")
+    return lines
+
+
+def _plot(records: list, travs: list, path: Path) -> Path:
+    plt = _pyplot()
+    kinds = [k for k in RAY_KINDS if any(r["rays"][k] for r in records)]
+    fig, axes = plt.subplots(1, len(kinds), figsize=(3.4 * len(kinds), 3.2), squeeze=False)
+    packets = sorted({r["labels"]["packet"] for r in records})
+    for ax, kind in zip(axes[0], kinds):
+        for i, trav in enumerate(travs):
+            for culling, style in (("on", "-"), ("off", "--")):
+                rs = sorted((r for r in records if r["labels"]["traversal"] == trav and _culling(r) == culling
+                             and _rate(r, kind)), key=lambda r: r["labels"]["packet"])
+                if rs:
+                    ax.plot([r["labels"]["packet"] for r in rs], [_rate(r, kind) for r in rs], "o" + style,
+                            color=f"C{i % 10}", ms=3, lw=1.2, label=f"{trav} ({'culling' if culling == 'on' else 'none'})")
+        embree = {}
+        for r in records:
+            if _embree_rate(r, kind):
+                embree.setdefault(r["labels"]["packet"], []).append(_embree_rate(r, kind))
+        if embree:
+            xs = sorted(embree)
+            ax.plot(xs, [float(np.median(embree[p])) for p in xs], "x:", color="0.4", label="Embree")
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(packets, [f"{p}×{p}" for p in packets], fontsize=7)
+        ax.minorticks_off()
+        ax.set_ylim(bottom=0)
+        ax.tick_params(labelsize=7)
+        ax.set_title(f"{kind} rays", fontsize=9)
+        ax.set_xlabel("packet size", fontsize=8)
+    axes[0][0].set_ylabel("Mrays/s (median)", fontsize=8)
+    handles = {}
+    for ax in axes.flat:
+        for h, label in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(label, h)
+    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=min(5, len(handles)), fontsize=7,
+               bbox_to_anchor=(0.5, -0.12))
+    lab = records[0]["labels"]
+    fig.suptitle(f"{lab['scene']} {lab['recursion']} {lab['resolution']}: Mrays/s per ray kind", fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def packet_cells(records: list) -> dict:
+    """{(scene, recursion, resolution): records} of the cells whose every ray kind uses one of
+    the packet traversals (the study's subject; ``single``, ``rayspace`` and Embree cells are left
+    out), in matrix order."""
+    groups = {}
+    for r in records:
+        if all(name in PACKET_TRAVERSALS for name in r["cell"]["traversal"].values()):
+            lab = r["labels"]
+            groups.setdefault((lab["scene"], lab["recursion"], lab["resolution"]), []).append(r)
+    return groups
+
+
+def packets(records: list, out: Path) -> list:
+    """packets.md and packets.png (see the module doc), a section and a figure per scene,
+    recursion and size (packets-2.png ... after the first); nothing when no record fits."""
+    groups = packet_cells(records)
+    if not groups:
+        return []
+    lines = ["# Large packets: Mrays/s per ray kind, traversal × packet size × culling", "",
+             f"Machine: {_machine_line(records)}.", "",
+             "Mrays/s = rays of the kind per frame / median replay time of their batches (frustum build + "
+             "traversal, shading excluded). Culling *on* uses the cell's frustum builders (pinhole, pointlight, "
+             "general), *off* none. Embree traces the very same batches in the same run with the same threads.", ""]
+    figures = []
+    for i, ((scene, recursion, size), rs) in enumerate(groups.items()):
+        packet_sizes = sorted({r["labels"]["packet"] for r in rs})
+        travs = _ordered(r["labels"]["traversal"] for r in rs)
+        lines += [f"## {scene}, {recursion}, {size}", ""]
+        lines += _rate_tables(rs, packet_sizes, travs)
+        lines += _target_lines(rs, travs)
+        lines += _cost_lines(rs)
+        figures.append(_plot(rs, travs, out / ("packets.png" if i == 0 else f"packets-{i + 1}.png")))
+    md = out / "packets.md"
+    md.write_text("\n".join(lines) + "\n")
+    return [md, *figures]
