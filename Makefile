@@ -30,5 +30,10 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/packetrt bench benchmarks/smoke.toml --out out/bench-smoke
 
+# Any bundled matrix by name: `make bench-overbeck-packets` runs benchmarks/overbeck-packets.toml
+# into out/bench-overbeck-packets/ and carries on an interrupted run.
+bench-%: $(STAMP) benchmarks/%.toml
+	$(VENV)/bin/packetrt bench benchmarks/$*.toml --out out/bench-$* --resume
+
 clean:
 	rm -rf $(VENV) out

@@ -6,9 +6,11 @@ Each cell of the matrix (``engine.bench_matrix``) is measured in this process, o
    casts (kind, query, rays, packets) through the renderer's ``observer`` hook;
 2. ``repeat`` timed renders: frame time (shading included), per-kind trace time, shading time;
 3. ``repeat`` replays of the recorded batches through the cell's frustum builder and traversal
-   (timed like the render times them: frustum build + query + answer arrays), each followed by
-   Embree (the ``embree`` traversal, same thread count) on exactly the same batches: the
-   ratios to Embree compare the same rays, the same work, minutes apart at most;
+   (timed like the render times them: frustum build + query + answer arrays), then, when every
+   ray kind uses a packet traversal, ``repeat`` replays of the per-ray floor
+   (``engine.bench_floor``: the same with the BVH walk taken out), then Embree (the ``embree``
+   traversal, same thread count) on exactly the same batches: the ratios to Embree compare the
+   same rays, the same work, minutes apart at most;
 4. one counting render for the counters (ray-AABB and ray-triangle tests, per BVH depth) and
    the plugins' own statistics (e.g. the ray-space hierarchy's candidates per ray).
 
@@ -38,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from . import bench_results as results_io
+from .bench_floor import floor_trace, uses_packet_traversals
 from .bench_matrix import Cell, Matrix, load_matrix
 from .types import RAY_KINDS, empty_hits
 
@@ -248,6 +251,13 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
     cpu, clock = time.process_time(), time.perf_counter()
     replays = [replay(recorder.batches, trace_ours) for _ in range(repeat)]
     cpu_share = (time.process_time() - cpu) / max((time.perf_counter() - clock) * renderer.threads, 1e-9)
+    # The packet traversals' per-ray floor on the same batches (engine.bench_floor): the part
+    # of the trace time no traversal can remove.
+    floors = None
+    if uses_packet_traversals(renderer):
+        trace_floor = floor_trace(renderer)
+        replay(recorder.batches, trace_floor)  # untimed: JIT and first touch
+        floors = [replay(recorder.batches, trace_floor) for _ in range(repeat)]
     if "embree" in cell.traversal.names:
         yardstick.note(renderer)
     embree_seconds = None
@@ -285,7 +295,8 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
         "seconds": {"bvh": warm.seconds["bvh"], "plugin_build": warm.seconds["plugin_build"], "frame": frame,
                     "shade": summarize([f.seconds["shade"] for f in frames]),
                     "trace": {k: summarize([f.seconds["trace"][k] for f in frames]) for k in RAY_KINDS},
-                    "replay": replay_summary, "embree": embree_summary},
+                    "replay": replay_summary, "embree": embree_summary,
+                    "floor": None if floors is None else {k: summarize([f[k] for f in floors]) for k in RAY_KINDS}},
         "rays": rays, "batches": batches, "packets": packets, "mrays_per_s": mrays, "embree_mrays_per_s": embree_mrays,
         "ratio_to_embree": ratio,
         "fps": {"frame": 1.0 / frame["median"] if frame["median"] > 0 else None,

@@ -13,14 +13,13 @@ packets.md
     2. Targets: trace FPS of each traversal at 16x16 with culling over the 2x2 SIMD baseline
        (``simd``, smallest packet, no culling); culling benefit (on / off) on primary and shadow
        rays; ratio to Embree per kind.
-    3. Cost model: per ray kind, a non-negative least-squares fit over the cells of
-           core seconds = a * rays + b * packets + c * node visits + d * SIMD box tests
-                          + e * SIMD triangle tests
-       (core seconds = replay seconds x threads; a SIMD test = 4 ray tests), in nanoseconds per
-       operation, and for every 16x16 cell the share of its time that the fit puts on ``rays``:
-       the per-ray work every traversal pays alike (loading and shearing the ray, storing the
-       hit, the frustum builder's pass, the answer arrays), which bounds what any traversal can
-       gain over the baseline (Amdahl).
+    3. The per-ray floor (``engine.bench_floor``, measured per cell): trace, floor and walk
+       (trace - floor) time of the baseline and every 16x16 cell, the speed-ups of the whole
+       trace and of the walk alone, and the bound on the speed-up if the walk cost nothing.
+    4. Cost model: per ray kind, a non-negative least-squares fit over the cells of
+           walk core seconds = a * packets + b * node visits + c * SIMD box tests
+                               + d * SIMD triangle tests
+       (core seconds = seconds x threads; a SIMD test = 4 ray tests), in ns per operation.
 packets.png
     Mrays/s vs packet size, one panel per ray kind, a colour per traversal, solid with culling
     and dashed without, Embree dotted grey.
@@ -41,7 +40,7 @@ TARGET_CULLING = 1.2
 TARGET_EMBREE = {"primary": 1.5, "shadow": 1.5, "reflection": 0.75, "refraction": 0.75}
 LARGE = 16
 PACKET_TRAVERSALS = frozenset({"simd", "masked", "ranged", "partition"})
-COST_TERMS = ("rays", "packets", "node visits", "SIMD box tests", "SIMD triangle tests")
+COST_TERMS = ("packets", "node visits", "SIMD box tests", "SIMD triangle tests")
 
 
 def _culling(r: dict) -> str:
@@ -68,22 +67,28 @@ def _baseline(records: list):
     return min(simd, key=lambda r: r["labels"]["packet"]) if simd else None
 
 
-# -- cost model --------------------------------------------------------------------------------
+# -- floor and cost model ------------------------------------------------------------------------
+
+def floor_seconds(r: dict, kinds=RAY_KINDS):
+    """The cell's measured per-ray floor (``engine.bench_floor``) over ``kinds``, or None."""
+    floor = r["seconds"].get("floor")
+    return None if floor is None else sum(floor[k]["median"] for k in kinds)
+
 
 def cost_features(r: dict, kind: str):
-    """(rays, packets, node visits, SIMD box tests, SIMD triangle tests) of one cell's ``kind``
-    rays per frame, or None when the record lacks counters or packet counts."""
+    """(packets, node visits, SIMD box tests, SIMD triangle tests) of one cell's ``kind`` rays
+    per frame, or None when the record lacks counters, packet counts or the floor."""
     counters = r.get("counters") or {}
     packets = r.get("packets")
-    if not packets or not all(name in counters for name in ("nodes", "ray_aabb", "ray_tri")):
+    if not packets or r["seconds"].get("floor") is None or \
+            not all(name in counters for name in ("nodes", "ray_aabb", "ray_tri")):
         return None
-    return (r["rays"][kind], packets[kind], counters["nodes"][kind], counters["ray_aabb"][kind] / 4,
-            counters["ray_tri"][kind] / 4)
+    return (packets[kind], counters["nodes"][kind], counters["ray_aabb"][kind] / 4, counters["ray_tri"][kind] / 4)
 
 
 def nonnegative_fit(a: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Least squares x >= 0 for a @ x ~ y (a: f64[M,N], y: f64[M]): fit, drop the most negative
-    term, refit, until none is negative (an active-set approximation, enough for 5 terms)."""
+    term, refit, until none is negative (an active-set approximation, enough for 4 terms)."""
     active = list(range(a.shape[1]))
     x = np.zeros(a.shape[1])
     while active:
@@ -96,27 +101,26 @@ def nonnegative_fit(a: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def cost_model(records: list, kind: str):
-    """{"ns": core ns per operation (COST_TERMS order), "median_error": relative, "cells": [(record,
-    predicted core seconds, per-term core seconds)]} over the cells with ``kind`` rays, or None
-    when there are too few cells to fit (fewer than twice the terms)."""
-    rows, times, used = [], [], []
+    """Fit of the walk's core seconds ((replay - floor) x threads) of ``kind`` rays over the
+    cells: {"ns": core ns per operation (COST_TERMS order), "median_error": relative}, or None
+    with fewer than twice as many usable cells as terms."""
+    rows, times = [], []
     for r in records:
         features = cost_features(r, kind)
-        seconds = r["seconds"]["replay"][kind]["median"]
-        if features is None or not features[0] or seconds <= 0:
+        if features is None or not r["rays"][kind]:
+            continue
+        walk = r["seconds"]["replay"][kind]["median"] - r["seconds"]["floor"][kind]["median"]
+        if walk <= 0:
             continue
         rows.append(features)
-        times.append(seconds * r["threads"])
-        used.append(r)
+        times.append(walk * r["threads"])
     if len(rows) < 2 * len(COST_TERMS):
         return None
     a, y = np.asarray(rows, np.float64), np.asarray(times, np.float64)
     # Scale columns to comparable sizes so the solver is well conditioned.
     scale = np.maximum(a.max(axis=0), 1.0)
     x = nonnegative_fit(a / scale, y) / scale
-    predicted = a @ x
-    return {"ns": x * 1e9, "median_error": float(np.median(np.abs(predicted - y) / y)),
-            "cells": [(r, p, row * x) for r, p, row in zip(used, predicted, a)]}
+    return {"ns": x * 1e9, "median_error": float(np.median(np.abs(a @ x - y) / y)), "cells": len(rows)}
 
 
 # -- report ------------------------------------------------------------------------------------
@@ -193,35 +197,49 @@ def _target_lines(records: list, travs: list) -> list:
     return lines
 
 
+def _floor_lines(records: list) -> list:
+    base = _baseline(records)
+    cells = [r for r in records if r["labels"]["packet"] == LARGE and floor_seconds(r) is not None]
+    if base is None or floor_seconds(base) is None or not cells:
+        return []
+    b_trace, b_floor = trace_seconds(base), floor_seconds(base)
+    p = base["labels"]["packet"]
+    lines = ["### Where the time goes: the per-ray floor", "",
+             "*Floor*: the same batches through the same frustum builders and packet adapter with the BVH walk "
+             "taken out (`engine/bench_floor.py`: answer arrays, ray load and shear, frustum pass, hit store), "
+             "which every traversal pays alike. *Walk* = trace − floor. *Bound*: the speed-up over the "
+             f"{p}×{p} baseline if the {LARGE}×{LARGE} walk cost nothing (baseline trace / {LARGE}×{LARGE} floor).", "",
+             "| traversal | culling | packet | trace ms | floor ms | floor share | walk ms | speed-up | walk speed-up "
+             "| bound |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+             f"| {base['labels']['traversal']} | {_culling(base)} | {p} | {b_trace * 1e3:,.1f} | {b_floor * 1e3:,.1f} | "
+             f"{b_floor / b_trace * 100:.0f}% | {(b_trace - b_floor) * 1e3:,.1f} | 1.00× | 1.00× | – |"]
+    for r in cells:
+        trace, floor = trace_seconds(r), floor_seconds(r)
+        walk = trace - floor
+        lines.append(f"| {r['labels']['traversal']} | {_culling(r)} | {LARGE} | {trace * 1e3:,.1f} | {floor * 1e3:,.1f} | "
+                     f"{floor / trace * 100:.0f}% | {walk * 1e3:,.1f} | {b_trace / trace:.2f}× | "
+                     f"{_fmt((b_trace - b_floor) / walk if walk > 0 else None)}× | {b_trace / floor:.2f}× |")
+    lines.append("")
+    return lines
+
+
 def _cost_lines(records: list) -> list:
-    lines = ["### Where the time goes (cost model)", "",
-             "Per ray kind, a non-negative least-squares fit over the cells: core seconds (replay × threads) ≈ "
-             "a·rays + b·packets + c·node visits + d·SIMD box tests + e·SIMD triangle tests (counts from the "
-             "counting render). *Per-ray share*: the part of a 16×16 cell's time the fit puts on `rays`, work "
-             "that every traversal pays alike (load and shear the ray, store the hit, the frustum pass, the "
-             "answer arrays), which no traversal can remove.", "",
-             "| ray kind | cells | ns / ray | ns / packet | ns / node | ns / SIMD box | ns / SIMD triangle "
-             "| median error |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    shares, fitted = [], False
+    lines = ["### The walk's cost per operation", "",
+             "Per ray kind, a non-negative least-squares fit over the cells: walk core seconds ((trace − floor) × "
+             "threads) ≈ a·packets + b·node visits + c·SIMD box tests + d·SIMD triangle tests (counts from the "
+             "counting render; a SIMD test is one 2×2 SIMD ray against one box or triangle).", "",
+             "| ray kind | cells | ns / packet | ns / node visit | ns / SIMD box test | ns / SIMD triangle test "
+             "| median error |", "|---|---:|---:|---:|---:|---:|---:|"]
+    fitted = False
     for kind in RAY_KINDS:
         model = cost_model(records, kind)
         if model is None:
             continue
         fitted = True
-        lines.append(f"| {kind} | {len(model['cells'])} | " + " | ".join(f"{v:.2f}" for v in model["ns"])
+        lines.append(f"| {kind} | {model['cells']} | " + " | ".join(f"{v:.2f}" for v in model["ns"])
                      + f" | {model['median_error'] * 100:.1f}% |")
-        for r, predicted, parts in model["cells"]:
-            if r["labels"]["packet"] == LARGE or r is _baseline(records):
-                shares.append((kind, r, parts[0] / predicted if predicted > 0 else None))
-    if not fitted:
-        return []
-    lines += ["", "| ray kind | traversal | culling | packet | per-ray share |", "|---|---|---|---:|---:|"]
-    for kind, r, share in shares:
-        lab = r["labels"]
-        lines.append(f"| {kind} | {lab['traversal']} | {_culling(r)} | {lab['packet']} | "
-                     f"{_fmt(None if share is None else share * 100, 0)}% |")
     lines.append("")
-    return lines
+    return lines if fitted else []
 
 
 def _plot(records: list, travs: list, path: Path) -> Path:
@@ -294,6 +312,7 @@ def packets(records: list, out: Path) -> list:
         lines += [f"## {scene}, {recursion}, {size}", ""]
         lines += _rate_tables(rs, packet_sizes, travs)
         lines += _target_lines(rs, travs)
+        lines += _floor_lines(rs)
         lines += _cost_lines(rs)
         figures.append(_plot(rs, travs, out / ("packets.png" if i == 0 else f"packets-{i + 1}.png")))
     md = out / "packets.md"

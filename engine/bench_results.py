@@ -14,7 +14,8 @@ One line (schema 1; ``K`` = a ray kind, summaries = {median, min, max, q1, q3, r
      "seconds": {"bvh", "plugin_build": {plugin: s}, "frame": summary, "shade": summary,
                  "trace": {K: summary}            # inside the timed renders
                  "replay": {K: summary},          # our plugins on the recorded batches
-                 "embree": {K: summary} | null},  # Embree on the very same batches
+                 "embree": {K: summary} | null,   # Embree on the very same batches
+                 "floor": {K: summary} | null},   # packet cells: the per-ray floor (bench_floor)
      "rays": {K: n, "all": n}, "batches": {K: n}, "packets": {K: n}  # packets traced per frame
      "mrays_per_s": {K: x, "all": x}, "embree_mrays_per_s": {...} | null,
      "ratio_to_embree": {K: ours / Embree Mrays/s, "all": x} | null,
@@ -125,6 +126,7 @@ def csv_row(r: dict) -> dict:
         row[f"rays_{k}"] = r["rays"].get(k, 0)
         row[f"trace_s_{k}"] = _median(s["replay"].get(k))
         row[f"mrays_{k}"] = r["mrays_per_s"].get(k)
+        row[f"floor_s_{k}"] = _median((s.get("floor") or {}).get(k))
         row[f"embree_s_{k}"] = _median((s["embree"] or {}).get(k))
         row[f"embree_mrays_{k}"] = (r["embree_mrays_per_s"] or {}).get(k)
         row[f"ratio_{k}"] = (r["ratio_to_embree"] or {}).get(k)

@@ -47,6 +47,12 @@ def test_smoke_writes_jsonl_csv_and_plots(smoke_dir):
             assert set(s[name]) == SUMMARY_KEYS and len(s[name]["runs"]) == 2
         for part in ("trace", "replay", "embree"):
             assert set(s[part]) == set(RAY_KINDS) and all(set(v) == SUMMARY_KEYS for v in s[part].values())
+        # The per-ray floor is measured for packet-traversal cells only ("paper" here, not "single").
+        if r["labels"]["traversal"] == "paper":
+            assert set(s["floor"]) == set(RAY_KINDS) and s["floor"]["primary"]["median"] > 0
+        else:
+            assert s["floor"] is None
+        assert r["packets"]["primary"] == (64 // 8) ** 2
         assert r["rays"]["primary"] == 64 * 64 and r["rays"]["all"] == sum(r["rays"][k] for k in RAY_KINDS)
         assert set(r["mrays_per_s"]) == set(RAY_KINDS) | {"all"}
         assert r["ratio_to_embree"]["primary"] > 0 and r["embree_mrays_per_s"]["all"] > 0
@@ -283,6 +289,7 @@ def test_every_plot_kind_draws(tmp_path):
     assert "| ranged | on | " in report and "| partition | off | " in report and "| Embree | – | " in report
     assert "over the 2×2 SIMD baseline" in report and "Culling benefit" in report
     assert "| primary | 13 | " in report and "rayspace" not in report
+    assert "the per-ray floor" in report and "| simd | off | 2 | " in report
 
 
 @pytest.mark.usefixtures("shared_scenes")
