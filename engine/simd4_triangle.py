@@ -7,7 +7,8 @@ are live (TLO <= THI) against the triangles leaf_tris[:n_tris] (i32; corners v0,
 f32[T, 3]), in that order, and updates each lane's THI and BEST_T/U/V/PRIM rows exactly as the
 scalar loop "for each lane: for each triangle: ``intersect_triangle``, then ``closer``" does.
 With ``any_hit`` a lane dies (THI = -inf) at its first hit. Returns (ray-triangle tests done,
-lanes that died), counted as the scalar loop counts them.
+lanes that died), counted as the scalar loop counts them. A triangle that no live lane sees
+inside its edges costs no division and no update (the common case: a branch, not a select).
 
 Why it is bit-identical to ``engine.kernels.intersect_triangle``: each vector element goes
 through the same IEEE operations in the same order (f32 translate and shear, the three edge
@@ -193,6 +194,20 @@ def intersect4(typingctx, rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, an
         mixed = builder.and_(any_of("<"), any_of(">"))
         det = builder.fadd(builder.fadd(eu, ev), ew)
         flat = builder.fcmp_ordered("==", det, zero)
+        # Most tests end here: no live lane sees the triangle's edges with one sign (or every
+        # such lane sees it edge-on). Skipping the division and the update for them changes no
+        # lane's result: those lanes' ``hit`` below would be false.
+        candidate = builder.and_(alive, builder.not_(builder.or_(mixed, flat)))
+        update = builder.append_basic_block("tri4.update")
+        skip = builder.append_basic_block("tri4.skip")
+        builder.cbranch(_any(builder, candidate), update, skip)
+
+        builder.position_at_end(skip)
+        builder.store(builder.add(builder.load(state["tests"]), _popcount(builder, alive)), state["tests"])
+        builder.store(builder.add(j, ir.Constant(_I64, 1)), state["j"])
+        builder.branch(header)
+
+        builder.position_at_end(update)
         scaled_t = builder.fadd(builder.fadd(builder.fmul(eu, builder.fmul(sz, az_)),
                                              builder.fmul(ev, builder.fmul(sz, bz_))),
                                 builder.fmul(ew, builder.fmul(sz, cz_)))
