@@ -299,3 +299,20 @@ def test_bunny_floor_scene():
     scene = load_named("bunny-floor", {"lod": 3})
     assert scene.n_triangles == 948 + 128 and len(scene.lights) == 1
     assert max(scene.materials[1].reflectance) > 0 and max(scene.materials[0].reflectance) == 0
+
+
+def test_cost_fit_recovers_known_costs_and_never_goes_negative():
+    """The packets report's cost model: exact costs come back from noiseless data, and a term
+    whose unconstrained fit would be negative is held at zero instead."""
+    import numpy as np
+
+    from engine.bench_packets import nonnegative_fit
+
+    rng = np.random.default_rng(3)
+    a = rng.random((40, 4)) * [1e3, 1e5, 1e6, 1e5]
+    costs = np.array([30e-9, 5e-9, 4e-9, 17e-9])
+    np.testing.assert_allclose(nonnegative_fit(a / a.max(0), a @ costs) / a.max(0), costs, rtol=1e-9)
+    y = a[:, 0] * 1e-8 - a[:, 1] * 1e-10  # the unconstrained fit gives the second term a negative cost
+    assert np.linalg.lstsq(a, y, rcond=None)[0][1] < 0
+    x = nonnegative_fit(a, y)
+    assert (x >= 0).all() and x[1] == 0 and x[0] > 0
