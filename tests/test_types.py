@@ -1,5 +1,6 @@
 """Contracts: field names, dtypes, shapes and contiguity of what the core produces."""
 import numpy as np
+import pytest
 
 from engine import types
 from engine.bvh import build_bvh
@@ -55,3 +56,32 @@ def test_packets_keep_each_tile_together():
         quad = pix[:4]
         xs, ys = quad % 40, quad // 40
         assert xs.max() - xs.min() <= 1 and ys.max() - ys.min() <= 1
+
+
+@pytest.mark.parametrize("n", [2, 4, 8, 16, 32])
+def test_packet_order_is_the_documented_layout(n):
+    """packet_order against a plain sort written from the module doc: tiles row by row, inside a
+    tile its 2x2 blocks row by row, in a block the lanes (0,0), (1,0), (0,1), (1,1); rays sharing
+    a pixel stay in input order; each packet padded to whole SIMD rays with -1."""
+    from engine.packets import packet_order
+
+    width, height = 37, 29  # not multiples of any packet size
+    rng = np.random.default_rng(n)
+    pixel = rng.integers(0, width * height, 3000)  # with repeats
+
+    def key(i):
+        y, x = divmod(int(pixel[i]), width)
+        tile = (y // n) * (-(-width // n)) + x // n
+        block = ((y % n) // 2) * (n // 2) + (x % n) // 2
+        return tile, block, (y % 2) * 2 + x % 2, i
+
+    expected = sorted(range(len(pixel)), key=key)
+    gather, packets = packet_order(pixel, width, height, n)
+    offsets = packets.offsets
+    assert (np.diff(offsets) % 4 == 0).all() and offsets[-1] == len(gather)
+    assert gather[gather >= 0].tolist() == expected
+    for k in range(len(offsets) - 1):
+        lanes = gather[offsets[k]:offsets[k + 1]]
+        live = lanes[lanes >= 0]
+        assert (lanes[len(live):] == -1).all() and len(lanes) - len(live) < 4
+        assert len({key(i)[0] for i in live}) == 1
