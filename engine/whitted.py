@@ -28,6 +28,7 @@ import numpy as np
 
 from .bvh import build_bvh, scene_bounds
 from .config import Config
+from .direct_light import add_light, light_directions
 from .offset import coordinate_magnitude, hit_points, offset_origin
 from .packets import gather_batch, make_batch, packet_order
 from .registry import get_frustum, get_traversal
@@ -240,12 +241,16 @@ class WhittedRenderer:
         color = np.asarray(scene.ambient_light, np.float32) * m.ambient[mat] * texel
         leave = offset_origin(p, ng_ff, magnitude)
         width, height, n = self.config.render.width, self.config.render.height, self.config.render.packet
+        ns = np.ascontiguousarray(ns, np.float32)
+        ng_ff = np.ascontiguousarray(ng_ff, np.float32)
+        leave = np.ascontiguousarray(leave, np.float32)
+        view = np.ascontiguousarray(d, np.float32)
+        l = np.empty_like(leave)
+        dist = np.empty(idx.size, np.float32)
+        ndotl = np.empty(idx.size, np.float32)
+        lit = np.empty(idx.size, np.bool_)
         for light in scene.lights:
-            to_light = np.asarray(light.position, np.float32) - leave
-            dist = np.linalg.norm(to_light, axis=1)
-            l = to_light / np.maximum(dist, 1e-30)[:, None]
-            ndotl = np.einsum("ij,ij->i", ns, l)
-            lit = (ndotl > 0) & (np.einsum("ij,ij->i", ng_ff, l) > 0)
+            light_directions(leave, ns, ng_ff, np.asarray(light.position, np.float32), l, dist, ndotl, lit)
             cand = np.flatnonzero(lit)
             if cand.size == 0:
                 continue
@@ -255,11 +260,8 @@ class WhittedRenderer:
                                   np.ones((cand.size, 3), np.float32))
             occluded = self._trace("shadow", shadow, shadow_packets, "occluded", acc)
             visible = cand[gather[(gather >= 0) & ~occluded]]
-            lc = np.asarray(light.color, np.float32)
-            r = 2 * ndotl[visible, None] * ns[visible] - l[visible]
-            spec = np.maximum(np.einsum("ij,ij->i", r, -d[visible]), 0) ** m.shininess[mat[visible]]
-            color[visible] += lc * (m.diffuse[mat[visible]] * texel[visible] * ndotl[visible, None]
-                                    + m.specular[mat[visible]] * spec[:, None])
+            add_light(color, visible, ns, l, ndotl, view, mat, m.diffuse, m.specular, m.shininess, texel,
+                      np.asarray(light.color, np.float32))
         np.add.at(image, pixel, weight * color)
         if not spawn:
             return {"reflection": empty, "refraction": empty}

@@ -1,0 +1,52 @@
+"""engine.direct_light against the numpy expressions of the shading it replaced."""
+import numpy as np
+
+from engine.direct_light import add_light, light_directions
+
+
+def unit(v):
+    return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+
+
+def test_light_directions_and_lit_mask():
+    rng = np.random.default_rng(5)
+    m = 5000
+    leave = (rng.random((m, 3)) * 20 - 10).astype(np.float32)
+    ns, ng = unit(rng.normal(size=(m, 3))), unit(rng.normal(size=(m, 3)))
+    light = np.array([1.5, 7.0, -2.0], np.float32)
+    leave[0] = light  # a hit at the light: zero distance must not divide by zero
+    l, dist, ndotl, lit = np.empty_like(leave), np.empty(m, np.float32), np.empty(m, np.float32), np.empty(m, bool)
+    light_directions(leave, ns, ng, light, l, dist, ndotl, lit)
+    to = light - leave
+    ref_dist = np.linalg.norm(to, axis=1)
+    ref_l = to / np.maximum(ref_dist, 1e-30)[:, None]
+    np.testing.assert_allclose(dist, ref_dist, rtol=1e-6)
+    np.testing.assert_allclose(l, ref_l, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(ndotl, np.einsum("ij,ij->i", ns, ref_l), atol=1e-6)
+    ref_lit = (np.einsum("ij,ij->i", ns, ref_l) > 0) & (np.einsum("ij,ij->i", ng, ref_l) > 0)
+    assert np.array_equal(lit, ref_lit) and 0.1 < lit.mean() < 0.5
+    assert dist[0] == 0 and not lit[0] and np.isfinite(l[0]).all()
+
+
+def test_add_light_is_diffuse_plus_phong_on_visible_hits_only():
+    rng = np.random.default_rng(6)
+    m, k = 4000, 7
+    ns, l, view = unit(rng.normal(size=(m, 3))), unit(rng.normal(size=(m, 3))), unit(rng.normal(size=(m, 3)))
+    ndotl = np.einsum("ij,ij->i", ns, l).astype(np.float32)
+    mat = rng.integers(0, k, m).astype(np.int32)
+    diffuse, specular = rng.random((k, 3)).astype(np.float32), rng.random((k, 3)).astype(np.float32)
+    shininess = (rng.random(k) * 60).astype(np.float32)
+    texel = rng.random((m, 3)).astype(np.float32)
+    lc = np.array([0.9, 0.7, 0.4], np.float32)
+    color = rng.random((m, 3)).astype(np.float32)
+    before = color.copy()
+    visible = np.sort(rng.choice(m, m // 3, replace=False)).astype(np.int64)
+    add_light(color, visible, ns, l, ndotl, view, mat, diffuse, specular, shininess, texel, lc)
+    v = visible
+    r = 2 * ndotl[v, None] * ns[v] - l[v]
+    spec = np.maximum(np.einsum("ij,ij->i", r, -view[v]), 0) ** shininess[mat[v]]
+    expected = before.copy()
+    expected[v] += lc * (diffuse[mat[v]] * texel[v] * ndotl[v, None] + specular[mat[v]] * spec[:, None])
+    np.testing.assert_allclose(color, expected, rtol=1e-5, atol=1e-6)
+    hidden = np.setdiff1d(np.arange(m), v)
+    assert np.array_equal(color[hidden], before[hidden])
