@@ -12,10 +12,13 @@ they stay adjacent, in their input order.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit, prange
 
 from .errors import ConfigError
-from .kernels import safe_inverse
+from .kernels import HUGE_INV
 from .types import Packets, RayBatch
 
 PACKET_SIZES = (2, 4, 8, 16, 32)
@@ -69,22 +72,43 @@ def packet_order(pixel: np.ndarray, width: int, height: int, n: int) -> tuple[np
     return gather, Packets(offsets.astype(np.int32), n, width, height)
 
 
+@njit(cache=True, parallel=True)
+def _gather_rays(gather, org, direction, tmin, tmax, pixel, weight, org_, dir_, inv_, tmin_, tmax_, pix_, w_):
+    """Lane i of the outputs takes candidate gather[i]; a lane with gather[i] < 0 becomes dead
+    padding (origin of candidate 0, direction +z, tmin 1 > tmax 0, pixel -1, weight 0). inv_ is
+    ``engine.kernels.safe_inverse`` of dir_, computed the same way per component."""
+    tiny = np.float32(1.0) / HUGE_INV
+    one = np.float32(1.0)
+    for i in prange(gather.shape[0]):
+        g = gather[i]
+        live = g >= 0
+        src = g if live else 0
+        for a in range(3):
+            org_[i, a] = org[src, a]
+            d = direction[src, a] if live else np.float32(1.0 if a == 2 else 0.0)
+            dir_[i, a] = d
+            inv_[i, a] = one / (math.copysign(tiny, d) if d == 0 else d)
+            w_[i, a] = weight[src, a] if live else np.float32(0.0)
+        tmin_[i] = tmin[src] if live else one
+        tmax_[i] = tmax[src] if live else np.float32(0.0)
+        pix_[i] = pixel[src] if live else -1
+
+
 def gather_batch(kind: str, gather: np.ndarray, org, direction, tmin, tmax, pixel, weight) -> RayBatch:
     """A RayBatch in packet order from candidate arrays (f[M,3], f[M], i[M], f[M,3]).
 
     Lanes with gather == -1 become dead padding: tmin 1, tmax 0, pixel -1, weight 0.
     """
-    live = gather >= 0
-    take = np.where(live, gather, 0)
-    org_ = np.ascontiguousarray(np.asarray(org, np.float32)[take]) if len(take) else np.zeros((0, 3), np.float32)
-    dir_ = np.ascontiguousarray(np.asarray(direction, np.float32)[take]) if len(take) else np.zeros((0, 3), np.float32)
-    dir_[~live] = (0.0, 0.0, 1.0)
-    tmin_ = np.where(live, np.asarray(tmin, np.float32)[take] if len(take) else 0, 1).astype(np.float32)
-    tmax_ = np.where(live, np.asarray(tmax, np.float32)[take] if len(take) else 0, 0).astype(np.float32)
-    pix = np.where(live, np.asarray(pixel, np.int32)[take] if len(take) else 0, -1).astype(np.int32)
-    w = np.ascontiguousarray(np.asarray(weight, np.float32)[take]) if len(take) else np.zeros((0, 3), np.float32)
-    w[~live] = 0
-    return RayBatch(org_, dir_, safe_inverse(dir_), tmin_, tmax_, pix, w, kind)
+    r = len(gather)
+    out = RayBatch(np.empty((r, 3), np.float32), np.empty((r, 3), np.float32), np.empty((r, 3), np.float32),
+                   np.empty(r, np.float32), np.empty(r, np.float32), np.empty(r, np.int32),
+                   np.empty((r, 3), np.float32), kind)
+    if r:
+        f32 = [np.ascontiguousarray(a, np.float32) for a in (org, direction, tmin, tmax, weight)]
+        _gather_rays(np.ascontiguousarray(gather, np.int64), f32[0], f32[1], f32[2], f32[3],
+                     np.ascontiguousarray(pixel, np.int32), f32[4], out.org, out.dir, out.inv_dir, out.tmin,
+                     out.tmax, out.pixel, out.weight)
+    return out
 
 
 def make_batch(kind: str, org, direction, tmin, tmax, pixel, weight, width: int, height: int, n: int):

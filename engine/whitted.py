@@ -249,15 +249,17 @@ class WhittedRenderer:
         dist = np.empty(idx.size, np.float32)
         ndotl = np.empty(idx.size, np.float32)
         lit = np.empty(idx.size, np.bool_)
+        shadow_tmin = np.zeros(idx.size, np.float32)
+        shadow_weight = np.ones((idx.size, 3), np.float32)
         for light in scene.lights:
             light_directions(leave, ns, ng_ff, np.asarray(light.position, np.float32), l, dist, ndotl, lit)
             cand = np.flatnonzero(lit)
             if cand.size == 0:
                 continue
             gather, shadow_packets = packet_order(pixel[cand], width, height, n)
-            shadow = gather_batch("shadow", gather, leave[cand], l[cand], np.zeros(cand.size),
-                                  dist[cand] * SHADOW_TMAX_SCALE, pixel[cand],
-                                  np.ones((cand.size, 3), np.float32))
+            # Lanes index the batch's hits directly (cand[gather]): no intermediate copies.
+            shadow = gather_batch("shadow", np.where(gather >= 0, cand[np.maximum(gather, 0)], -1), leave, l,
+                                  shadow_tmin, dist * SHADOW_TMAX_SCALE, pixel, shadow_weight)
             occluded = self._trace("shadow", shadow, shadow_packets, "occluded", acc)
             visible = cand[gather[(gather >= 0) & ~occluded]]
             add_light(color, visible, ns, l, ndotl, view, mat, m.diffuse, m.specular, m.shininess, texel,

@@ -85,3 +85,33 @@ def test_packet_order_is_the_documented_layout(n):
         live = lanes[lanes >= 0]
         assert (lanes[len(live):] == -1).all() and len(lanes) - len(live) < 4
         assert len({key(i)[0] for i in live}) == 1
+
+
+def test_gather_batch_takes_candidates_and_pads_dead_lanes():
+    """gather_batch against the array expressions it is defined by, on directions with zero and
+    negative-zero components (their inverse is +-HUGE_INV's reciprocal, never inf)."""
+    from engine.kernels import safe_inverse
+    from engine.packets import gather_batch
+
+    rng = np.random.default_rng(11)
+    m = 500
+    org = rng.normal(size=(m, 3)).astype(np.float32)
+    d = rng.normal(size=(m, 3)).astype(np.float32)
+    d[::7, 0] = 0.0
+    d[::11, 1] = -0.0
+    tmin, tmax = rng.random(m).astype(np.float32), (rng.random(m) + 1).astype(np.float32)
+    pixel, weight = rng.integers(0, 1000, m).astype(np.int32), rng.random((m, 3)).astype(np.float32)
+    gather = rng.permutation(np.r_[np.arange(m), np.full(37, -1)])
+    rays = gather_batch("shadow", gather, org, d, tmin, tmax, pixel, weight)
+    live, take = gather >= 0, np.where(gather >= 0, gather, 0)
+    want_dir = np.where(live[:, None], d[take], np.array([0, 0, 1], np.float32))
+    assert rays.kind == "shadow"
+    assert np.array_equal(rays.org, org[take])
+    assert np.array_equal(rays.dir, want_dir) and np.array_equal(np.signbit(rays.dir), np.signbit(want_dir))
+    assert np.array_equal(rays.inv_dir, safe_inverse(want_dir))
+    assert np.array_equal(rays.tmin, np.where(live, tmin[take], 1)) and np.array_equal(rays.tmax, np.where(live, tmax[take], 0))
+    assert np.array_equal(rays.pixel, np.where(live, pixel[take], -1))
+    assert np.array_equal(rays.weight, np.where(live[:, None], weight[take], 0))
+    assert all(a.flags.c_contiguous for a in rays[:7])
+    empty = gather_batch("shadow", np.zeros(0, np.int64), org, d, tmin, tmax, pixel, weight)
+    assert empty.org.shape == (0, 3) and empty.tmin.shape == (0,)
