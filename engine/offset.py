@@ -38,12 +38,20 @@ def hit_points(tris, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarr
     return p.astype(np.float32)
 
 
-def coordinate_magnitude(tris, prim: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Largest |coordinate| among each hit's triangle corners and the hit point -> f32[M]."""
-    m = np.abs(points).max(axis=1)
-    for corner in (tris.v0, tris.v1, tris.v2):
-        m = np.maximum(m, np.abs(corner[prim]).max(axis=1))
+def triangle_magnitudes(tris) -> np.ndarray:
+    """Largest |coordinate| among each triangle's corners -> f32[T] (computed once per scene)."""
+    m = np.abs(tris.v0).max(axis=1)
+    for corner in (tris.v1, tris.v2):
+        m = np.maximum(m, np.abs(corner).max(axis=1))
     return m.astype(np.float32)
+
+
+def coordinate_magnitude(tris, prim: np.ndarray, points: np.ndarray, corners: np.ndarray | None = None) -> np.ndarray:
+    """Largest |coordinate| among each hit's triangle corners and the hit point -> f32[M].
+    ``corners``: ``triangle_magnitudes(tris)`` when the caller keeps it (saves three gathers)."""
+    if corners is None:
+        corners = triangle_magnitudes(tris)
+    return np.maximum(np.abs(points).max(axis=1), corners[prim]).astype(np.float32)
 
 
 def offset_origin(points: np.ndarray, normals: np.ndarray, magnitude: np.ndarray | None = None) -> np.ndarray:

@@ -30,16 +30,21 @@ def check_packet_size(n: int) -> int:
     return n
 
 
-def packet_keys(pixel: np.ndarray, width: int, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(packet id, position inside the packet) for ancestral pixels i32[M] >= 0."""
+@njit(cache=True, parallel=True)
+def _packet_keys(pixel, width, n, tile, inside):
     tiles_x = -(-width // n)
-    y, x = np.divmod(np.asarray(pixel, np.int64), width)
-    # n is a power of two: shifts and masks instead of divisions (millions of rays a frame).
-    shift = n.bit_length() - 1
-    tile = (y >> shift) * tiles_x + (x >> shift)
-    bx, by = (x & (n - 1)) >> 1, (y & (n - 1)) >> 1
-    lane = ((y & 1) << 1) | (x & 1)
-    inside = ((by * (n // 2) + bx) << 2) | lane
+    half = n // 2
+    for i in prange(pixel.shape[0]):
+        y, x = divmod(pixel[i], width)
+        tile[i] = (y // n) * tiles_x + x // n
+        inside[i] = (((y % n) // 2) * half + (x % n) // 2) * 4 + (y % 2) * 2 + x % 2
+
+
+def packet_keys(pixel: np.ndarray, width: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(packet id, position inside the packet), both i64[M], for ancestral pixels i[M] >= 0."""
+    pixel = np.ascontiguousarray(pixel, np.int64)
+    tile, inside = np.empty(pixel.size, np.int64), np.empty(pixel.size, np.int64)
+    _packet_keys(pixel, width, n, tile, inside)
     return tile, inside
 
 

@@ -29,7 +29,7 @@ import numpy as np
 from .bvh import build_bvh, scene_bounds
 from .config import Config
 from .direct_light import add_light, light_directions
-from .offset import coordinate_magnitude, hit_points, offset_origin
+from .offset import coordinate_magnitude, hit_points, offset_origin, triangle_magnitudes
 from .packets import gather_batch, make_batch, packet_order
 from .registry import get_frustum, get_traversal
 from .scene import Scene
@@ -124,6 +124,7 @@ class WhittedRenderer:
         self.tris = scene.triangles
         self.bvh = build_bvh(self.tris, leaf_size=config.render.leaf_size, bins=config.render.bins)
         self.bounds = scene_bounds(self.bvh)
+        self.corner_magnitude = triangle_magnitudes(self.tris)  # for secondary-ray offsets
         # Plugins with their own acceleration structure (Embree) build it now, outside the
         # timed trace, and report the build time.
         self.prepare_seconds = {}
@@ -211,7 +212,7 @@ class WhittedRenderer:
         d = d / np.linalg.norm(d, axis=1, keepdims=True)
         u, v = hits.u[idx][:, None], hits.v[idx][:, None]
         p = hit_points(tris, prim, hits.u[idx], hits.v[idx])
-        magnitude = coordinate_magnitude(tris, prim, p)
+        magnitude = coordinate_magnitude(tris, prim, p, self.corner_magnitude)
         ng = tris.ng[prim]
         entering = np.einsum("ij,ij->i", ng, d) < 0
         ng_ff = np.where(entering[:, None], ng, -ng)  # geometric normal facing the ray
