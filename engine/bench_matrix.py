@@ -41,12 +41,11 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from .config import (MAX_DEPTH, PAPER_FRUSTUM, PAPER_TRAVERSAL, Config, PerKind, RenderConfig, SceneConfig,
-                     validate)
+                     read_toml, validate)
 from .errors import ConfigError, PacketrtError
 from .packets import PACKET_SIZES
 from .types import RAY_KINDS
@@ -430,11 +429,4 @@ def _check_scene_files(source: str, cells) -> None:
 
 def load_matrix(path: str, repeat: int | None = None) -> Matrix:
     """Matrix from a TOML file; a missing or malformed file or any bad key is a ConfigError."""
-    file = Path(path)
-    if not file.is_file():
-        raise ConfigError(f"matrix file {path!r} does not exist")
-    try:
-        data = tomllib.loads(file.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    return parse_matrix(data, source=str(path), repeat=repeat)
+    return parse_matrix(read_toml(path, "matrix"), source=str(path), repeat=repeat)

@@ -102,8 +102,8 @@ def nonnegative_fit(a: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def cost_model(records: list, kind: str):
     """Fit of the walk's core seconds ((replay - floor) x threads) of ``kind`` rays over the
-    cells: {"ns": core ns per operation (COST_TERMS order), "median_error": relative}, or None
-    with fewer than twice as many usable cells as terms."""
+    cells: {"ns": core ns per operation (COST_TERMS order), "median_error": relative, "cells":
+    how many cells were fitted}, or None with fewer than twice as many usable cells as terms."""
     rows, times = [], []
     for r in records:
         features = cost_features(r, kind)

@@ -224,16 +224,21 @@ def from_dict(data: dict, source: str = "<dict>") -> Config:
         raise ConfigError(f"{source}: {exc}") from None
 
 
-def load(path: str) -> Config:
-    """Config from a TOML file; a missing or malformed file is a ConfigError naming it."""
+def read_toml(path: str, what: str) -> dict:
+    """The table in TOML file ``path``; a missing or malformed file is a ConfigError naming it
+    (``what``: "config", "matrix", ... for the message)."""
     file = Path(path)
     if not file.is_file():
-        raise ConfigError(f"config file {path!r} does not exist")
+        raise ConfigError(f"{what} file {path!r} does not exist")
     try:
-        data = tomllib.loads(file.read_text())
+        return tomllib.loads(file.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    return from_dict(data, source=str(path))
+
+
+def load(path: str) -> Config:
+    """Config from a TOML file; a missing or malformed file is a ConfigError naming it."""
+    return from_dict(read_toml(path, "config"), source=str(path))
 
 
 def with_overrides(config: Config, *, scene=None, traversal=(), frustum=(), packet=None, size=None,
