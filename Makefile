@@ -36,4 +36,4 @@ bench-%: $(STAMP) benchmarks/%.toml
 	$(VENV)/bin/packetrt bench benchmarks/$*.toml --out out/bench-$* --resume
 
 clean:
-	rm -rf $(VENV) out
+	rm -rf $(VENV) out "$${XDG_CACHE_HOME:-$$HOME/.cache}/packetrt"

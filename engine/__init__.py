@@ -1,9 +1,18 @@
-"""packetrt's shared core: contracts, scene model, BVH, kernels, Whitted loop, config, CLI."""
+"""packetrt: a Whitted ray tracer whose hot loops are numba kernels, with plugin traversals.
 
-from .jit_cache import invalidate_stale_caches as _invalidate_stale_caches
+The public faces sit here: ``engine.api`` (``RayTracer``, ``RayInputError``) and ``engine.cli``
+(the ``packetrt`` command). The layers below, from the bottom up: ``engine.core`` (contracts,
+scene, BVH, triangle test, registry), ``engine.packet`` and ``engine.rayspace`` (the two papers'
+machinery), the plugin packages ``traversals``, ``frusta`` and ``scenes``, ``engine.render``
+(config, the Tracer, the Whitted loop), ``validation``, and the tools ``engine.bench`` and
+``engine.debug``. docs/architecture.md walks a config word from the CLI down to a kernel.
+"""
 
-# Before any kernel loads from numba's cache: drop caches compiled against changed callees.
-_invalidate_stale_caches()
+from engine.core.jit_cache import use_source_keyed_cache as _use_source_keyed_cache
+
+# Before any kernel module is imported: numba's cache folder is keyed by the compiled sources,
+# so a kernel never loads machine code compiled against an older callee. Writes nothing.
+_use_source_keyed_cache()
 
 __all__ = ["RayTracer", "RayInputError"]
 
@@ -11,7 +20,7 @@ __all__ = ["RayTracer", "RayInputError"]
 def __getattr__(name):
     # The Python API (engine.api) loads on first use, so `import engine` stays cheap.
     if name in __all__:
-        from . import api
+        from engine import api
 
         return getattr(api, name)
     raise AttributeError(f"module 'engine' has no attribute {name!r}")

@@ -41,9 +41,9 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from .errors import ConfigError, PacketrtError
-from .kernels import safe_inverse
-from .types import Hits, Packets, RayBatch, Triangles, empty_hits
+from engine.core.errors import ConfigError, PacketrtError
+from engine.core.triangle import safe_inverse
+from engine.core.types import Hits, Packets, RayBatch, Triangles, empty_hits
 
 #: Direction lengths the float32 kernels handle without underflow or overflow in t or |d|^2.
 MIN_DIRECTION_LENGTH, MAX_DIRECTION_LENGTH = 1e-18, 1e18
@@ -272,7 +272,7 @@ def incoherent_batch(kind: str, org, dirs, tmin, tmax, n: int):
 
 # -- the tracer ------------------------------------------------------------------------------
 def _scene_from(mesh_or_scene):
-    from .scene import Scene, SceneBuilder
+    from engine.core.scene import Scene, SceneBuilder
 
     if isinstance(mesh_or_scene, Scene):
         return mesh_or_scene
@@ -298,13 +298,13 @@ def _scene_from(mesh_or_scene):
 
 
 def _default_material():
-    from .scene import Material
+    from engine.core.scene import Material
 
     return Material()
 
 
 def _as_config(config):
-    from . import config as cfg
+    from engine.render import config as cfg
 
     if config is None:
         return cfg.Config()
@@ -342,9 +342,9 @@ class RayTracer:
 
     def __init__(self, mesh_or_scene, traversal: str = "partition", frustum: str = "general",
                  packet: int = 8, *, threads: int = 0, leaf_size: int = 4, bins: int = 16):
-        from .bvh import build_bvh, scene_bounds
-        from .packets import check_packet_size
-        from .registry import get_frustum, get_traversal
+        from engine.core.bvh import build_bvh, scene_bounds
+        from engine.packet.layout import check_packet_size
+        from engine.core.registry import get_frustum, get_traversal
 
         self.scene = _scene_from(mesh_or_scene)
         self.triangles: Triangles = self.scene.triangles
@@ -452,16 +452,16 @@ class RayTracer:
     def render(self, config=None, *, counters: bool = False):
         """(image f32[H,W,3] linear RGB, stats dict) of this tracer's scene.
 
-        config: a ``engine.config.Config``, a dict of TOML tables (``{"render": {"width": 256},
+        config: a ``engine.render.config.Config``, a dict of TOML tables (``{"render": {"width": 256},
         "materials": {"override": "reflective"}}``) or a TOML file path; None = the defaults
         (512 x 512, the paper's traversals and frusta). Its [scene] table is ignored: the tracer
         renders its own geometry (with ``[materials] override`` applied). ``stats`` is the
         document ``packetrt render --stats`` writes; ``counters=True`` fills its traversal
         counters from a second, counting render.
         """
-        from .cli import stats_dict
-        from .scene import override_materials
-        from .whitted import WhittedRenderer
+        from engine.cli import stats_dict
+        from engine.core.scene import override_materials
+        from engine.render.whitted import WhittedRenderer
 
         cfg = _as_config(config)
         scene = override_materials(self.scene, cfg.override)

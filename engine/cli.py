@@ -23,7 +23,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from .errors import ConfigError, PacketrtError
+from engine.core.errors import ConfigError, PacketrtError
 
 EXIT_USAGE = 2
 EXIT_MISMATCH = 1
@@ -59,7 +59,7 @@ def _add_selectors(p: argparse.ArgumentParser) -> None:
 
 
 def _config_from(args):
-    from . import config as cfg
+    from engine.render import config as cfg
 
     base = cfg.load(args.config) if args.config else cfg.Config()
     config = cfg.with_overrides(
@@ -81,7 +81,7 @@ def _load_scene(config):
 
 def stats_dict(scene, config, result) -> dict:
     """The --stats document (see the README for its fields)."""
-    from .types import RAY_KINDS
+    from engine.core.types import RAY_KINDS
 
     return {
         "scene": scene.name, "triangles": scene.n_triangles,
@@ -108,8 +108,8 @@ def _write_json(path: str, data: dict) -> None:
 
 
 def cmd_render(args) -> int:
-    from .image import save_png
-    from .whitted import WhittedRenderer
+    from engine.render.image import save_png
+    from engine.render.whitted import WhittedRenderer
 
     config = _config_from(args)
     scene = _load_scene(config)
@@ -135,7 +135,7 @@ def cmd_render(args) -> int:
 def _run_audit(scene, config, image_path, json_path, report_dir, stats_path, oracle="embree") -> int:
     from validation.audit import audit
 
-    from .image import save_png
+    from engine.render.image import save_png
 
     report, result, bad_pixels = audit(scene, config, oracle=oracle)
     if image_path:
@@ -187,7 +187,7 @@ def _delegate(module: str, function: str):
 
 
 def cmd_plugins(args) -> int:
-    from .registry import describe, load_entry_points
+    from engine.core.registry import describe, load_entry_points
 
     loaded = load_entry_points()
     table = describe()
@@ -254,7 +254,7 @@ def _add_bench_parser(sub) -> None:
     p.add_argument("--out", help="output folder (default: out/bench-<matrix name>)")
     p.add_argument("--repeat", type=int, help="timed repeats per cell (default: the matrix's, else 5)")
     p.add_argument("--resume", action="store_true", help="skip cells already in DIR/results.jsonl")
-    p.set_defaults(run=_delegate("engine.bench", "cmd_bench"))
+    p.set_defaults(run=_delegate("engine.bench.runner", "cmd_bench"))
 
 
 def _add_show_parser(sub) -> None:
@@ -264,7 +264,7 @@ def _add_show_parser(sub) -> None:
     p.add_argument("--packet-index", type=int, default=None, help="which packet (default: one near the image centre)")
     p.add_argument("-o", "--output", default="out/show.png", help="PNG to write")
     p.add_argument("--picture", default="800x600", metavar="WxH", help="size of the PNG (default 800x600)")
-    p.set_defaults(run=_delegate("engine.show", "cmd_show"))
+    p.set_defaults(run=_delegate("engine.debug.show", "cmd_show"))
 
 
 def _add_view_parser(sub) -> None:
@@ -273,7 +273,7 @@ def _add_view_parser(sub) -> None:
     # For tests: the panel's labels and numbers as JSON after every frame; close after S seconds.
     p.add_argument("--status-file", help=argparse.SUPPRESS)
     p.add_argument("--exit-after", type=float, help=argparse.SUPPRESS)
-    p.set_defaults(run=_delegate("engine.view", "cmd_view"))
+    p.set_defaults(run=_delegate("engine.debug.view", "cmd_view"))
 
 
 def main(argv=None) -> int:

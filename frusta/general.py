@@ -5,7 +5,7 @@ packet's dominant axis w, a near plane is put through the nearest segment start 
 before the box of the ray origins) and a far plane beyond the scene box. Every live ray crosses
 both; the extremal (u, v) of the crossings on each plane give the corner origins (on the near
 plane) and corner directions (to the far plane) of four side planes, which hold every ray over
-the whole stretch where it can meet geometry. Widened by the margin of ``engine.frustum_build``.
+the whole stretch where it can meet geometry. Widened by the margin of ``engine.packet.frustum_build``.
 
 Invalid (no culling) when the directions have no common dominant axis sign, a direction is
 zero, or no ray is live.
@@ -15,10 +15,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from engine.frustum_build import slab_frustum
-from engine.packet_kernels import longest_packet
-from engine.packet_plugin import PacketFrustum
-from engine.registry import register_frustum
+from engine.packet.frustum_build import slab_frustum
+from engine.packet.kernels import longest_packet
+from engine.packet.plugin import PacketFrustum
+from engine.core.registry import register_frustum
 
 
 @njit(cache=True, parallel=True)

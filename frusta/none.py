@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.registry import register_frustum
-from engine.types import Frusta
+from engine.core.registry import register_frustum
+from engine.core.types import Frusta
 
 
 @register_frustum("none")

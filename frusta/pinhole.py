@@ -5,7 +5,7 @@ rays. Here the corners are not taken from the tile's corner pixels but from the 
 along the packet's dominant axis, every live ray's direction slopes (u/w, v/w) are bounded, and
 the four rays through the corners of that slope rectangle span the four side planes through
 the eye. So the frustum holds every ray of the packet whatever the camera model, and is
-widened by the margin of ``engine.frustum_build``.
+widened by the margin of ``engine.packet.frustum_build``.
 
 Invalid (no culling) for a packet whose live rays do not share one origin, whose directions
 have no common dominant axis sign, or that has no live ray.
@@ -15,10 +15,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from engine.frustum_build import apex_frustum, bounds_scale, farthest_corner
-from engine.packet_kernels import longest_packet
-from engine.packet_plugin import PacketFrustum
-from engine.registry import register_frustum
+from engine.packet.frustum_build import apex_frustum, bounds_scale, farthest_corner
+from engine.packet.kernels import longest_packet
+from engine.packet.plugin import PacketFrustum
+from engine.core.registry import register_frustum
 
 
 @njit(cache=True, parallel=True)

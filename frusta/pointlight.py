@@ -7,7 +7,7 @@ light is recovered as the end point org + tmax dir of the packet's first live ra
 along the dominant axis of the vectors light -> segment start, the extremal (u, v) slopes at unit
 distance give the four corner rays and the side planes through the light. The planes are widened
 by the spread of the end points around the light (the rays stop a little short, by different
-amounts) on top of the margin of ``engine.frustum_build``.
+amounts) on top of the margin of ``engine.packet.frustum_build``.
 
 Invalid (no culling) when the rays do not meet at one point (end points more than END_SPREAD of
 the shortest ray from the first one, or an infinite tmax), have no common dominant axis sign, are
@@ -20,10 +20,10 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from engine.frustum_build import abs_max3, apex_frustum, bounds_scale
-from engine.packet_kernels import longest_packet
-from engine.packet_plugin import PacketFrustum
-from engine.registry import register_frustum
+from engine.packet.frustum_build import abs_max3, apex_frustum, bounds_scale
+from engine.packet.kernels import longest_packet
+from engine.packet.plugin import PacketFrustum
+from engine.core.registry import register_frustum
 
 #: How far the end points may scatter around the first one, relative to the shortest ray, for
 #: the rays to count as meeting at one light.

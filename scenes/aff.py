@@ -30,7 +30,7 @@ Directives (``#`` and ``%`` start a comment; tokens may wrap across lines)::
     i  level file.aff                 include, relative to the including file
 
 Materials: ``fm`` maps ambient/diffuse/specular/phong/transmission/ior straight onto
-``engine.scene.Material``; the specular colour is also the mirror reflectance, as in NFF.
+``engine.core.scene.Material``; the specular colour is also the mirror reflectance, as in NFF.
 NFF ``f`` has no ambient term (ambient = 0), diffuse = kd * colour, specular = reflectance = ks.
 A material stays current until the next ``fm``/``f`` (NFF state, not scoped by blocks).
 Textures (binary PPM, read with Pillow) are looked up next to the including file, then in
@@ -69,8 +69,8 @@ from typing import Optional
 
 import numpy as np
 
-from engine.errors import ConfigError, SceneError
-from engine.scene import Camera, Material, PointLight, SceneBuilder
+from engine.core.errors import ConfigError, SceneError
+from engine.core.scene import Camera, Material, PointLight, SceneBuilder
 
 from .catalog import scene_loader
 

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.errors import ConfigError
-from engine.scene import Camera, Material, PointLight, SceneBuilder
+from engine.core.errors import ConfigError
+from engine.core.scene import Camera, Material, PointLight, SceneBuilder
 
 from .catalog import LOADERS, scene_loader
 from .erw6 import grid_quad

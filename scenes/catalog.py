@@ -26,8 +26,8 @@ from dataclasses import dataclass, field, replace
 from importlib import import_module
 from pathlib import Path
 
-from engine.errors import ConfigError, SceneError
-from engine.scene import Camera, Scene, override_materials
+from engine.core.errors import ConfigError, SceneError
+from engine.core.scene import Camera, Scene, override_materials
 
 CATALOG_DIR = Path(__file__).with_name("catalog")
 SCENE_PATH_VARIABLE = "PACKETRT_SCENE_PATH"

@@ -16,8 +16,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from engine.errors import ConfigError
-from engine.scene import Camera, Material, concat_triangles, make_triangles
+from engine.core.errors import ConfigError
+from engine.core.scene import Camera, Material, concat_triangles, make_triangles
 
 from .catalog import entries, find_files, load_named, scene_loader
 from .erw6 import erw6_scene

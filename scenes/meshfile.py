@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.errors import SceneError
-from engine.scene import Material, PointLight, SceneBuilder
+from engine.core.errors import SceneError
+from engine.core.scene import Material, PointLight, SceneBuilder
 
 from .catalog import scene_loader
 

@@ -23,8 +23,8 @@ import math
 
 import numpy as np
 
-from engine.errors import ConfigError
-from engine.scene import Camera, Material, PointLight, SceneBuilder
+from engine.core.errors import ConfigError
+from engine.core.scene import Camera, Material, PointLight, SceneBuilder
 
 from .aff import axis_angle_matrix, cone_triangles, sphere_triangles
 from .catalog import scene_loader

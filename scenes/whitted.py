@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.scene import Camera, Material, PointLight, SceneBuilder
+from engine.core.scene import Camera, Material, PointLight, SceneBuilder
 
 from .catalog import scene_loader
 

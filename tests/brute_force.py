@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from engine.kernels import F32_INF, closer, intersect_triangle, ray_shear
+from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear
 
 
 @njit(cache=True, parallel=True)

@@ -27,8 +27,8 @@ def shared_scenes():
 
 def primary_batch(scene, width=64, height=64, n=8):
     """(RayBatch, Packets) of camera rays in packet order."""
-    from engine.packets import make_batch
-    from engine.whitted import camera_rays
+    from engine.packet.layout import make_batch
+    from engine.render.whitted import camera_rays
 
     org, d = camera_rays(scene, width, height)
     count = width * height

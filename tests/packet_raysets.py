@@ -11,12 +11,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from engine.bvh import build_bvh
-from engine.offset import coordinate_magnitude, hit_points, offset_origin
-from engine.packets import make_batch
-from engine.registry import get_traversal
-from engine.types import empty_hits
-from engine.whitted import camera_rays
+from engine.core.bvh import build_bvh
+from engine.core.offset import coordinate_magnitude, hit_points, offset_origin
+from engine.packet.layout import make_batch
+from engine.core.registry import get_traversal
+from engine.core.types import empty_hits
+from engine.render.whitted import camera_rays
 
 #: Index of refraction of the refraction-like rays.
 IOR = np.float32(1.5)
@@ -68,7 +68,7 @@ def scene_rays(scene, width: int, height: int) -> SceneRays:
     get_traversal("single").intersect(bvh, tris, rays, packets, None, hits, None)
     idx = np.flatnonzero(hits.prim >= 0)
     prim = hits.prim[idx]
-    # Origins as the Whitted loop makes them (engine.offset).
+    # Origins as the Whitted loop makes them (engine.core.offset).
     p = hit_points(tris, prim, hits.u[idx], hits.v[idx])
     magnitude = coordinate_magnitude(tris, prim, p)
     d = rays.dir[idx]

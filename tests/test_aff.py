@@ -9,7 +9,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from engine.errors import ConfigError, SceneError
+from engine.core.errors import ConfigError, SceneError
 from scenes.aff import Track, aff_scene, load_aff, sphere_triangles, cone_triangles
 
 TRIANGLE_MESH = """

@@ -11,9 +11,9 @@ import trimesh
 
 from engine import RayTracer
 from engine.api import RayInputError, incoherent_batch
-from engine.errors import ConfigError, PacketrtError
-from engine.kernels import safe_inverse
-from engine.types import RayBatch
+from engine.core.errors import ConfigError, PacketrtError
+from engine.core.triangle import safe_inverse
+from engine.core.types import RayBatch
 from validation.compare import compare_hits, compare_occlusion
 
 PACKET_TRAVERSALS = ["single", "simd", "masked", "ranged", "partition"]
@@ -25,7 +25,7 @@ def embreex_answers(tracer, origins, directions):
     from embreex import rtcore, rtcore_scene
     from embreex.mesh_construction import TriangleMesh
 
-    from engine.types import Hits
+    from engine.core.types import Hits
 
     tris = tracer.triangles
     scene = rtcore_scene.EmbreeScene(rtcore.EmbreeDevice(), robust=True)
@@ -109,7 +109,7 @@ def test_random_incoherent_rays_on_the_bunny_equal_embreex(bunny_scene):
 
 
 def test_primary_rays_of_the_bunny_equal_embreex(bunny_scene):
-    from engine.whitted import camera_rays
+    from engine.render.whitted import camera_rays
 
     origins, directions = camera_rays(bunny_scene, 96, 96)
     hits = assert_equal_to_embree(RayTracer(bunny_scene, traversal="ranged", frustum="pinhole"),

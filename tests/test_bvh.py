@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from engine.bvh import build_bvh, node_depths, refit_bvh, sah_cost
-from engine.errors import ConfigError
-from engine.scene import make_triangles
+from engine.core.bvh import build_bvh, node_depths, refit_bvh, sah_cost
+from engine.core.errors import ConfigError
+from engine.core.scene import make_triangles
 from scenes.catalog import load_named
 
 
@@ -62,8 +62,8 @@ def test_refit_follows_moved_vertices():
 def test_child_order_is_cached_per_bvh_and_follows_a_refit():
     """Packet traversals take the near-child table from a per-BVH cache: the kernel's answer,
     computed once, and computed again for a refit BVH (new arrays), whose order may differ."""
-    from engine.packet_kernels import child_order_keys
-    from engine.packet_plugin import cached_child_order
+    from engine.packet.kernels import child_order_keys
+    from engine.packet.plugin import cached_child_order
 
     tris = load_named("whitted").triangles
     bvh = build_bvh(tris)

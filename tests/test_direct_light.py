@@ -1,7 +1,7 @@
-"""engine.direct_light against the numpy expressions of the shading it replaced."""
+"""engine.render.direct_light against the numpy expressions of the shading it replaced."""
 import numpy as np
 
-from engine.direct_light import add_light, light_directions
+from engine.render.direct_light import add_light, light_directions
 
 
 def unit(v):

@@ -15,11 +15,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numba import njit
 
-from engine.frustum_cull import frustum_misses_box, frustum_misses_triangle, load_frustum
-from engine.kernels import F32_INF, intersect_triangle, ray_shear, safe_inverse, slab_test
-from engine.packet_kernels import node_box
-from engine.registry import get_frustum
-from engine.types import Packets, RayBatch
+from engine.packet.frustum_cull import frustum_misses_box, frustum_misses_triangle, load_frustum
+from engine.core.triangle import F32_INF, intersect_triangle, ray_shear, safe_inverse, slab_test
+from engine.packet.kernels import node_box
+from engine.core.registry import get_frustum
+from engine.core.types import Packets, RayBatch
 
 BUILDERS = ["pinhole", "pointlight", "general"]
 RAYS = 64

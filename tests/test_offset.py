@@ -7,13 +7,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from engine import config as cfg
-from engine.kernels import F32_INF, intersect_triangle, ray_shear
-from engine.offset import coordinate_magnitude, hit_points, offset_origin
-from engine.registry import get_frustum, get_traversal
-from engine.scene import make_triangles
-from engine.types import empty_hits
-from engine.whitted import WhittedRenderer
+from engine.render import config as cfg
+from engine.core.triangle import F32_INF, intersect_triangle, ray_shear
+from engine.core.offset import coordinate_magnitude, hit_points, offset_origin
+from engine.core.registry import get_frustum, get_traversal
+from engine.core.scene import make_triangles
+from engine.core.types import empty_hits
+from engine.render.whitted import WhittedRenderer
 
 from brute_force import kernel_answer
 from conftest import needs_shared_scenes

@@ -8,12 +8,12 @@ import sys
 import numpy as np
 import pytest
 
-from engine.bvh import build_bvh
+from engine.core.bvh import build_bvh
 from engine.cli import main
-from engine.config import Config, with_overrides
-from engine.kernels import safe_inverse
-from engine.registry import get_traversal
-from engine.types import RayBatch, empty_hits
+from engine.render.config import Config, with_overrides
+from engine.core.triangle import safe_inverse
+from engine.core.registry import get_traversal
+from engine.core.types import RayBatch, empty_hits
 from scenes.catalog import load_named, scene_from_config
 from validation.audit import audit
 from validation.compare import compare_hits, compare_occlusion
@@ -180,7 +180,7 @@ def test_oracle_disagreements_are_counted_and_shown():
     """Two oracles that disagree (one misses every fifth ray) show up as disagreements, with
     examples, without failing our own comparison against the honest one."""
     from validation.audit import AuditObserver
-    from engine.whitted import WhittedRenderer
+    from engine.render.whitted import WhittedRenderer
 
     config = with_overrides(Config(), size=(32, 32), depth=0, traversal=["single"], frustum=["none"])
     scene = scene_from_config(config.scene)

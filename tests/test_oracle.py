@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from engine.bvh import build_bvh
-from engine.config import Config, with_overrides
-from engine.registry import get_traversal
-from engine.types import empty_hits
+from engine.core.bvh import build_bvh
+from engine.render.config import Config, with_overrides
+from engine.core.registry import get_traversal
+from engine.core.types import empty_hits
 from scenes.catalog import load_named, scene_from_config
 from validation.audit import audit
 from validation.compare import compare_hits

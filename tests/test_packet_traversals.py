@@ -12,9 +12,9 @@ import numba
 import numpy as np
 import pytest
 
-from engine.packets import PACKET_SIZES, make_batch
-from engine.registry import get_frustum, get_traversal
-from engine.types import COUNTER_NODES, RAY_KINDS, Frusta, empty_hits, new_stats, stats_totals
+from engine.packet.layout import PACKET_SIZES, make_batch
+from engine.core.registry import get_frustum, get_traversal
+from engine.core.types import COUNTER_NODES, RAY_KINDS, Frusta, empty_hits, new_stats, stats_totals
 from conftest import needs_shared_scenes
 from packet_raysets import scene_rays
 from scenes.catalog import load_named

@@ -9,17 +9,17 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from engine.bvh import build_bvh
-from engine.cone_sphere import RayHierarchy, absolute_slack, build_hierarchy, cone_sphere_overlap
-from engine.errors import ConfigError
-from engine.kernels import F32_INF, intersect_triangle, ray_shear
-from engine.offset import offset_origin
-from engine.packets import make_batch
-from engine.registry import get_traversal
-from engine.scene import make_triangles
-from engine.triangle_spheres import triangle_spheres
-from engine.types import COUNTER_RAY_TRI, empty_hits, new_stats
-from engine.whitted import camera_rays
+from engine.core.bvh import build_bvh
+from engine.rayspace.cone_sphere import RayHierarchy, absolute_slack, build_hierarchy, cone_sphere_overlap
+from engine.core.errors import ConfigError
+from engine.core.triangle import F32_INF, intersect_triangle, ray_shear
+from engine.core.offset import offset_origin
+from engine.packet.layout import make_batch
+from engine.core.registry import get_traversal
+from engine.core.scene import make_triangles
+from engine.rayspace.triangle_spheres import triangle_spheres
+from engine.core.types import COUNTER_RAY_TRI, empty_hits, new_stats
+from engine.render.whitted import camera_rays
 
 from brute_force import brute_force
 from conftest import needs_shared_scenes
@@ -220,7 +220,7 @@ def test_several_rays_per_pixel(rayspace):
 
 def test_crowded_pixels_without_child_masks(rayspace):
     """More rays under one 2x2 block than a child bit mask holds: the scatter re-tests."""
-    from engine.pair_stream import MASK_BITS
+    from engine.rayspace.pair_stream import MASK_BITS
 
     rng = np.random.default_rng(7)
     verts = (rng.uniform(-3, 3, (40, 1, 3)) + rng.normal(0, 0.8, (40, 3, 3))).reshape(-1, 3)
@@ -388,7 +388,7 @@ def test_stats_accumulate_across_calls(rayspace):
 
 
 def test_registered():
-    assert "rayspace" in __import__("engine.registry", fromlist=["traversal_names"]).traversal_names()
+    assert "rayspace" in __import__("engine.core.registry", fromlist=["traversal_names"]).traversal_names()
 
 
 # -- the cone-sphere test is conservative ---------------------------------------------------
@@ -621,7 +621,7 @@ def test_parents_hold_their_children(seed):
     d = rng.normal(size=(n, 3)).astype(np.float32)
     tmax = rng.uniform(0.5, 10, n).astype(np.float32)
     h = build_hierarchy(org, d, np.zeros(n, np.float32), tmax, np.arange(n, dtype=np.int32), width, height)
-    from engine.cone_sphere import children
+    from engine.rayspace.cone_sphere import children
 
     seen = 0
     for level in range(1, h.levels + 1):

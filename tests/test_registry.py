@@ -1,8 +1,8 @@
 """Registry: config names map to plugins; unknown names list the registered ones."""
 import pytest
 
-from engine import registry
-from engine.errors import ConfigError
+from engine.core import registry
+from engine.core.errors import ConfigError
 
 
 def test_builtins_are_registered_and_answer_both_queries():
@@ -42,11 +42,11 @@ def test_short_answer_arrays_are_refused_not_overrun(name):
     """Kernels index answers by ray without bounds checks: every traversal checks first."""
     import numpy as np
 
-    from engine.bvh import build_bvh
-    from engine.packets import make_batch
-    from engine.registry import get_traversal
-    from engine.scene import make_triangles
-    from engine.types import empty_hits
+    from engine.core.bvh import build_bvh
+    from engine.packet.layout import make_batch
+    from engine.core.registry import get_traversal
+    from engine.core.scene import make_triangles
+    from engine.core.types import empty_hits
 
     tris = make_triangles(np.float32([[0, 0, 1], [1, 0, 1], [0, 1, 1]]), np.array([[0, 1, 2]]), 0)
     n = 16

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from engine.errors import ConfigError
+from engine.core.errors import ConfigError
 from scenes.catalog import describe, entries, load_named
 
 SHARED_SCENES = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from engine.cli import main
-from engine.config import Config, with_overrides
-from engine.packet_trace import CULLED, ENTERED, PACKET_WALKS, rayspace_node, trace_packet
-from engine.show import (FRUSTUM, RAY_HIT, build_picture, capture_batch, centre_packet, legend_height,
+from engine.render.config import Config, with_overrides
+from engine.debug.packet_trace import CULLED, ENTERED, PACKET_WALKS, rayspace_node, trace_packet
+from engine.debug.show import (FRUSTUM, RAY_HIT, build_picture, capture_batch, centre_packet, legend_height,
                          node_colours)
-from engine.registry import get_traversal
-from engine.types import COUNTER_NODES, Frusta, Packets, RayBatch, empty_hits, new_stats
-from engine.whitted import WhittedRenderer
+from engine.core.registry import get_traversal
+from engine.core.types import COUNTER_NODES, Frusta, Packets, RayBatch, empty_hits, new_stats
+from engine.render.whitted import WhittedRenderer
 from scenes.catalog import scene_from_config
 
 ROOT = Path(__file__).resolve().parents[1]

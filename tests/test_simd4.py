@@ -1,6 +1,6 @@
-"""The 4-wide vector kernels of engine.simd4 answer exactly as their scalar definitions.
+"""The 4-wide vector kernels of engine.packet.simd4 answer exactly as their scalar definitions.
 
-slab4 must give, lane by lane, engine.kernels.slab_test's answer (including dead lanes and
+slab4 must give, lane by lane, engine.core.triangle.slab_test's answer (including dead lanes and
 axis-parallel rays); planes4_box / planes4_triangle must agree with the plane tests written out
 in scalar numba code, on random data with many near-boundary cases.
 """
@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numba import njit
 
-from engine.kernels import F32_INF, HUGE_INV, safe_inverse, slab_test
-from engine.packet_kernels import IX, OX, RF_ROWS, THI, TLO
-from engine.simd4 import planes4_box, planes4_triangle, slab4
+from engine.core.triangle import F32_INF, HUGE_INV, safe_inverse, slab_test
+from engine.packet.kernels import IX, OX, RF_ROWS, THI, TLO
+from engine.packet.simd4 import planes4_box, planes4_triangle, slab4
 
 LANES = 32
 BOXES = 40

@@ -1,4 +1,4 @@
-"""engine.simd4_triangle.intersect4 answers exactly as the scalar leaf loop it replaces.
+"""engine.packet.simd4_triangle.intersect4 answers exactly as the scalar leaf loop it replaces.
 
 The reference is the loop written out in scalar numba code: for each selected live lane, for each
 leaf triangle, ``intersect_triangle`` then ``closer`` (any-hit: the lane dies at its first hit).
@@ -17,10 +17,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numba import njit
 
-from engine.kernels import F32_INF, closer, intersect_triangle, safe_inverse
-from engine.packet_kernels import (BEST_PRIM, BEST_T, BEST_U, BEST_V, KX, KY, KZ, OKX, OKY, OKZ, RF_ROWS, RI_ROWS,
+from engine.core.triangle import F32_INF, closer, intersect_triangle, safe_inverse
+from engine.packet.kernels import (BEST_PRIM, BEST_T, BEST_U, BEST_V, KX, KY, KZ, OKX, OKY, OKZ, RF_ROWS, RI_ROWS,
                                    SX, SY, SZ, THI, TLO, load_packet)
-from engine.simd4_triangle import intersect4
+from engine.packet.simd4_triangle import intersect4
 
 LANES = 32
 F32_NEG_INF = np.float32(-np.inf)

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from engine import types
-from engine.bvh import build_bvh
+from engine.core import types
+from engine.core.bvh import build_bvh
 from scenes.catalog import load_named
 
 from conftest import primary_batch
@@ -44,7 +44,7 @@ def test_bvh_rays_packets_hits_contract():
 
 
 def test_packets_keep_each_tile_together():
-    from engine.packets import packet_keys
+    from engine.packet.layout import packet_keys
 
     scene = load_named("whitted")
     rays, packets = primary_batch(scene, 40, 40, 16)
@@ -63,7 +63,7 @@ def test_packet_order_is_the_documented_layout(n):
     """packet_order against a plain sort written from the module doc: tiles row by row, inside a
     tile its 2x2 blocks row by row, in a block the lanes (0,0), (1,0), (0,1), (1,1); rays sharing
     a pixel stay in input order; each packet padded to whole SIMD rays with -1."""
-    from engine.packets import packet_order
+    from engine.packet.layout import packet_order
 
     width, height = 37, 29  # not multiples of any packet size
     rng = np.random.default_rng(n)
@@ -90,8 +90,8 @@ def test_packet_order_is_the_documented_layout(n):
 def test_gather_batch_takes_candidates_and_pads_dead_lanes():
     """gather_batch against the array expressions it is defined by, on directions with zero and
     negative-zero components (their inverse is +-HUGE_INV's reciprocal, never inf)."""
-    from engine.kernels import safe_inverse
-    from engine.packets import gather_batch
+    from engine.core.triangle import safe_inverse
+    from engine.packet.layout import gather_batch
 
     rng = np.random.default_rng(11)
     m = 500

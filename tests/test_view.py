@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from engine.scene import Camera
-from engine.view import orbit
+from engine.core.scene import Camera
+from engine.debug.view import orbit
 
 ROOT = Path(__file__).resolve().parents[1]
 NO_DISPLAY = ("packetrt: error: packetrt view needs a display (DISPLAY is not set); run it under Xvfb, "
@@ -63,8 +63,8 @@ def test_frame_source_renders_the_latest_request():
     import threading
     from dataclasses import replace
 
-    from engine.config import Config, with_overrides
-    from engine.view import FrameSource
+    from engine.render.config import Config, with_overrides
+    from engine.debug.view import FrameSource
     from scenes.catalog import scene_from_config
 
     config = with_overrides(Config(), size=(32, 32), packet=8, depth=1)

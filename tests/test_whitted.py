@@ -1,9 +1,9 @@
 """The Whitted loop: every ray kind is cast, and Embree as the traversal gives the same image."""
 import numpy as np
 
-from engine.config import Config, with_overrides
-from engine.image import save_png, to_srgb8
-from engine.whitted import WhittedRenderer
+from engine.render.config import Config, with_overrides
+from engine.render.image import save_png, to_srgb8
+from engine.render.whitted import WhittedRenderer
 from scenes.catalog import load_named
 
 

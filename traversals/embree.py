@@ -10,23 +10,21 @@ from __future__ import annotations
 
 import numba
 
-from engine.embree_backend import EmbreeScene
-from engine.registry import register_traversal
-from engine.types import check_answer_arrays
+from engine.core.embree_scene import EmbreeScene
+from engine.core.registry import register_traversal
+from engine.core.types import check_answer_arrays
 
 
 @register_traversal("embree")
 class EmbreeTraversal:
     """Intel Embree (embreex), robust mode, same thread count as numba."""
 
-    OPTIONS = {"robust": True}
-
     def __init__(self):
         self.robust = True
         self._scenes: dict = {}
 
     def configure(self, options: dict) -> None:
-        from engine.errors import ConfigError
+        from engine.core.errors import ConfigError
 
         for key, value in options.items():
             if key != "robust" or not isinstance(value, bool):

@@ -16,13 +16,13 @@ from __future__ import annotations
 import numpy as np
 from numba import get_thread_id, njit, prange
 
-from engine.packet_kernels import (ALL_LANES, STACK_SIZE, first_hit, intersect_lanes, largest_leaf,
+from engine.packet.kernels import (ALL_LANES, STACK_SIZE, first_hit, intersect_lanes, largest_leaf,
                                    leaf_triangles, load_packet, longest_packet, node_box,
                                    packet_scratch, slab_mask4, store_hits)
-from engine.frustum_cull import load_frustum
-from engine.packet_plugin import PacketTraversal
-from engine.registry import register_traversal
-from engine.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI
+from engine.packet.frustum_cull import load_frustum
+from engine.packet.plugin import PacketTraversal
+from engine.core.registry import register_traversal
+from engine.core.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI
 
 
 @njit(cache=True, inline="always")
@@ -42,7 +42,7 @@ def trace_ranged(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmi
                  offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
                  counters):
     """Closest (any_hit False) or first (any_hit True) hits of every packet; see the module doc
-    and ``engine.packet_plugin`` for the arguments."""
+    and ``engine.packet.plugin`` for the arguments."""
     n_packets = offsets.shape[0] - 1
     max_rays = longest_packet(offsets)
     max_leaf = largest_leaf(count)

@@ -5,13 +5,13 @@ every batch: nothing depends on the scene's layout, so moving geometry costs not
 rebuild. Ignores the BVH and the frusta it is given.
 
 How it works
-    1. Build (``engine.cone_sphere``): the batch's live rays are indexed by ancestral pixel on
+    1. Build (``engine.rayspace.cone_sphere``): the batch's live rays are indexed by ancestral pixel on
        the ``packets.width x packets.height`` screen; each ray is an exact cone-sphere (radius 0,
        spread 0, reach bounded by tmax), each 2x2 pixel block holds all its rays, and every
        coarser level of the mip-map holds four nodes of the level below, up to one root.
-    2. Traversal (``engine.pair_stream``): a stream of (node, triangle) pairs starts with every
+    2. Traversal (``engine.rayspace.pair_stream``): a stream of (node, triangle) pairs starts with every
        triangle at the root; per level each pair's children are tested against the
-       triangle's bounding sphere (``engine.triangle_spheres``) and the survivors are compacted
+       triangle's bounding sphere (``engine.rayspace.triangle_spheres``) and the survivors are compacted
        with a parallel prefix sum. The test is conservative: a pair is dropped only when no
        ray under the node can touch the triangle.
     3. Final tests: the candidate triangles of each ray get the shared watertight test and the
@@ -65,13 +65,13 @@ import time
 import numpy as np
 from numba import get_thread_id, njit, prange
 
-from engine.cone_sphere import absolute_slack, build_hierarchy, reversed_segment
-from engine.errors import ConfigError
-from engine.kernels import F32_INF, closer, intersect_triangle, ray_shear
-from engine.pair_stream import expand, group_by_slot, root_stream
-from engine.registry import register_traversal
-from engine.triangle_spheres import triangle_spheres
-from engine.types import COUNTER_RAY_TRI, check_answer_arrays, empty_hits
+from engine.rayspace.cone_sphere import absolute_slack, build_hierarchy, reversed_segment
+from engine.core.errors import ConfigError
+from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear
+from engine.rayspace.pair_stream import expand, group_by_slot, root_stream
+from engine.core.registry import register_traversal
+from engine.rayspace.triangle_spheres import triangle_spheres
+from engine.core.types import COUNTER_RAY_TRI, check_answer_arrays, empty_hits
 
 CHUNK = 256               # slots per prange task of the final tests
 MAX_PAIR_BUDGET = 2**31 - 1   # stream indices are i32

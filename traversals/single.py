@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 from numba import get_thread_id, njit, prange
 
-from engine.kernels import F32_INF, closer, intersect_triangle, ray_shear, slab_test
-from engine.registry import register_traversal
-from engine.types import (COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI, MAX_BVH_DEPTH, check_answer_arrays,
+from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear, slab_test
+from engine.core.registry import register_traversal
+from engine.core.types import (COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI, MAX_BVH_DEPTH, check_answer_arrays,
                           empty_hits)
 
 CHUNK = 256  # rays per prange task: one stack allocation per chunk

@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.errors import ConfigError
-from engine.registry import get_traversal
-from engine.types import RAY_KINDS, empty_hits
-from engine.whitted import WhittedRenderer
+from engine.core.errors import ConfigError
+from engine.core.registry import get_traversal
+from engine.core.types import RAY_KINDS, empty_hits
+from engine.render.whitted import WhittedRenderer
 
 from .compare import compare_hits, compare_occlusion
 

@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from engine.types import Hits, RayBatch, Triangles
+from engine.core.types import Hits, RayBatch, Triangles
 
 DISTANCE_ULPS = 64.0
 T_RELATIVE = 1e-4

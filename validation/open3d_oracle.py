@@ -11,7 +11,7 @@ How RayBatch maps onto Open3D's queries:
 
 - Open3D casts from the origin with t in [0, inf) and takes no per-ray tnear, so a live ray
   is moved to ``org + tmin * dir`` and ``tmin`` is added back to ``t_hit`` (as
-  ``engine.embree_backend`` does for embreex). Dead lanes (``tmax < tmin``) are not cast.
+  ``engine.core.embree_scene`` does for embreex). Dead lanes (``tmax < tmin``) are not cast.
 - Closest hit: ``cast_rays``; a hit beyond ``tmax`` is a miss (it is the closest hit, so there
   is none inside the segment). ``primitive_uvs`` are Embree's (u, v): hit =
   (1-u-v) v0 + u v1 + v v2, our convention.
@@ -30,8 +30,8 @@ import re
 import numba
 import numpy as np
 
-from engine.errors import PacketrtError
-from engine.types import Hits, RayBatch, Triangles
+from engine.core.errors import PacketrtError
+from engine.core.types import Hits, RayBatch, Triangles
 
 #: Shared libraries Open3D's wheel loads at import, and the Debian packages that provide them.
 DEBIAN_PACKAGES = {

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numba
 
-from engine.embree_backend import EmbreeScene
-from engine.types import Hits, RayBatch, Triangles
+from engine.core.embree_scene import EmbreeScene
+from engine.core.types import Hits, RayBatch, Triangles
 
 
 class EmbreeOracle:

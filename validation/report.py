@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.errors import PacketrtError
-from engine.image import save_png
+from engine.core.errors import PacketrtError
+from engine.render.image import save_png
 
 
 def write_report(folder: str, report: dict, image: np.ndarray, bad_pixels, width: int, height: int) -> None:

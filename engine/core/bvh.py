@@ -1,4 +1,4 @@
-"""Binned-SAH BVH over triangles, in the flat layout of ``engine.types.BVH``.
+"""Binned-SAH BVH over triangles, in the flat layout of ``engine.core.types.BVH``.
 
 The builder works on primitive bounds and centroids only; it never sees a triangle,
 so any primitive with a box can be organised by it. Children of a node are adjacent
@@ -12,8 +12,8 @@ import time
 import numpy as np
 from numba import njit
 
-from .errors import ConfigError
-from .types import BVH, MAX_BVH_DEPTH, Triangles
+from engine.core.errors import ConfigError
+from engine.core.types import BVH, MAX_BVH_DEPTH, Triangles
 
 #: Relative cost of one node traversal step against one ray-triangle test.
 TRAVERSAL_COST = np.float32(1.0)

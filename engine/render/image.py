@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import PacketrtError
+from engine.core.errors import PacketrtError
 
 GAMMA = 2.2
 

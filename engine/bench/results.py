@@ -9,7 +9,7 @@ One line (schema 1; ``K`` = a ray kind, summaries = {median, min, max, q1, q3, r
 
     {"schema", "id", "matrix", "tags", "labels": {scene, traversal, frustum, recursion, packet,
      resolution}, "cell": <the cell's identity: scene, plugins per kind, packet, recursion preset,
-     size, threads, options, embree>, "config": <engine.config.Config.to_dict()>,
+     size, threads, options, embree>, "config": <engine.render.config.Config.to_dict()>,
      "scene": {name, triangles, lights}, "repeat", "threads",
      "seconds": {"bvh", "plugin_build": {plugin: s}, "frame": summary, "shade": summary,
                  "trace": {K: summary}            # inside the timed renders
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .types import RAY_KINDS
+from engine.core.types import RAY_KINDS
 
 RESULTS = "results.jsonl"
 CSV = "results.csv"

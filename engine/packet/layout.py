@@ -17,9 +17,9 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .errors import ConfigError
-from .kernels import HUGE_INV
-from .types import Packets, RayBatch
+from engine.core.errors import ConfigError
+from engine.core.triangle import HUGE_INV
+from engine.core.types import Packets, RayBatch
 
 PACKET_SIZES = (2, 4, 8, 16, 32)
 
@@ -81,7 +81,7 @@ def packet_order(pixel: np.ndarray, width: int, height: int, n: int) -> tuple[np
 def _gather_rays(gather, org, direction, tmin, tmax, pixel, weight, org_, dir_, inv_, tmin_, tmax_, pix_, w_):
     """Lane i of the outputs takes candidate gather[i]; a lane with gather[i] < 0 becomes dead
     padding (origin of candidate 0, direction +z, tmin 1 > tmax 0, pixel -1, weight 0). inv_ is
-    ``engine.kernels.safe_inverse`` of dir_, computed the same way per component."""
+    ``engine.core.triangle.safe_inverse`` of dir_, computed the same way per component."""
     tiny = np.float32(1.0) / HUGE_INV
     one = np.float32(1.0)
     for i in prange(gather.shape[0]):
@@ -120,14 +120,3 @@ def make_batch(kind: str, org, direction, tmin, tmax, pixel, weight, width: int,
     """(RayBatch, Packets): candidate rays ordered into n x n packets by ancestral pixel."""
     gather, packets = packet_order(pixel, width, height, n)
     return gather_batch(kind, gather, org, direction, tmin, tmax, pixel, weight), packets
-
-
-def single_packet(n_rays: int) -> Packets:
-    """Packets for an arbitrary ray array: consecutive groups of at most 1024 rays.
-
-    The batch must already be padded to a multiple of 4 (see ``pad_to_simd``).
-    """
-    offsets = np.arange(0, n_rays + 1, 1024, dtype=np.int64)
-    if offsets[-1] != n_rays:
-        offsets = np.r_[offsets, n_rays]
-    return Packets(offsets.astype(np.int32), 32, max(n_rays, 1), 1)

@@ -2,7 +2,7 @@
 
 ``intersect4(rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit) -> (tests, died)``
 tests the lanes lane0 .. lane0+3 of the packet-local rows (rf: f32[RF_ROWS, L], ri:
-i32[RI_ROWS, L], the ``engine.packet_kernels`` layout) that ``mask`` (4 bits) selects and that
+i32[RI_ROWS, L], the ``engine.packet.kernels`` layout) that ``mask`` (4 bits) selects and that
 are live (TLO <= THI) against the triangles leaf_tris[:n_tris] (i32; corners v0, v1, v2:
 f32[T, 3]), in that order, and updates each lane's THI and BEST_T/U/V/PRIM rows exactly as the
 scalar loop "for each lane: for each triangle: ``intersect_triangle``, then ``closer``" does.
@@ -10,7 +10,7 @@ With ``any_hit`` a lane dies (THI = -inf) at its first hit. Returns (ray-triangl
 lanes that died), counted as the scalar loop counts them. A triangle that no live lane sees
 inside its edges costs no division and no update (the common case: a branch, not a select).
 
-Why it is bit-identical to ``engine.kernels.intersect_triangle``: each vector element goes
+Why it is bit-identical to ``engine.core.triangle.intersect_triangle``: each vector element goes
 through the same IEEE operations in the same order (f32 translate and shear, the three edge
 functions as f64 products and difference rounded once to f32, f32 det, scaled t, 1/det), with
 the same ordered compares. The IR has plain fmul/fsub/fadd/fdiv with no fast-math or
@@ -19,7 +19,7 @@ its own permutation (kx, ky, kz): a triangle's nine coordinates are loaded once 
 picks its components with selects. Lanes are independent, so one triangle against four lanes
 then the next is the same as the scalar lane-major loop.
 
-Numba has no SLP vectoriser (see ``engine.simd4``), hence the hand-written IR.
+Numba has no SLP vectoriser (see ``engine.packet.simd4``), hence the hand-written IR.
 """
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ _V4I = ir.VectorType(_I32, 4)
 _V4B = ir.VectorType(_I1, 4)
 _ZERO4 = ir.Constant(_V4I, [0, 0, 0, 0])
 
-#: Rows of the packet-local blocks this reads and writes (``engine.packet_kernels`` checks them).
+#: Rows of the packet-local blocks this reads and writes (``engine.packet.kernels`` checks them).
 ROWS_F = {"TLO": 6, "THI": 7, "SX": 8, "SY": 9, "SZ": 10, "OKX": 11, "OKY": 12, "OKZ": 13,
           "BEST_T": 14, "BEST_U": 15, "BEST_V": 16}
 ROWS_I = {"KX": 0, "KY": 1, "KZ": 2, "BEST_PRIM": 3}

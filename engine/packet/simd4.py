@@ -7,14 +7,14 @@ emit the <4 x float> operations themselves, as the paper's SSE code does:
 
 - ``slab4(rf, lane0, b0x, b0y, b0z, b1x, b1y, b1z)``: the ray-box test of the 2x2 SIMD ray whose
   lanes are columns lane0 .. lane0+3 of the packet-local rows rf (f32[rows, L], C order, rows
-  OX, OY, OZ, IX, IY, IZ, TLO, THI = 0..7 as in ``engine.packet_kernels``) against the box
+  OX, OY, OZ, IX, IY, IZ, TLO, THI = 0..7 as in ``engine.packet.kernels``) against the box
   (b0, b1). Returns the 4-bit mask of the lanes that hit. Every operation, operand order and
-  compare matches ``engine.kernels.slab_test`` (numba's min/max are selects on ordered
+  compare matches ``engine.core.triangle.slab_test`` (numba's min/max are selects on ordered
   compares), so each lane's answer is exactly slab_test's.
 - ``planes4_box(fr, b0x, ..., b1z)`` / ``planes4_triangle(fr, ax, ..., cz)``: a box / triangle
   against the four planes of a packet frustum stored in SoA order (fr: f32[16] = nx[4], ny[4],
   nz[4], d[4]); True when it lies wholly outside one of them. Same arithmetic as the scalar
-  reference in ``engine.frustum_cull``.
+  reference in ``engine.packet.frustum_cull``.
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from numba.core import cgutils
 from numba.core.errors import TypingError
 from numba.extending import intrinsic
 
-from .kernels import SLAB_SLACK
+from engine.core.triangle import SLAB_SLACK
 
 _F32 = ir.FloatType()
 _I32 = ir.IntType(32)
@@ -32,7 +32,7 @@ _I64 = ir.IntType(64)
 _V4 = ir.VectorType(_F32, 4)
 _ZERO4 = ir.Constant(ir.VectorType(_I32, 4), [0, 0, 0, 0])
 
-#: Rows of the packet-local float block that ``slab4`` reads (engine.packet_kernels layout).
+#: Rows of the packet-local float block that ``slab4`` reads (engine.packet.kernels layout).
 _ROW_OX, _ROW_OY, _ROW_OZ, _ROW_IX, _ROW_IY, _ROW_IZ, _ROW_TLO, _ROW_THI = range(8)
 
 

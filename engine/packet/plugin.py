@@ -8,9 +8,9 @@ kernel; every kernel has the signature
            offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
            counters)
 
-with the BVH and triangle arrays as in ``engine.types``, ``planes`` f32[K,4,4] and ``valid``
+with the BVH and triangle arrays as in ``engine.core.types``, ``planes`` f32[K,4,4] and ``valid``
 bool[K] (all False when there is no frustum), ``order`` the i8[N] child-order keys of
-``engine.packet_kernels.child_order_keys``, ``n_chunks`` the number of interleaved packet
+``engine.packet.kernels.child_order_keys``, ``n_chunks`` the number of interleaved packet
 decks dealt to the threads, and ``counters`` i64[threads,3,D] or None.
 
 Each frustum builder (``frusta/pinhole.py`` and friends) names a kernel
@@ -25,8 +25,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .packet_kernels import child_order_keys
-from .types import Frusta, check_answer_arrays, empty_hits
+from engine.packet.kernels import child_order_keys
+from engine.core.types import Frusta, check_answer_arrays, empty_hits
 
 #: Packet decks per thread: packet k goes to deck k % n_chunks, so neighbouring (similarly
 #: expensive) tiles land on different threads and the threads finish together.

@@ -6,15 +6,15 @@ partition -- differ only in how a packet walks the BVH. What they share lives he
 - ``load_packet`` copies packet k (rays offsets[k] : offsets[k+1], whole 2x2 SIMD rays) into
   packet-local structure-of-arrays rows, so the four lanes of SIMD ray i are the consecutive
   floats 4i .. 4i+3 of every row: the layout the fixed 4-lane loops vectorise on. It also does
-  the per-ray set-up of the watertight test once (``engine.kernels.ray_shear``) and picks the
+  the per-ray set-up of the watertight test once (``engine.core.triangle.ray_shear``) and picks the
   packet's near-child order from its direction signs.
-- ``slab_mask4``: the 4-lane ray-box test of one SIMD ray (``engine.simd4.slab4``), a bit mask
+- ``slab_mask4``: the 4-lane ray-box test of one SIMD ray (``engine.packet.simd4.slab4``), a bit mask
   of the lanes that hit.
 - ``first_hit``: Overbeck's getFirstHit (the first SIMD ray at or after ``lo`` that hits a box,
   the frustum as early reject).
 - ``leaf_triangles`` / ``intersect_lanes``: the leaf, frustum-culled, then the shared
   ``intersect_triangle`` and tie rule ``closer`` for each lane, exactly as ``single`` does, run
-  on the four lanes at once (``engine.simd4_triangle.intersect4``).
+  on the four lanes at once (``engine.packet.simd4_triangle.intersect4``).
 - ``store_hits``: the packet's answers back into the batch's Hits arrays.
 
 Packet-local state (L = the longest packet of the batch):
@@ -32,11 +32,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .frustum_cull import frustum_misses_box, frustum_misses_triangle
-from .kernels import F32_INF, ray_shear
-from .simd4 import slab4
-from .simd4_triangle import ROWS_F, ROWS_I, intersect4
-from .types import MAX_BVH_DEPTH
+from engine.packet.frustum_cull import frustum_misses_box, frustum_misses_triangle
+from engine.core.triangle import F32_INF, ray_shear
+from engine.packet.simd4 import slab4
+from engine.packet.simd4_triangle import ROWS_F, ROWS_I, intersect4
+from engine.core.types import MAX_BVH_DEPTH
 
 OX, OY, OZ, IX, IY, IZ, TLO, THI, SX, SY, SZ, OKX, OKY, OKZ, BEST_T, BEST_U, BEST_V = range(17)
 RF_ROWS = 17
@@ -184,7 +184,7 @@ def node_box(bmin, bmax, node):
 @njit(cache=True, inline="always")
 def slab_mask4(rf, lane0, box):
     """4-bit mask of the lanes of SIMD ray lane0 .. lane0+3 whose live segment meets ``box`` (a
-    ``node_box`` tuple): ``engine.kernels.slab_test`` on all four lanes at once, in SSE-style
+    ``node_box`` tuple): ``engine.core.triangle.slab_test`` on all four lanes at once, in SSE-style
     vector code."""
     return slab4(rf, lane0, box[0], box[1], box[2], box[3], box[4], box[5])
 
@@ -237,7 +237,7 @@ def intersect_lanes(rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit)
 
     Per lane and triangle this is ``intersect_triangle`` with the lane's own shear and segment,
     then the update ``closer``, exactly as in ``single``, so the best hit is bit-identical whatever
-    the order; ``engine.simd4_triangle.intersect4`` runs it on the four lanes at once. For
+    the order; ``engine.packet.simd4_triangle.intersect4`` runs it on the four lanes at once. For
     ``any_hit`` a lane dies (THI = -inf) at its first hit. Returns (ray-triangle tests done,
     lanes that died).
     """

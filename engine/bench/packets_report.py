@@ -13,7 +13,7 @@ packets.md
     2. Targets: trace FPS of each traversal at 16x16 with culling over the 2x2 SIMD baseline
        (``simd``, smallest packet, no culling); culling benefit (on / off) on primary and shadow
        rays; ratio to Embree per kind.
-    3. The per-ray floor (``engine.bench_floor``, measured per cell): trace, floor and walk
+    3. The per-ray floor (``engine.bench.floor``, measured per cell): trace, floor and walk
        (trace - floor) time of the baseline and every 16x16 cell, the speed-ups of the whole
        trace and of the walk alone, and the bound on the speed-up if the walk cost nothing.
     4. Cost model: per ray kind, a non-negative least-squares fit over the cells of
@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .bench_plots import _fmt, _machine_line, _ordered, _pyplot, _save, trace_seconds
-from .types import RAY_KINDS
+from engine.bench.plots import _fmt, _machine_line, _ordered, _pyplot, _save, trace_seconds
+from engine.core.types import RAY_KINDS
 
 #: Targets of the issue: 16x16 over 2x2 SIMD for the frame, culling benefit (primary and
 #: shadow rays), ours / Embree per kind.
@@ -70,7 +70,7 @@ def _baseline(records: list):
 # -- floor and cost model ------------------------------------------------------------------------
 
 def floor_seconds(r: dict, kinds=RAY_KINDS):
-    """The cell's measured per-ray floor (``engine.bench_floor``) over ``kinds``, or None."""
+    """The cell's measured per-ray floor (``engine.bench.floor``) over ``kinds``, or None."""
     floor = r["seconds"].get("floor")
     return None if floor is None else sum(floor[k]["median"] for k in kinds)
 

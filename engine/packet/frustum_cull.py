@@ -1,12 +1,12 @@
 """Frustum culling kernels shared by the packet traversals.
 
-A packet's frustum (``engine.types.Frusta``: four planes (nx, ny, nz, d), a point p inside when
+A packet's frustum (``engine.core.types.Frusta``: four planes (nx, ny, nz, d), a point p inside when
 n.p + d >= 0) bounds every ray of the packet over the part of it that can meet geometry. The
 builders (``frusta/``) already widen the planes by a margin that covers float32 rounding here
 and in the watertight triangle test, so these tests are plain evaluations:
 
 - ``load_frustum``: copy packet k's planes into a local f32[16] in SoA order (nx[4], ny[4],
-  nz[4], d[4]) so the tests below handle the four planes as one vector (``engine.simd4``);
+  nz[4], d[4]) so the tests below handle the four planes as one vector (``engine.packet.simd4``);
 - ``frustum_misses_box``: the box lies entirely outside one plane (its corner farthest along
   the plane normal is outside), so no ray of the packet can hit anything in it;
 - ``frustum_misses_triangle``: all three corners lie outside one plane.
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from numba import njit
 
-from .simd4 import planes4_box, planes4_triangle
+from engine.packet.simd4 import planes4_box, planes4_triangle
 
 
 @njit(cache=True, inline="always")

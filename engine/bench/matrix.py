@@ -7,7 +7,7 @@ A matrix is the cross product of six axes::
     repeat = 2                  # timed repeats per cell (``--repeat`` overrides); default 5
     threads = 0                 # numba threads (0 = every core numba sees); Embree gets the same
     embree = true               # also time Embree on the same ray batches (ratios to Embree)
-    plot = ["mrays", "summary"] # figure kinds, see engine.bench_plots.PLOTS
+    plot = ["mrays", "summary"] # figure kinds, see engine.bench.plots.PLOTS
 
     [axes]                      # every axis a non-empty list
     scene = ["whitted", {name = "bunny", lod = 3, label = "bunny-948"}]
@@ -44,11 +44,11 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .config import (MAX_DEPTH, PAPER_FRUSTUM, PAPER_TRAVERSAL, Config, PerKind, RenderConfig, SceneConfig,
+from engine.render.config import (MAX_DEPTH, PAPER_FRUSTUM, PAPER_TRAVERSAL, Config, PerKind, RenderConfig, SceneConfig,
                      read_toml, validate)
-from .errors import ConfigError, PacketrtError
-from .packets import PACKET_SIZES
-from .types import RAY_KINDS
+from engine.core.errors import ConfigError, PacketrtError
+from engine.packet.layout import PACKET_SIZES
+from engine.core.types import RAY_KINDS
 
 
 @dataclass(frozen=True)
@@ -198,7 +198,7 @@ def _int(source, where, value, allowed: str) -> int:
 
 
 def _plugin(source, where, value, what: str) -> PluginSpec:
-    from .registry import frustum_names, traversal_names
+    from engine.core.registry import frustum_names, traversal_names
 
     known = traversal_names() if what == "traversal" else frustum_names()
     allowed = f"{', '.join(known)}, paper, or a table of ray kinds ({', '.join(RAY_KINDS)}) and label"
@@ -322,7 +322,7 @@ def _axes(source, table: dict, where: str, required: bool) -> dict:
 
 def parse_matrix(data: dict, source: str = "<matrix>", repeat: int | None = None) -> Matrix:
     """Matrix from a parsed TOML table; every key and every cell is checked (ConfigError)."""
-    from .bench_plots import PLOTS
+    from engine.bench.plots import PLOTS
 
     unknown = set(data) - set(TOP_KEYS)
     if unknown:

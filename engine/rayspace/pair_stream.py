@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from .cone_sphere import children, cone_sphere_overlap
+from engine.rayspace.cone_sphere import children, cone_sphere_overlap
 
 BLOCK = 2048      # pairs per prange task
 MASK_BITS = 63    # children per pair a bit mask can remember (int64, sign bit unused)

@@ -5,7 +5,7 @@
 Renders the configured image once, keeps the ray batch of the chosen kind (its first batch:
 depth 1 for reflections and refractions, the first light for shadows) and picks one packet:
 ``--packet-index``, or by default the packet whose rays' pixels lie nearest the image centre.
-That packet is walked again by ``engine.packet_trace`` (same decisions as the real traversal),
+That packet is walked again by ``engine.debug.packet_trace`` (same decisions as the real traversal),
 and the picture shows
 
 - the scene as a light-grey wireframe (a sample of it for big meshes), the triangles of the
@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError, PacketrtError
-from .types import RAY_KINDS
+from engine.core.errors import ConfigError, PacketrtError
+from engine.core.types import RAY_KINDS
 
 #: Most scene triangles drawn as wireframe; a bigger scene shows a fixed random sample.
 MAX_WIREFRAME_TRIANGLES = 12000
@@ -287,8 +287,8 @@ def _view(p0, p1, up_hint):
 
 def build_picture(scene, config, kind: str, packet_index=None, renderer=None) -> Picture:
     """Everything ``packetrt show`` draws for one packet (see the module doc)."""
-    from .packet_trace import PACKET_WALKS, RAY_WALKS, rayspace_node, trace_packet
-    from .whitted import WhittedRenderer
+    from engine.debug.packet_trace import PACKET_WALKS, RAY_WALKS, rayspace_node, trace_packet
+    from engine.render.whitted import WhittedRenderer
 
     if kind not in RAY_KINDS:
         raise ConfigError(f"--kind must be one of {', '.join(RAY_KINDS)}, got {kind!r}")
@@ -576,8 +576,8 @@ def write_show(scene, config, kind, packet_index, output, size=PICTURE_SIZE) -> 
 
 
 def cmd_show(args) -> int:
-    from .cli import _config_from, _load_scene
-    from .config import parse_size
+    from engine.cli import _config_from, _load_scene
+    from engine.render.config import parse_size
 
     size = parse_size(args.picture) if getattr(args, "picture", None) else PICTURE_SIZE
     if not (64 <= size[0] <= 4096 and 64 <= size[1] <= 4096):

@@ -17,8 +17,8 @@ from typing import Optional
 
 import numpy as np
 
-from .errors import SceneError
-from .types import Triangles
+from engine.core.errors import SceneError
+from engine.core.types import Triangles
 
 
 @dataclass
@@ -252,6 +252,6 @@ def override_materials(scene: Scene, mode: str) -> Scene:
     elif mode == "refractive":
         mats = [replace(m, transmission=0.8, ior=1.5, reflectance=(0.0, 0.0, 0.0)) for m in scene.materials]
     else:
-        from .errors import ConfigError
+        from engine.core.errors import ConfigError
         raise ConfigError(f"materials.override must be one of 'none', 'reflective', 'refractive'; got {mode!r}")
     return replace(scene, materials=mats)

@@ -16,7 +16,7 @@ from importlib import metadata
 
 import numpy as np
 
-from .types import Hits, RayBatch, Triangles
+from engine.core.types import Hits, RayBatch, Triangles
 
 EMBREE_TFAR_MAX = np.float32(1e37)  # embreex's own "no limit"
 

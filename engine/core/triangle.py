@@ -7,8 +7,8 @@
   (t, u, v) for a (ray, triangle) pair.
 - ``closer``: the one tie-breaking rule (smaller t, then smaller triangle index), so the
   closest hit does not depend on the order a traversal visits triangles in.
-- ``slab_test`` (one ray) and ``slab_test4`` (a 2x2 SIMD ray: four lanes of SoA arrays):
-  conservative ray-AABB tests.
+- ``slab_test``: the conservative ray-AABB test of one ray (the packet kernels' 4-lane
+  version is ``engine.packet.simd4.slab4``).
 
 All arithmetic is float32; constants are float32 globals so numba does not promote.
 """
@@ -102,12 +102,6 @@ def intersect_triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax, v0, v1
     return t, ev * rcp, ew * rcp
 
 
-#: The same watertight test (built from intersect_triangle's own Python source, so it cannot drift
-#: from it) that numba inlines into its caller: packet loops then pass no 30-word argument list
-#: and keep their vector registers across the test. Results are bit-identical.
-intersect_triangle_inlined = njit(inline="always")(intersect_triangle.py_func)
-
-
 @njit(cache=True)
 def closer(t, tri, best_t, best_tri):
     """True when a hit (t, tri) beats the current best: smaller t, ties to the smaller index."""
@@ -138,43 +132,6 @@ def slab_test(ox, oy, oz, ix, iy, iz, tmin, tmax, bmin, bmax, node):
     if tn <= tf:
         return tn
     return F32_INF
-
-
-@njit(cache=True)
-def slab_test4(ox, oy, oz, ix, iy, iz, tmin, tmax, lane0, bmin, bmax, node, entry):
-    """Conservative ray-box test for the 2x2 SIMD ray whose lanes are lane0 .. lane0+3.
-
-    ox..iz, tmin, tmax: f32[R] SoA ray arrays; entry: f32[>=4] receives each lane's entry
-    distance (inf = miss). Returns a 4-bit mask of the lanes that hit. The fixed 4-lane
-    loop over contiguous lanes is what LLVM vectorises.
-    """
-    b0x = bmin[node, 0]
-    b0y = bmin[node, 1]
-    b0z = bmin[node, 2]
-    b1x = bmax[node, 0]
-    b1y = bmax[node, 1]
-    b1z = bmax[node, 2]
-    mask = 0
-    for lane in range(4):
-        r = lane0 + lane
-        t0 = (b0x - ox[r]) * ix[r]
-        t1 = (b1x - ox[r]) * ix[r]
-        tn = min(t0, t1)
-        tf = max(t0, t1)
-        t0 = (b0y - oy[r]) * iy[r]
-        t1 = (b1y - oy[r]) * iy[r]
-        tn = max(tn, min(t0, t1))
-        tf = min(tf, max(t0, t1))
-        t0 = (b0z - oz[r]) * iz[r]
-        t1 = (b1z - oz[r]) * iz[r]
-        tn = max(tn, min(t0, t1))
-        tf = min(tf, max(t0, t1))
-        tn = max(tn - abs(tn) * SLAB_SLACK, tmin[r])
-        tf = min(tf + abs(tf) * SLAB_SLACK, tmax[r])
-        hit = tn <= tf
-        entry[lane] = tn if hit else F32_INF
-        mask |= (1 << lane) if hit else 0
-    return mask
 
 
 def safe_inverse(directions: np.ndarray) -> np.ndarray:

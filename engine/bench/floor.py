@@ -3,24 +3,24 @@ taken out.
 
 Every packet traversal (simd, masked, ranged, partition) pays the same work per ray around its
 walk: the frustum builder's pass over the rays, the adapter's checks and answer arrays
-(``engine.packet_plugin.PacketTraversal``), ``load_packet`` (transpose to packet-local rows and
+(``engine.packet.plugin.PacketTraversal``), ``load_packet`` (transpose to packet-local rows and
 the watertight test's shear per ray), ``load_frustum`` and ``store_hits``. ``FloorTraversal``
 runs exactly that -- the same adapter, the same helpers, the same decks of packets on the same
 threads -- and nothing else, so its time on a cell's recorded batches is the part of the cell's
 trace time that no traversal can remove (Amdahl's serial part of a packet-size speed-up).
 
 It answers "no hit" for every ray, so it is not a traversal plugin and is never registered; the
-benchmark runner (``engine.bench``) alone uses it.
+benchmark runner (``engine.bench.runner``) alone uses it.
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit, prange
 
-from .frustum_cull import load_frustum
-from .packet_kernels import load_packet, longest_packet, packet_scratch, store_hits
-from .packet_plugin import PacketTraversal
-from .types import RAY_KINDS, empty_hits
+from engine.packet.frustum_cull import load_frustum
+from engine.packet.kernels import load_packet, longest_packet, packet_scratch, store_hits
+from engine.packet.plugin import PacketTraversal
+from engine.core.types import RAY_KINDS, empty_hits
 
 
 @njit(cache=True, parallel=True)
@@ -28,7 +28,7 @@ def trace_floor(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin
                 offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
                 counters):
     """Load and store every packet as the traversal kernels do, without walking the BVH (the
-    packet traversal kernel signature, ``engine.packet_plugin``)."""
+    packet traversal kernel signature, ``engine.packet.plugin``)."""
     n_packets = offsets.shape[0] - 1
     max_rays = longest_packet(offsets)
     for chunk in prange(n_chunks):
@@ -48,7 +48,7 @@ class FloorTraversal(PacketTraversal):
 
 
 def floor_trace(renderer):
-    """``trace(kind, query, rays, packets)`` for ``engine.bench.replay``: the renderer's frustum
+    """``trace(kind, query, rays, packets)`` for ``engine.bench.runner.replay``: the renderer's frustum
     builder of the kind, then ``FloorTraversal``, timed as the renderer times a traversal."""
     floor = FloorTraversal()
 

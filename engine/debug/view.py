@@ -33,9 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import PacketrtError
-from .scene import Camera
-from .types import RAY_KINDS
+from engine.core.errors import PacketrtError
+from engine.core.scene import Camera
+from engine.core.types import RAY_KINDS
 
 VIEW_SIZE = (256, 256)
 DISPLAY_SIDE = 512          # the image is shown at least this big (nearest-neighbour upscale)
@@ -135,8 +135,8 @@ class FrameSource:
             self._lock.notify()
 
     def _run(self):
-        from .image import to_srgb8
-        from .whitted import WhittedRenderer
+        from engine.render.image import to_srgb8
+        from engine.render.whitted import WhittedRenderer
 
         while True:
             with self._lock:
@@ -206,8 +206,8 @@ class Viewer:
     # layout and widgets
     def _build_panel(self, config):
         gui = self.gui
-        from .packets import PACKET_SIZES
-        from .registry import frustum_names, traversal_names
+        from engine.packet.layout import PACKET_SIZES
+        from engine.core.registry import frustum_names, traversal_names
 
         em = 14
         panel = gui.Vert(4, gui.Margins(em // 2, em // 2, em // 2, em // 2))
@@ -266,7 +266,7 @@ class Viewer:
 
     # settings
     def _set_plugin(self, what, kind, name):
-        from .config import PerKind, validate
+        from engine.render.config import PerKind, validate
 
         config = self.source.wanted[0]
         table = getattr(config, what)
@@ -275,7 +275,7 @@ class Viewer:
         self._apply(lambda: validate(replace(config, **{what: PerKind(**values)})))
 
     def _set_render(self, **changes):
-        from .config import validate
+        from engine.render.config import validate
 
         config = self.source.wanted[0]
         self._apply(lambda: validate(replace(config, render=replace(config.render, **changes))))
@@ -395,14 +395,14 @@ def cmd_view(args) -> int:
     problem = display_problem()
     if problem:
         raise PacketrtError(problem)
-    from .cli import _config_from, _load_scene
-    from .config import validate
+    from engine.cli import _config_from, _load_scene
+    from engine.render.config import validate
 
     config = _config_from(args)
     if args.size is None:
         config = validate(replace(config, render=replace(config.render, width=VIEW_SIZE[0], height=VIEW_SIZE[1])))
     scene = _load_scene(config)
-    from .show import import_open3d
+    from engine.debug.show import import_open3d
 
     import_open3d()
     try:

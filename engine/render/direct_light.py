@@ -1,6 +1,6 @@
 """Direct lighting from one point light: the per-hit arithmetic of the Whitted shading loop.
 
-The loop (``engine.whitted``) shades a batch's M hits light by light: which hits face the light
+The loop (``engine.render.whitted``) shades a batch's M hits light by light: which hits face the light
 (``light_directions``), one shadow-ray batch for those, then the diffuse + Phong specular term of
 the unshadowed ones (``add_light``). With several lights and a million hits a frame, this
 arithmetic done as numpy array expressions cost more than tracing the shadow rays did; here it is

@@ -1,4 +1,4 @@
-"""Figures and tables from benchmark records (``engine.bench_results``): one function per kind.
+"""Figures and tables from benchmark records (``engine.bench.results``): one function per kind.
 
 A matrix picks its kinds with ``plot = [...]``; ``summary`` is always written. Every function
 takes (records, out folder) and returns the files it wrote (none when no record fits it).
@@ -14,7 +14,7 @@ recorded batches (shading excluded), the same work Embree is timed on.
     fig7     fig7.png: as fig5 with culling on (solid) and off (dashed); fig7.md: the benefit (Figure 7)
     table2   table2.md + table2.png: 2x2 SIMD vs 16x16 packets, culling benefit, Embree (Table 2)
     packets  packets.md + packets.png: Mrays/s per ray kind for traversal x packet size x culling,
-             Embree, the issue's targets and a cost model (``engine.bench_packets``)
+             Embree, the issue's targets and a cost model (``engine.bench.packets_report``)
     roger    roger.png + roger.md: secondary-ray time and candidates per ray vs reflector
              triangles (tag "lod"), image size (tag "resolution") and cosine-n's n (tag "cosine")
              (Roger et al. 2007)
@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .types import RAY_KINDS
+from engine.core.types import RAY_KINDS
 
 SECONDARY = ("shadow", "reflection", "refraction")
 
@@ -426,8 +426,8 @@ def roger(records: list, out: Path) -> list:
 
 
 def packets(records: list, out: Path) -> list:
-    """packets.md + packets.png: ``engine.bench_packets`` (its own module; it imports helpers from here)."""
-    from .bench_packets import packets as report
+    """packets.md + packets.png: ``engine.bench.packets_report`` (its own module; it imports helpers from here)."""
+    from engine.bench.packets_report import packets as report
 
     return report(records, out)
 

@@ -34,14 +34,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from .cone_sphere import absolute_slack, build_hierarchy, cone_sphere_overlap
-from .frustum_cull import frustum_misses_box, load_frustum
-from .kernels import F32_INF, closer, intersect_triangle, ray_shear, slab_test
-from .packet_kernels import (BEST_PRIM, BEST_T, BEST_U, BEST_V, child_order_keys, first_hit,
+from engine.rayspace.cone_sphere import absolute_slack, build_hierarchy, cone_sphere_overlap
+from engine.packet.frustum_cull import frustum_misses_box, load_frustum
+from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear, slab_test
+from engine.packet.kernels import (BEST_PRIM, BEST_T, BEST_U, BEST_V, child_order_keys, first_hit,
                              intersect_lanes, leaf_triangles, live_mask4, load_packet, node_box,
                              packet_scratch, slab_mask4)
-from .triangle_spheres import triangle_spheres
-from .types import MAX_BVH_DEPTH
+from engine.rayspace.triangle_spheres import triangle_spheres
+from engine.core.types import MAX_BVH_DEPTH
 
 # The two traversal-specific steps, from the plugins themselves (importing them registers
 # nothing new: the registry loads the same modules).
@@ -427,7 +427,7 @@ class RaySpaceNode:
 
     level, index: the node's level (0 = rays) and index within it; chain: (level, global node)
     from the root's children down to it. centre f32[3], radius, axis f32[3], alpha (radians),
-    far: its cone-sphere (``engine.cone_sphere``). survivors i32[S]: triangles whose bounding
+    far: its cone-sphere (``engine.rayspace.cone_sphere``). survivors i32[S]: triangles whose bounding
     sphere passes the cone-sphere test at every node of the chain (every triangle when the node
     is the root). per_level: survivors after each chain node. reversed: shadow rays indexed
     from the light.

@@ -22,9 +22,9 @@ import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
-from .errors import ConfigError
-from .packets import PACKET_SIZES
-from .types import RAY_KINDS
+from engine.core.errors import ConfigError
+from engine.packet.layout import PACKET_SIZES
+from engine.core.types import RAY_KINDS
 
 #: The first paper's final system (Overbeck et al. 2008, Section 6), when its plugins exist.
 PAPER_TRAVERSAL = {"primary": "ranged", "shadow": "partition", "reflection": "partition", "refraction": "partition"}
@@ -69,7 +69,7 @@ class RenderConfig:
 
 def _defaults(table: dict) -> dict:
     """The paper's choice where that plugin is registered, else the reference ``single``/``none``."""
-    from .registry import FRUSTA, TRAVERSALS, _ensure_builtins_loaded
+    from engine.core.registry import FRUSTA, TRAVERSALS, _ensure_builtins_loaded
 
     _ensure_builtins_loaded()
     known = TRAVERSALS if table is PAPER_TRAVERSAL else FRUSTA
@@ -158,7 +158,7 @@ def validate(config: Config) -> Config:
         raise ConfigError(f"render.threads must be in 0..1024 (0 = all cores), got {r.threads}")
     if config.override not in ("none", "reflective", "refractive"):
         raise ConfigError(f"materials.override must be 'none', 'reflective' or 'refractive', got {config.override!r}")
-    from .registry import get_frustum, get_traversal, load_entry_points
+    from engine.core.registry import get_frustum, get_traversal, load_entry_points
 
     if config.load_entry_points:
         load_entry_points()

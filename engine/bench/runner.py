@@ -1,6 +1,6 @@
 """``packetrt bench MATRIX.toml [--out DIR] [--repeat N] [--resume]``: the batch benchmark runner.
 
-Each cell of the matrix (``engine.bench_matrix``) is measured in this process, one after another:
+Each cell of the matrix (``engine.bench.matrix``) is measured in this process, one after another:
 
 1. a warm-up render that absorbs JIT compilation and records every ray batch the Whitted loop
    casts (kind, query, rays, packets) through the renderer's ``observer`` hook;
@@ -8,14 +8,14 @@ Each cell of the matrix (``engine.bench_matrix``) is measured in this process, o
 3. ``repeat`` replays of the recorded batches through the cell's frustum builder and traversal
    (timed like the render times them: frustum build + query + answer arrays), then, when every
    ray kind uses a packet traversal, ``repeat`` replays of the per-ray floor
-   (``engine.bench_floor``: the same with the BVH walk taken out), then Embree (the ``embree``
+   (``engine.bench.floor``: the same with the BVH walk taken out), then Embree (the ``embree``
    traversal, same thread count) on exactly the same batches: the ratios to Embree compare the
    same rays, the same work, minutes apart at most;
 4. one counting render for the counters (ray-AABB and ray-triangle tests, per BVH depth) and
    the plugins' own statistics (e.g. the ray-space hierarchy's candidates per ray).
 
 Timings are kept as median, min, max and quartiles over the repeats. A finished cell is
-appended to ``DIR/results.jsonl`` at once (see ``engine.bench_results``); ``--resume`` skips
+appended to ``DIR/results.jsonl`` at once (see ``engine.bench.results``); ``--resume`` skips
 cells already there; Ctrl-C stops between two writes, rewrites the CSV, tables and plots for
 what is finished, and the same command with ``--resume`` carries on.
 
@@ -39,10 +39,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import bench_results as results_io
-from .bench_floor import floor_trace, uses_packet_traversals
-from .bench_matrix import Cell, Matrix, load_matrix
-from .types import RAY_KINDS, empty_hits
+from engine.bench import results as results_io
+from engine.bench.floor import floor_trace, uses_packet_traversals
+from engine.bench.matrix import Cell, Matrix, load_matrix
+from engine.core.types import RAY_KINDS, empty_hits
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -105,14 +105,14 @@ class EmbreeYardstick:
 
     def note(self, renderer) -> None:
         """Remember the Embree scene a cell used (the plugin keeps it; building it is not repeated)."""
-        from .registry import get_traversal
+        from engine.core.registry import get_traversal
 
         scene = get_traversal("embree").scene_for(renderer.tris)
         self.scenes[id(scene)] = scene
 
     def seconds(self, renderer, recorder: BatchRecorder, repeat: int) -> list:
         """``repeat`` dicts {kind: seconds} of Embree on exactly the recorded batches."""
-        from .registry import get_traversal
+        from engine.core.registry import get_traversal
 
         digest = recorder.digest()
         if digest != self.digest:
@@ -189,7 +189,7 @@ def machine_info() -> dict:
     """CPU, cores, numba threads, library versions and the project's git commit."""
     import numba
 
-    from .embree_backend import _new_device
+    from engine.core.embree_scene import _new_device
 
     try:
         embree_version = _new_device()[1]  # the Embree library itself, not just the binding
@@ -223,7 +223,7 @@ class SceneCache:
 
 def cell_scene(base, cell: Cell):
     """The scene a cell renders: its recursion preset's material override, lights on or off."""
-    from .scene import override_materials
+    from engine.core.scene import override_materials
 
     scene = override_materials(base, cell.preset.override)
     return scene if cell.preset.lights else replace(scene, lights=[])
@@ -232,7 +232,7 @@ def cell_scene(base, cell: Cell):
 def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: EmbreeYardstick, machine: dict,
              matrix_name: str) -> dict:
     """Measure one cell (see the module doc); returns its results.jsonl record."""
-    from .whitted import WhittedRenderer
+    from engine.render.whitted import WhittedRenderer
 
     wall = time.perf_counter()
     started = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
@@ -251,7 +251,7 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
     cpu, clock = time.process_time(), time.perf_counter()
     replays = [replay(recorder.batches, trace_ours) for _ in range(repeat)]
     cpu_share = (time.process_time() - cpu) / max((time.perf_counter() - clock) * renderer.threads, 1e-9)
-    # The packet traversals' per-ray floor on the same batches (engine.bench_floor): the part
+    # The packet traversals' per-ray floor on the same batches (engine.bench.floor): the part
     # of the trace time no traversal can remove.
     floors = None
     if uses_packet_traversals(renderer):
@@ -340,7 +340,7 @@ def preflight(cells) -> dict:
 
 def write_outputs(out: Path, matrix: Matrix) -> list:
     """results.csv, tables and plots from results.jsonl (the cells of this matrix that are done)."""
-    from .bench_plots import render_plots
+    from engine.bench.plots import render_plots
 
     records, _ = results_io.read_results(out / results_io.RESULTS)
     tags = {c.key: list(c.tags) for c in matrix.cells}

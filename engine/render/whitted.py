@@ -26,14 +26,14 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from .bvh import build_bvh, scene_bounds
-from .config import Config
-from .direct_light import add_light, light_directions
-from .offset import coordinate_magnitude, hit_points, offset_origin, triangle_magnitudes
-from .packets import gather_batch, make_batch, packet_order
-from .registry import get_frustum, get_traversal
-from .scene import Scene
-from .types import RAY_KINDS, Hits, RayBatch, empty_hits, new_stats, stats_by_depth, stats_totals
+from engine.core.bvh import build_bvh, scene_bounds
+from engine.render.config import Config
+from engine.render.direct_light import add_light, light_directions
+from engine.core.offset import coordinate_magnitude, hit_points, offset_origin, triangle_magnitudes
+from engine.packet.layout import gather_batch, make_batch, packet_order
+from engine.core.registry import get_frustum, get_traversal
+from engine.core.scene import Scene
+from engine.core.types import RAY_KINDS, Hits, RayBatch, empty_hits, new_stats, stats_by_depth, stats_totals
 
 SHADOW_TMAX_SCALE = np.float32(1.0 - 1e-4)  # stop shadow rays just short of the light
 MIN_WEIGHT = np.float32(1e-3)               # rays carrying less are not worth casting

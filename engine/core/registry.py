@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from importlib import metadata
 
-from .errors import ConfigError
+from engine.core.errors import ConfigError
 
 TRAVERSALS: dict = {}
 FRUSTA: dict = {}
