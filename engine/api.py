@@ -43,7 +43,7 @@ from numba import njit, prange
 
 from engine.core.errors import ConfigError, PacketrtError
 from engine.core.triangle import safe_inverse
-from engine.core.types import Hits, Packets, RayBatch, Triangles, empty_hits
+from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch, Triangles, empty_hits
 
 #: Direction lengths the float32 kernels handle without underflow or overflow in t or |d|^2.
 MIN_DIRECTION_LENGTH, MAX_DIRECTION_LENGTH = 1e-18, 1e18
@@ -344,7 +344,8 @@ class RayTracer:
                  packet: int = 8, *, threads: int = 0, leaf_size: int = 4, bins: int = 16):
         from engine.core.bvh import build_bvh, scene_bounds
         from engine.packet.layout import check_packet_size
-        from engine.core.registry import get_frustum, get_traversal
+        from engine.render.plugins import make_frustum, make_traversal
+        from engine.render.tracer import Tracer
 
         self.scene = _scene_from(mesh_or_scene)
         self.triangles: Triangles = self.scene.triangles
@@ -353,12 +354,13 @@ class RayTracer:
         if self.threads < 0:
             raise ConfigError(f"threads must be >= 0 (0 = all cores), got {threads}")
         self.traversal_name, self.frustum_name = traversal, frustum
-        self.traversal = get_traversal(traversal)
-        self.frustum = get_frustum(frustum)
+        self.traversal = make_traversal(traversal)
+        self.frustum = make_frustum(frustum)
         self.bvh = build_bvh(self.triangles, leaf_size=leaf_size, bins=bins)
         self.bounds = scene_bounds(self.bvh)
-        if hasattr(self.traversal, "prepare"):
-            self.traversal.prepare(self.triangles)
+        self.tracer = Tracer(self.bvh, self.triangles, self.bounds, dict.fromkeys(RAY_KINDS, self.traversal),
+                             dict.fromkeys(RAY_KINDS, self.frustum))
+        self.tracer.prepare()
 
     def __repr__(self) -> str:
         return (f"RayTracer({self.scene.name!r}, {self.scene.n_triangles:,} triangles, "
@@ -394,9 +396,7 @@ class RayTracer:
             return empty_hits(0)
         rays, packets, lane = batch
         self._set_threads()
-        frusta = self.frustum.build(rays, packets, self.bounds)
-        hits = empty_hits(rays.org.shape[0])
-        self.traversal.intersect(self.bvh, self.triangles, rays, packets, frusta, hits, None)
+        hits = self.tracer.trace("reflection", "intersect", rays, packets)
         return Hits(*(np.ascontiguousarray(a[lane]) for a in hits))
 
     def occluded(self, origins, directions, tmin=None, tmax=None) -> np.ndarray:
@@ -406,10 +406,7 @@ class RayTracer:
             return np.zeros(0, np.bool_)
         rays, packets, lane = batch
         self._set_threads()
-        frusta = self.frustum.build(rays, packets, self.bounds)
-        answer = np.zeros(rays.org.shape[0], np.bool_)
-        self.traversal.occluded(self.bvh, self.triangles, rays, packets, frusta, answer, None)
-        return answer[lane]
+        return self.tracer.trace("shadow", "occluded", rays, packets)[lane]
 
     # -- trimesh's names ---------------------------------------------------------------
     def intersects_first(self, ray_origins, ray_directions, **segment) -> np.ndarray:
@@ -459,8 +456,8 @@ class RayTracer:
         document ``packetrt render --stats`` writes; ``counters=True`` fills its traversal
         counters from a second, counting render.
         """
-        from engine.cli import stats_dict
         from engine.core.scene import override_materials
+        from engine.render.report import stats_dict
         from engine.render.whitted import WhittedRenderer
 
         cfg = _as_config(config)
@@ -468,9 +465,7 @@ class RayTracer:
         renderer = WhittedRenderer(scene, cfg)
         result = renderer.render()
         if counters:
-            renderer.count = True
-            counted = renderer.render()
-            result.counters, result.counters_by_depth = counted.counters, counted.counters_by_depth
+            renderer.with_counters(result)
         stats = stats_dict(scene, cfg, result)
         stats["config"]["scene"] = {"name": scene.name, "from": "RayTracer"}
         return result.image, stats

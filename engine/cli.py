@@ -24,6 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from engine.core.errors import ConfigError, PacketrtError
+from engine.render.report import stats_dict
 
 EXIT_USAGE = 2
 EXIT_MISMATCH = 1
@@ -79,25 +80,6 @@ def _load_scene(config):
     return scene_from_config(config.scene, config.override)
 
 
-def stats_dict(scene, config, result) -> dict:
-    """The --stats document (see the README for its fields)."""
-    from engine.core.types import RAY_KINDS
-
-    return {
-        "scene": scene.name, "triangles": scene.n_triangles,
-        "width": config.render.width, "height": config.render.height,
-        "config": config.to_dict(),
-        "seconds": result.seconds,
-        "rays": result.rays,
-        "mrays_per_s": result.mrays_per_s(),
-        "counters": {name: result.counters.get(name, dict.fromkeys(RAY_KINDS, 0))
-                     for name in ("ray_aabb", "ray_tri")},
-        "counters_by_depth": result.counters_by_depth,
-        "counters_from": "a separate counting pass over the same rays (timings exclude counting)",
-        "extra": result.extra,
-    }
-
-
 def _write_json(path: str, data: dict) -> None:
     try:
         target = Path(path)
@@ -119,16 +101,43 @@ def cmd_render(args) -> int:
     result = renderer.render()
     save_png(result.image, args.output)
     if args.stats:
-        # Counters come from a second, counting pass so the timed render does not pay for them.
-        renderer.count = True
-        counted = renderer.render()
-        result.counters, result.counters_by_depth = counted.counters, counted.counters_by_depth
+        renderer.with_counters(result)
     mrays = result.mrays_per_s()
     rates = ", ".join(f"{k} {result.rays[k]:,} rays {mrays[k]:.2f} Mrays/s" for k in result.rays if result.rays[k])
     print(f"{scene.name}: {scene.n_triangles:,} triangles, {config.render.width}x{config.render.height}, "
           f"{result.seconds['total']:.2f} s -> {args.output} ({rates})")
     if args.stats:
         _write_json(args.stats, stats_dict(scene, config, result))
+    return 0
+
+
+def cmd_show(args) -> int:
+    from engine.debug.show import PICTURE_SIZE, write_show
+    from engine.render.config import parse_size
+
+    size = parse_size(args.picture) if getattr(args, "picture", None) else PICTURE_SIZE
+    if not (64 <= size[0] <= 4096 and 64 <= size[1] <= 4096):
+        raise ConfigError(f"--picture must be between 64x64 and 4096x4096, got {size[0]}x{size[1]}")
+    config = _config_from(args)
+    scene = _load_scene(config)
+    summary = write_show(scene, config, args.kind, args.packet_index, args.output, size)
+    detail = ", ".join(f"{k} {v}" for k, v in summary.items() if k not in ("packet", "packets"))
+    print(f"{args.kind} packet {summary['packet']} of {summary['packets']} ({detail}) -> {args.output}")
+    return 0
+
+
+def cmd_view(args) -> int:
+    from engine.debug.view import VIEW_SIZE, display_problem, run_viewer
+    from engine.render.config import validate
+
+    problem = display_problem()
+    if problem:
+        raise PacketrtError(problem)
+    config = _config_from(args)
+    if args.size is None:
+        config = validate(replace(config, render=replace(config.render, width=VIEW_SIZE[0], height=VIEW_SIZE[1])))
+    run_viewer(_load_scene(config), config, status_file=getattr(args, "status_file", None),
+               exit_after=getattr(args, "exit_after", None))
     return 0
 
 
@@ -187,7 +196,7 @@ def _delegate(module: str, function: str):
 
 
 def cmd_plugins(args) -> int:
-    from engine.core.registry import describe, load_entry_points
+    from engine.render.plugins import describe, load_entry_points
 
     loaded = load_entry_points()
     table = describe()
@@ -264,7 +273,7 @@ def _add_show_parser(sub) -> None:
     p.add_argument("--packet-index", type=int, default=None, help="which packet (default: one near the image centre)")
     p.add_argument("-o", "--output", default="out/show.png", help="PNG to write")
     p.add_argument("--picture", default="800x600", metavar="WxH", help="size of the PNG (default 800x600)")
-    p.set_defaults(run=_delegate("engine.debug.show", "cmd_show"))
+    p.set_defaults(run=cmd_show)
 
 
 def _add_view_parser(sub) -> None:
@@ -273,7 +282,7 @@ def _add_view_parser(sub) -> None:
     # For tests: the panel's labels and numbers as JSON after every frame; close after S seconds.
     p.add_argument("--status-file", help=argparse.SUPPRESS)
     p.add_argument("--exit-after", type=float, help=argparse.SUPPRESS)
-    p.set_defaults(run=_delegate("engine.debug.view", "cmd_view"))
+    p.set_defaults(run=cmd_view)
 
 
 def main(argv=None) -> int:

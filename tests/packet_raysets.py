@@ -14,7 +14,7 @@ import numpy as np
 from engine.core.bvh import build_bvh
 from engine.core.offset import coordinate_magnitude, hit_points, offset_origin
 from engine.packet.layout import make_batch
-from engine.core.registry import get_traversal
+from engine.render.plugins import make_traversal
 from engine.core.types import empty_hits
 from engine.render.whitted import camera_rays
 
@@ -65,7 +65,7 @@ def scene_rays(scene, width: int, height: int) -> SceneRays:
                          pixel)
     rays, packets = primary.batch(width, height, 8)
     hits = empty_hits(rays.org.shape[0])
-    get_traversal("single").intersect(bvh, tris, rays, packets, None, hits, None)
+    make_traversal("single").intersect(bvh, tris, rays, packets, None, hits, None)
     idx = np.flatnonzero(hits.prim >= 0)
     prim = hits.prim[idx]
     # Origins as the Whitted loop makes them (engine.core.offset).

@@ -11,7 +11,7 @@ import pytest
 
 import engine.bench.runner as bench
 from engine.bench.matrix import RECURSION, load_matrix, parse_matrix
-from engine.bench.packets_report import packet_cells
+from engine.bench.packets_report import COST_TERMS, packet_cells
 from engine.cli import main
 from engine.core.types import RAY_KINDS
 
@@ -20,7 +20,7 @@ SMOKE = ROOT / "benchmarks" / "smoke.toml"
 
 RECORD_KEYS = {"schema", "id", "matrix", "tags", "labels", "cell", "config", "scene", "repeat", "threads",
                "seconds", "rays", "batches", "packets", "mrays_per_s", "embree_mrays_per_s", "ratio_to_embree", "fps",
-               "counters", "counters_by_depth", "extra", "machine", "started", "wall_seconds", "load"}
+               "checks", "counters", "counters_by_depth", "extra", "machine", "started", "wall_seconds", "load"}
 SUMMARY_KEYS = {"median", "min", "max", "q1", "q3", "runs"}
 
 
@@ -57,6 +57,11 @@ def test_smoke_writes_jsonl_csv_and_plots(smoke_dir):
         assert r["rays"]["primary"] == 64 * 64 and r["rays"]["all"] == sum(r["rays"][k] for k in RAY_KINDS)
         assert set(r["mrays_per_s"]) == set(RAY_KINDS) | {"all"}
         assert r["ratio_to_embree"]["primary"] > 0 and r["embree_mrays_per_s"]["all"] > 0
+        # Every timed variant's answers were checked, ray for ray, and agreed.
+        for variant in ("ours", "embree"):
+            for k in RAY_KINDS:
+                row = r["checks"][variant][k]
+                assert row["checked"] == r["rays"][k] and row["mismatches"] == 0, (variant, k, row)
         assert r["counters"]["ray_tri"]["primary"] > 0 and r["counters_by_depth"]["ray_aabb"]["primary"]
         assert r["fps"]["frame"] > 0 and r["fps"]["trace"] > 0
         m = r["machine"]
@@ -293,8 +298,9 @@ def test_every_plot_kind_draws(tmp_path):
     (cells,) = packet_cells(records).values()
     assert len(cells) == 13
     usable = [r for r in cells if r["seconds"]["replay"]["primary"]["median"] > r["seconds"]["floor"]["primary"]["median"]]
-    assert len(usable) >= 8, "too few cells for the 4-term fit"
-    assert f"| primary | {len(usable)} | " in report and "rayspace" not in report
+    # The fit needs twice as many usable cells as terms; on a busy machine fewer may be left.
+    fitted = f"| primary | {len(usable)} | " in report
+    assert fitted == (len(usable) >= 2 * len(COST_TERMS)) and "rayspace" not in report
     assert "the per-ray floor" in report and "| simd | off | 2 | " in report
 
 
@@ -322,3 +328,37 @@ def test_cost_fit_recovers_known_costs_and_never_goes_negative():
     assert np.linalg.lstsq(a, y, rcond=None)[0][1] < 0
     x = nonnegative_fit(a, y)
     assert (x >= 0).all() and x[1] == 0 and x[0] > 0
+
+
+def test_wrong_answers_are_caught_and_their_rates_dropped():
+    """The runner's answer check can fail: tampered answers count as mismatches, and a kind with
+    mismatches loses its rate (and so does "all")."""
+    import numpy as np
+
+    from engine.render.config import Config, RenderConfig
+    from engine.render.whitted import WhittedRenderer
+    from scenes.catalog import load_named
+
+    config = Config(render=RenderConfig(width=32, height=32, max_depth=2, packet=8))
+    recorder = bench.BatchRecorder()
+    renderer = WhittedRenderer(load_named("whitted"), config, observer=recorder)
+    renderer.render()
+    renderer.observer = None
+    reference = bench.ReferenceAnswers().get(renderer, recorder)
+    _, answers = bench.replay(recorder.batches, renderer.tracer)
+    good = bench.check_answers(recorder.batches, answers, reference, renderer.tracer, renderer.tris)
+    assert all(good[k]["mismatches"] == 0 for k in RAY_KINDS) and good["primary"]["checked"] == 32 * 32
+    tampered = []
+    for (kind, query, rays, packets), answer in zip(recorder.batches, answers):
+        if query == "intersect":
+            hit = np.flatnonzero(answer.prim >= 0)[:5]
+            answer.prim[hit] = (answer.prim[hit] + 7) % renderer.tris.v0.shape[0]
+            answer.t[hit] *= 0.5
+        else:
+            answer[:] = ~answer & (rays.tmin <= rays.tmax)
+        tampered.append(answer)
+    bad = bench.check_answers(recorder.batches, tampered, reference, renderer.tracer, renderer.tris)
+    assert bad["primary"]["mismatches"] == 5 and bad["shadow"]["mismatches"] > 0
+    rates = bench._checked({"primary": 1.0, "shadow": 2.0, "reflection": 3.0, "refraction": 4.0, "all": 5.0}, bad)
+    assert rates["primary"] is None and rates["shadow"] is None and rates["all"] is None
+    assert bench._checked(dict(rates, primary=1.0, shadow=2.0, all=5.0), good)["all"] == 5.0

@@ -10,7 +10,7 @@ import pytest
 from engine.render import config as cfg
 from engine.core.triangle import F32_INF, intersect_triangle, ray_shear
 from engine.core.offset import coordinate_magnitude, hit_points, offset_origin
-from engine.core.registry import get_frustum, get_traversal
+from engine.render.plugins import make_frustum, make_traversal
 from engine.core.scene import make_triangles
 from engine.core.types import empty_hits
 from engine.render.whitted import WhittedRenderer
@@ -101,8 +101,8 @@ def test_every_traversal_gives_the_kernels_answer_on_cornell_box_rays(override):
         for name in TRAVERSALS:
             frusta = ["none"] if name in ("single", "rayspace") else ["none", FRUSTUM[kind]]
             for frustum in frusta:
-                traversal = get_traversal(name)
-                built = get_frustum(frustum).build(rays, packets, renderer.bounds)
+                traversal = make_traversal(name)
+                built = make_frustum(frustum).build(rays, packets, renderer.bounds)
                 hits = empty_hits(rays.org.shape[0])
                 traversal.intersect(renderer.bvh, renderer.tris, rays, packets, built, hits, None)
                 occluded = np.zeros(rays.org.shape[0], np.bool_)

@@ -12,7 +12,7 @@ from engine.core.bvh import build_bvh
 from engine.cli import main
 from engine.render.config import Config, with_overrides
 from engine.core.triangle import safe_inverse
-from engine.core.registry import get_traversal
+from engine.render.plugins import make_traversal
 from engine.core.types import RayBatch, empty_hits
 from scenes.catalog import load_named, scene_from_config
 from validation.audit import audit
@@ -79,7 +79,7 @@ def test_open3d_honours_segments_and_occlusion(bunny):
     assert compare_hits(rays, hits_o, hits_e, bunny.triangles).mismatch.sum() == 0
     # Embree's oracle moves origins to tmin like this one does; our kernel takes tmin as it is.
     ours = empty_hits(rays.org.shape[0])
-    get_traversal("single").intersect(build_bvh(bunny.triangles), bunny.triangles, rays, None, None, ours, None)
+    make_traversal("single").intersect(build_bvh(bunny.triangles), bunny.triangles, rays, None, None, ours, None)
     assert compare_hits(rays, ours, hits_o, bunny.triangles).mismatch.sum() == 0
     occ_e, occ_o = embree.occluded(rays), open3d.occluded(rays)
     assert not occ_o[~live].any()

@@ -4,7 +4,7 @@ import pytest
 
 from engine.core.bvh import build_bvh
 from engine.render.config import Config, with_overrides
-from engine.core.registry import get_traversal
+from engine.render.plugins import make_traversal
 from engine.core.types import empty_hits
 from scenes.catalog import load_named, scene_from_config
 from validation.audit import audit
@@ -16,7 +16,7 @@ from conftest import primary_batch
 
 def single_hits(scene, rays, packets):
     hits = empty_hits(rays.org.shape[0])
-    get_traversal("single").intersect(build_bvh(scene.triangles), scene.triangles, rays, packets, None, hits, None)
+    make_traversal("single").intersect(build_bvh(scene.triangles), scene.triangles, rays, packets, None, hits, None)
     return hits
 
 

@@ -15,7 +15,7 @@ from engine.core.errors import ConfigError
 from engine.core.triangle import F32_INF, intersect_triangle, ray_shear
 from engine.core.offset import offset_origin
 from engine.packet.layout import make_batch
-from engine.core.registry import get_traversal
+from engine.render.plugins import make_traversal
 from engine.core.scene import make_triangles
 from engine.rayspace.triangle_spheres import triangle_spheres
 from engine.core.types import COUNTER_RAY_TRI, empty_hits, new_stats
@@ -30,11 +30,8 @@ PACKET = 8
 
 @pytest.fixture
 def rayspace():
-    """The registered plugin, back at its default options afterwards (it is a singleton)."""
-    plugin = get_traversal("rayspace")
-    plugin.configure({})
-    yield plugin
-    plugin.configure({})
+    """A new rayspace plugin with the default options."""
+    return make_traversal("rayspace")
 
 
 # -- scenes and secondary rays built from single's primary hits -------------------------
@@ -53,7 +50,7 @@ class Setup:
                                    np.arange(count, dtype=np.int32), np.ones((count, 3)), width, height, PACKET)
         self.primary, self.primary_packets = rays, packets
         hits = empty_hits(len(rays.org))
-        get_traversal("single").intersect(self.bvh, self.tris, rays, packets, None, hits, None)
+        make_traversal("single").intersect(self.bvh, self.tris, rays, packets, None, hits, None)
         idx = np.flatnonzero(hits.prim >= 0)
         self.pixel = rays.pixel[idx]
         self.d = rays.dir[idx]
@@ -113,7 +110,7 @@ SCENES = ["bunny", "cornell-box", "whitted"]
 
 def intersect_both(plugin, setup, rays, packets, stats=None):
     ref = empty_hits(len(rays.org))
-    get_traversal("single").intersect(setup.bvh, setup.tris, rays, packets, None, ref, None)
+    make_traversal("single").intersect(setup.bvh, setup.tris, rays, packets, None, ref, None)
     got = empty_hits(len(rays.org))
     plugin.intersect(setup.bvh, setup.tris, rays, packets, None, got, stats)
     return ref, got
@@ -121,7 +118,7 @@ def intersect_both(plugin, setup, rays, packets, stats=None):
 
 def occluded_both(plugin, setup, rays, packets, stats=None):
     ref = np.zeros(len(rays.org), np.bool_)
-    get_traversal("single").occluded(setup.bvh, setup.tris, rays, packets, None, ref, None)
+    make_traversal("single").occluded(setup.bvh, setup.tris, rays, packets, None, ref, None)
     got = np.zeros(len(rays.org), np.bool_)
     plugin.occluded(setup.bvh, setup.tris, rays, packets, None, got, stats)
     return ref, got
@@ -235,7 +232,7 @@ def test_crowded_pixels_without_child_masks(rayspace):
     assert h.max_block_rays > MASK_BITS
     bvh = build_bvh(tris)
     ref = empty_hits(len(rays.org))
-    get_traversal("single").intersect(bvh, tris, rays, packets, None, ref, None)
+    make_traversal("single").intersect(bvh, tris, rays, packets, None, ref, None)
     got = empty_hits(len(rays.org))
     rayspace.intersect(bvh, tris, rays, packets, None, got, None)
     assert_same_hits(ref, got)
@@ -325,44 +322,41 @@ def test_tiny_budget_splits_into_batches_with_identical_hits(rayspace):
     ref, _ = intersect_both(rayspace, setup, rays, packets, full)
     assert full.extra["rayspace"]["batches"] == 1
     budget = max(full.extra["rayspace"]["peak_pairs"] // 7, 1)
-    rayspace.configure({"pair_budget": budget})
+    small = make_traversal("rayspace", {"pair_budget": budget})
     stats = new_stats(2)
     got = empty_hits(len(rays.org))
-    rayspace.intersect(setup.bvh, setup.tris, rays, packets, None, got, stats)
+    small.intersect(setup.bvh, setup.tris, rays, packets, None, got, stats)
     assert_same_hits(ref, got)
     extra = stats.extra["rayspace"]
     assert extra["batches"] > 1
     assert extra["peak_pairs"] <= budget
     # Batching must not lose candidates: every surviving pair is still tested.
     assert extra["candidates"] == full.extra["rayspace"]["candidates"]
-    occ_ref, occ = occluded_both(rayspace, setup, rays, packets)
+    occ_ref, occ = occluded_both(small, setup, rays, packets)
     np.testing.assert_array_equal(occ, occ_ref)
 
 
 def test_budget_too_small_for_one_triangle_names_the_minimum(rayspace):
     setup = setup_for("cornell-box")  # big walls: one triangle meets many rays
     rays, packets = setup.reflection()
-    rayspace.configure({"pair_budget": 3})
+    small = make_traversal("rayspace", {"pair_budget": 3})
     with pytest.raises(ConfigError, match=r"pair_budget.*at least \d+"):
-        rayspace.intersect(setup.bvh, setup.tris, rays, packets, None, empty_hits(len(rays.org)), None)
+        small.intersect(setup.bvh, setup.tris, rays, packets, None, empty_hits(len(rays.org)), None)
 
 
 @pytest.mark.parametrize("options", [
     {"pair_budget": 0}, {"pair_budget": -5}, {"pair_budget": 2**31}, {"pair_budget": 1.5},
     {"pair_budget": "big"}, {"pair_budget": True}, {"budget": 10}, {"pair_budget": 10, "extra": 1},
 ])
-def test_bad_options_raise_config_error(rayspace, options):
+def test_bad_options_raise_config_error(options):
     with pytest.raises(ConfigError, match=r"options\.rayspace: .*(pair_budget|allowed)"):
-        rayspace.configure(options)
-    assert rayspace.pair_budget == rayspace.OPTIONS["pair_budget"]
+        make_traversal("rayspace", options)
 
 
-def test_options_table_and_configure(rayspace):
-    assert rayspace.OPTIONS == {"pair_budget": 1 << 22}
-    rayspace.configure({"pair_budget": 1000})
-    assert rayspace.pair_budget == 1000
-    rayspace.configure({})
-    assert rayspace.pair_budget == 1 << 22
+def test_options_table_and_instances():
+    assert make_traversal("rayspace").OPTIONS == {"pair_budget": 1 << 22}
+    assert make_traversal("rayspace", {"pair_budget": 1000}).pair_budget == 1000
+    assert make_traversal("rayspace").pair_budget == 1 << 22
 
 
 # -- statistics -------------------------------------------------------------------------------
@@ -388,7 +382,7 @@ def test_stats_accumulate_across_calls(rayspace):
 
 
 def test_registered():
-    assert "rayspace" in __import__("engine.core.registry", fromlist=["traversal_names"]).traversal_names()
+    assert "rayspace" in __import__("engine.render.plugins", fromlist=["traversal_names"]).traversal_names()
 
 
 # -- the cone-sphere test is conservative ---------------------------------------------------
@@ -584,16 +578,12 @@ def test_no_hit_is_ever_culled_anywhere_in_the_hierarchy(seed, width, height, pe
 
     bvh = build_bvh(tris)
     ref = empty_hits(len(rays.org))
-    get_traversal("single").intersect(bvh, tris, rays, packets, None, ref, None)
+    make_traversal("single").intersect(bvh, tris, rays, packets, None, ref, None)
     got = empty_hits(len(rays.org))
-    plugin = get_traversal("rayspace")
     # Batches now and then; never below the live rays, which one triangle may all meet.
     n_live = max(int(live.sum()), 1)
-    plugin.configure({"pair_budget": int(rng.integers(n_live, 4 * n_live + 30))})
-    try:
-        plugin.intersect(bvh, tris, rays, packets, None, got, None)
-    finally:
-        plugin.configure({})
+    plugin = make_traversal("rayspace", {"pair_budget": int(rng.integers(n_live, 4 * n_live + 30))})
+    plugin.intersect(bvh, tris, rays, packets, None, got, None)
     assert_same_hits(ref, got)
 
 

@@ -73,3 +73,32 @@ def test_counters_sum_over_batches_and_threads():
     one = render("single", count=True)
     per_depth = one.counters_by_depth["ray_tri"]["reflection"]
     assert sum(per_depth) == one.counters["ray_tri"]["reflection"] > 0
+
+
+def test_options_of_one_config_do_not_reach_the_next():
+    """Plugins are new instances per renderer: a small pair_budget and Embree robust off in one
+    config, then the defaults in the same process, and the second render used the defaults."""
+    from engine.render.config import from_dict
+
+    scene = load_named("whitted")
+    tables = {"render": {"width": 48, "height": 48, "max_depth": 2},
+              "traversal": {"primary": "embree", "shadow": "embree", "reflection": "rayspace",
+                            "refraction": "rayspace"}}
+
+    def rendered(options):
+        config = from_dict(dict(tables, options=options) if options else tables)
+        renderer = WhittedRenderer(scene, config)
+        result = renderer.with_counters(renderer.render())
+        return renderer, result.extra
+
+    _, before = rendered(None)
+    full = before["reflection"]["rayspace"]
+    assert full["batches"] == full["calls"] and before["primary"]["embree"]["robust"] is True
+    small_budget = max(full["peak_pairs"] // 5, 1)
+    small, tweaked = rendered({"rayspace": {"pair_budget": small_budget}, "embree": {"robust": False}})
+    assert small.traversal["reflection"].pair_budget == small_budget
+    assert tweaked["reflection"]["rayspace"]["batches"] > full["calls"] and tweaked["primary"]["embree"]["robust"] is False
+    again, after = rendered(None)
+    assert again.traversal["reflection"].pair_budget == 1 << 22 and again.traversal["primary"].robust is True
+    assert after["reflection"]["rayspace"]["batches"] == full["calls"] and after["primary"]["embree"]["robust"] is True
+    assert after["reflection"]["rayspace"]["peak_pairs"] == full["peak_pairs"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numba
 
 from engine.core.embree_scene import EmbreeScene
+from engine.core.errors import ConfigError
 from engine.core.registry import register_traversal
 from engine.core.types import check_answer_arrays
 
@@ -19,17 +20,14 @@ from engine.core.types import check_answer_arrays
 class EmbreeTraversal:
     """Intel Embree (embreex), robust mode, same thread count as numba."""
 
-    def __init__(self):
-        self.robust = True
-        self._scenes: dict = {}
+    OPTIONS = {"robust": True}
 
-    def configure(self, options: dict) -> None:
-        from engine.core.errors import ConfigError
-
-        for key, value in options.items():
-            if key != "robust" or not isinstance(value, bool):
-                raise ConfigError(f"options.embree: allowed key is robust = true|false, got {key} = {value!r}")
-            self.robust = value
+    def __init__(self, robust=OPTIONS["robust"]):
+        """``robust``: Embree's robust (watertight) mode; a bool, else ConfigError."""
+        if not isinstance(robust, bool):
+            raise ConfigError(f"options.embree: robust must be true or false, got {robust!r}")
+        self.robust = robust
+        self._scenes: dict = {}  # this instance's Embree scene, per triangle set
 
     def scene_for(self, tris) -> EmbreeScene:
         threads = numba.get_num_threads()

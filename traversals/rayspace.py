@@ -30,7 +30,7 @@ Shadow rays
     surface it leaves at the far end, where the tmin offset has no reversed counterpart.
     Rays of a batch that aim at different lights are not reversed.
 
-Options (``[options.rayspace]`` in a config, or ``configure``)
+Options (``[options.rayspace]`` in a config, or keyword arguments of the class)
     pair_budget = 4194304   most (node, triangle) pairs one stream may hold (1 .. 2^31-1).
                             A level that would overflow splits the triangles into batches
                             traced one after another, merged by closest hit. A budget too
@@ -249,21 +249,13 @@ class RaySpaceTraversal:
 
     OPTIONS = {"pair_budget": 1 << 22}
 
-    def __init__(self):
-        self.pair_budget = self.OPTIONS["pair_budget"]
-
-    def configure(self, options: dict) -> None:
-        """Set the options; keys left out take their defaults. Bad keys or values: ConfigError."""
-        unknown = set(options) - set(self.OPTIONS)
-        if unknown:
-            raise ConfigError(f"options.rayspace: unknown key(s) {sorted(unknown)}; "
-                              f"allowed: {', '.join(sorted(self.OPTIONS))}")
-        budget = options.get("pair_budget", self.OPTIONS["pair_budget"])
-        if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) \
-                or not 1 <= budget <= MAX_PAIR_BUDGET:
+    def __init__(self, pair_budget=OPTIONS["pair_budget"]):
+        """Options as in the module doc; a bad value is a ConfigError."""
+        if isinstance(pair_budget, bool) or not isinstance(pair_budget, (int, np.integer)) \
+                or not 1 <= pair_budget <= MAX_PAIR_BUDGET:
             raise ConfigError(f"options.rayspace: pair_budget must be an integer in 1..{MAX_PAIR_BUDGET}, "
-                              f"got {budget!r}")
-        self.pair_budget = int(budget)
+                              f"got {pair_budget!r}")
+        self.pair_budget = int(pair_budget)
 
     # -- the two queries ---------------------------------------------------------------
     def intersect(self, bvh, tris, rays, packets, frusta, hits, stats):

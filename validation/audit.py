@@ -19,8 +19,9 @@ from __future__ import annotations
 import numpy as np
 
 from engine.core.errors import ConfigError
-from engine.core.registry import get_traversal
-from engine.core.types import RAY_KINDS, empty_hits
+from engine.render.plugins import make_traversal
+from engine.render.tracer import Tracer
+from engine.core.types import RAY_KINDS
 from engine.render.whitted import WhittedRenderer
 
 from .compare import compare_hits, compare_occlusion
@@ -119,7 +120,9 @@ class AuditObserver:
         self.bvh = bvh
         self.oracles = list(oracle) if isinstance(oracle, (list, tuple)) else [oracle]
         self.oracle = self.oracles[0]
-        self.reference = get_traversal("single")
+        # The reference ``single`` traversal gives the closest hits behind our occlusion answers.
+        self.reference = Tracer(bvh, self.tris, None, dict.fromkeys(RAY_KINDS, make_traversal("single")),
+                                dict.fromkeys(RAY_KINDS))
         self.tallies = [_Tally() for _ in self.oracles]
         self.combined = _Tally()
         self.between = _Tally("disagreements") if len(self.oracles) == 2 else None
@@ -142,8 +145,7 @@ class AuditObserver:
             ours = _Answers(query, answer)
             theirs = [_Answers(query, o.intersect(rays)) for o in self.oracles]
         else:
-            closest_ours = empty_hits(rays.org.shape[0])
-            self.reference.intersect(self.bvh, self.tris, rays, packets, None, closest_ours, None)
+            closest_ours = self.reference.trace(kind, "intersect", rays, packets)
             ours = _Answers(query, closest_ours, answer)
             theirs = [_Answers(query, o.intersect(rays), o.occluded(rays)) for o in self.oracles]
         results = [_classify(rays, self.tris, ours, t) for t in theirs]

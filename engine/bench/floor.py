@@ -14,13 +14,12 @@ benchmark runner (``engine.bench.runner``) alone uses it.
 """
 from __future__ import annotations
 
-import numpy as np
 from numba import njit, prange
 
 from engine.packet.frustum_cull import load_frustum
 from engine.packet.kernels import load_packet, longest_packet, packet_scratch, store_hits
 from engine.packet.plugin import PacketTraversal
-from engine.core.types import RAY_KINDS, empty_hits
+from engine.core.types import RAY_KINDS
 
 
 @njit(cache=True, parallel=True)
@@ -47,19 +46,10 @@ class FloorTraversal(PacketTraversal):
     kernel = trace_floor
 
 
-def floor_trace(renderer):
-    """``trace(kind, query, rays, packets)`` for ``engine.bench.runner.replay``: the renderer's frustum
-    builder of the kind, then ``FloorTraversal``, timed as the renderer times a traversal."""
-    floor = FloorTraversal()
-
-    def trace(kind, query, rays, packets):
-        frusta = renderer.frustum[kind].build(rays, packets, renderer.bounds)
-        n = rays.org.shape[0]
-        if query == "intersect":
-            floor.intersect(renderer.bvh, renderer.tris, rays, packets, frusta, empty_hits(n), None)
-        else:
-            floor.occluded(renderer.bvh, renderer.tris, rays, packets, frusta, np.zeros(n, np.bool_), None)
-    return trace
+def floor_tracer(renderer):
+    """The renderer's ``Tracer`` with ``FloorTraversal`` for every kind (the same frustum
+    builders), for ``engine.bench.runner.replay``: timed as the renderer times a traversal."""
+    return renderer.tracer.with_traversal(dict.fromkeys(RAY_KINDS, FloorTraversal()))
 
 
 def uses_packet_traversals(renderer) -> bool:

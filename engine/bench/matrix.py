@@ -198,7 +198,7 @@ def _int(source, where, value, allowed: str) -> int:
 
 
 def _plugin(source, where, value, what: str) -> PluginSpec:
-    from engine.core.registry import frustum_names, traversal_names
+    from engine.render.plugins import frustum_names, traversal_names
 
     known = traversal_names() if what == "traversal" else frustum_names()
     allowed = f"{', '.join(known)}, paper, or a table of ray kinds ({', '.join(RAY_KINDS)}) and label"

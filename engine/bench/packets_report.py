@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.bench.plots import _fmt, _machine_line, _ordered, _pyplot, _save, trace_seconds
+from engine.bench.figures import fmt, machine_line, ordered, pyplot, save, trace_seconds
 from engine.core.types import RAY_KINDS
 
 #: Targets of the issue: 16x16 over 2x2 SIMD for the frame, culling benefit (primary and
@@ -140,12 +140,12 @@ def _rate_tables(records: list, packets: list, travs: list) -> list:
                              if r["labels"]["traversal"] == trav and _culling(r) == culling}
                 if by_packet:
                     lines.append(f"| {trav} | {culling} | " + " | ".join(
-                        _fmt(_rate(by_packet[p], kind)) if p in by_packet else "" for p in packets) + " |")
+                        fmt(_rate(by_packet[p], kind)) if p in by_packet else "" for p in packets) + " |")
         embree = {p: [_embree_rate(r, kind) for r in records
                       if r["labels"]["packet"] == p and _embree_rate(r, kind)] for p in packets}
         if any(embree.values()):
             lines.append("| Embree | – | " + " | ".join(
-                _fmt(float(np.median(embree[p]))) if embree[p] else "" for p in packets) + " |")
+                fmt(float(np.median(embree[p]))) if embree[p] else "" for p in packets) + " |")
         lines.append("")
     return lines
 
@@ -179,7 +179,7 @@ def _target_lines(records: list, travs: list) -> list:
             a, b = _rate(on, kind), _rate(off, kind)
             benefit = a / b if a and b else None
             mark = f" ({_met(benefit, TARGET_CULLING)})" if kind in ("primary", "shadow") and benefit else ""
-            cells.append(f"{_fmt(benefit)}×{mark}" if benefit else "–")
+            cells.append(f"{fmt(benefit)}×{mark}" if benefit else "–")
         lines.append(f"| {trav} | " + " | ".join(cells) + " |")
     lines += ["", f"Ours / Embree at {LARGE}×{LARGE} with culling; targets "
               + ", ".join(f"{k} {v:g}×" for k, v in TARGET_EMBREE.items()) + ".", "",
@@ -191,7 +191,7 @@ def _target_lines(records: list, travs: list) -> list:
         cells = []
         for kind in RAY_KINDS:
             ratio = r["ratio_to_embree"].get(kind)
-            cells.append(f"{_fmt(ratio)}× ({_met(ratio, TARGET_EMBREE[kind])})" if ratio else "–")
+            cells.append(f"{fmt(ratio)}× ({_met(ratio, TARGET_EMBREE[kind])})" if ratio else "–")
         lines.append(f"| {trav} | " + " | ".join(cells) + " |")
     lines.append("")
     return lines
@@ -218,7 +218,7 @@ def _floor_lines(records: list) -> list:
         walk = trace - floor
         lines.append(f"| {r['labels']['traversal']} | {_culling(r)} | {LARGE} | {trace * 1e3:,.1f} | {floor * 1e3:,.1f} | "
                      f"{floor / trace * 100:.0f}% | {walk * 1e3:,.1f} | {b_trace / trace:.2f}× | "
-                     f"{_fmt((b_trace - b_floor) / walk if walk > 0 else None)}× | {b_trace / floor:.2f}× |")
+                     f"{fmt((b_trace - b_floor) / walk if walk > 0 else None)}× | {b_trace / floor:.2f}× |")
     lines.append("")
     return lines
 
@@ -243,7 +243,7 @@ def _cost_lines(records: list) -> list:
 
 
 def _plot(records: list, travs: list, path: Path) -> Path:
-    plt = _pyplot()
+    plt = pyplot()
     kinds = [k for k in RAY_KINDS if any(r["rays"][k] for r in records)]
     fig, axes = plt.subplots(1, len(kinds), figsize=(3.4 * len(kinds), 3.2), squeeze=False)
     packets = sorted({r["labels"]["packet"] for r in records})
@@ -279,7 +279,7 @@ def _plot(records: list, travs: list, path: Path) -> Path:
     lab = records[0]["labels"]
     fig.suptitle(f"{lab['scene']} {lab['recursion']} {lab['resolution']}: Mrays/s per ray kind", fontsize=10)
     fig.tight_layout()
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def packet_cells(records: list) -> dict:
@@ -301,14 +301,14 @@ def packets(records: list, out: Path) -> list:
     if not groups:
         return []
     lines = ["# Large packets: Mrays/s per ray kind, traversal × packet size × culling", "",
-             f"Machine: {_machine_line(records)}.", "",
+             f"Machine: {machine_line(records)}.", "",
              "Mrays/s = rays of the kind per frame / median replay time of their batches (frustum build + "
              "traversal, shading excluded). Culling *on* uses the cell's frustum builders (pinhole, pointlight, "
              "general), *off* none. Embree traces the very same batches in the same run with the same threads.", ""]
     figures = []
     for i, ((scene, recursion, size), rs) in enumerate(groups.items()):
         packet_sizes = sorted({r["labels"]["packet"] for r in rs})
-        travs = _ordered(r["labels"]["traversal"] for r in rs)
+        travs = ordered(r["labels"]["traversal"] for r in rs)
         lines += [f"## {scene}, {recursion}, {size}", ""]
         lines += _rate_tables(rs, packet_sizes, travs)
         lines += _target_lines(rs, travs)

@@ -25,17 +25,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from engine.bench import packets_report
+from engine.bench.figures import fmt, machine_line, ordered, pyplot, save, trace_seconds
 from engine.core.types import RAY_KINDS
 
 SECONDARY = ("shadow", "reflection", "refraction")
 
 
 # -- record helpers ---------------------------------------------------------------------------
-
-def trace_seconds(r: dict, kinds=RAY_KINDS, stat: str = "median") -> float:
-    """Our trace time per frame over ``kinds`` (sum of per-kind statistics)."""
-    return sum(r["seconds"]["replay"][k][stat] for k in kinds)
-
 
 def embree_seconds(r: dict, kinds=RAY_KINDS):
     e = r["seconds"]["embree"]
@@ -50,38 +47,6 @@ def main_kind(recursion: str) -> str:
     return "primary"
 
 
-def _ordered(values) -> list:
-    return list(dict.fromkeys(values))
-
-
-def _fmt(value, digits: int = 2) -> str:
-    if value is None:
-        return "–"
-    return f"{value:,.{digits}f}"
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: Path) -> Path:
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    _pyplot().close(fig)
-    return path
-
-
-def _machine_line(records: list) -> str:
-    m = records[0]["machine"]
-    dirty = " (with uncommitted changes)" if m["git"]["dirty"] else ""
-    return (f"{m['cpu']}, {records[0]['threads']} threads; Python {m['python']}, numpy {m['numpy']}, numba "
-            f"{m['numba']}, embreex {m['embreex']} (Embree {m['embree']}); commit {m['git']['commit'][:10]}{dirty}")
-
-
 def _series_label(r: dict, with_frustum: bool) -> str:
     lab = r["labels"]
     return f"{lab['traversal']} / {lab['frustum']}" if with_frustum else lab["traversal"]
@@ -94,7 +59,7 @@ def summary(records: list, out: Path) -> list:
     if not records:
         lines.append("No finished cells yet.")
     else:
-        lines += [f"Machine: {_machine_line(records)}.", "",
+        lines += [f"Machine: {machine_line(records)}.", "",
                   "Times are medians over the repeats; trace = frustum build + traversal on the recorded batches "
                   "(all ray kinds, shading excluded); Embree traces the very same batches.", "",
                   "CPU share = our CPU time / (wall time x threads) while replaying: near 1 on an idle machine, "
@@ -108,8 +73,8 @@ def summary(records: list, out: Path) -> list:
             lines.append(f"| {lab['scene']} | {lab['recursion']} | {lab['resolution']} | {lab['traversal']} | "
                          f"{lab['frustum']} | {lab['packet']} | {r['rays']['all']:,} | "
                          f"{r['seconds']['frame']['median'] * 1e3:,.1f} | {trace_seconds(r) * 1e3:,.1f} | "
-                         f"{_fmt(r['mrays_per_s']['all'])} | {_fmt((r['embree_mrays_per_s'] or {}).get('all'))} | "
-                         f"{_fmt(ratio)} | {_fmt(r.get('load', {}).get('cpu_share_replay'))} |")
+                         f"{fmt(r['mrays_per_s']['all'])} | {fmt((r['embree_mrays_per_s'] or {}).get('all'))} | "
+                         f"{fmt(ratio)} | {fmt(r.get('load', {}).get('cpu_share_replay'))} |")
     path = out / "summary.md"
     path.write_text("\n".join(lines) + "\n")
     return [path]
@@ -120,7 +85,7 @@ def summary(records: list, out: Path) -> list:
 def mrays(records: list, out: Path) -> list:
     if not records:
         return []
-    plt = _pyplot()
+    plt = pyplot()
     names = [f"{r['labels']['scene']} {r['labels']['recursion']} {r['labels']['traversal']}/"
              f"{r['labels']['frustum']} {r['labels']['packet']}²" for r in records]
     ours_rate = [r["mrays_per_s"]["all"] or 0 for r in records]
@@ -135,19 +100,19 @@ def mrays(records: list, out: Path) -> list:
     ax.set_xlabel("Mrays/s, all ray kinds (median)")
     ax.legend(fontsize=8)
     ax.set_title(f"{records[0]['matrix']}: throughput per cell", fontsize=10)
-    return [_save(fig, out / "mrays.png")]
+    return [save(fig, out / "mrays.png")]
 
 
 # -- fig5 / fig7: time per frame vs packet size ----------------------------------------------
 
 def _packet_grid(records: list, out: Path, name: str, culling_styles: bool) -> list:
-    rows = _ordered(r["labels"]["scene"] for r in records)
-    cols = _ordered(r["labels"]["recursion"] for r in records)
+    rows = ordered(r["labels"]["scene"] for r in records)
+    cols = ordered(r["labels"]["recursion"] for r in records)
     if not rows:
         return []
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(len(rows), len(cols), figsize=(3.4 * len(cols), 2.7 * len(rows)), squeeze=False)
-    travs = _ordered(r["labels"]["traversal"] for r in records)
+    travs = ordered(r["labels"]["traversal"] for r in records)
     colours = {t: f"C{i % 10}" for i, t in enumerate(travs)}
     with_frustum = not culling_styles and len({r["labels"]["frustum"] for r in records}) > 1
     for i, scene in enumerate(rows):
@@ -202,7 +167,7 @@ def _packet_grid(records: list, out: Path, name: str, culling_styles: bool) -> l
     fig.suptitle(f"{title}: trace time per frame (frustum build + traversal, shading excluded), median with "
                  f"min–max", fontsize=10)
     fig.tight_layout(rect=(0, 0.04, 1, 0.97))
-    return [_save(fig, out / f"{name}.png")]
+    return [save(fig, out / f"{name}.png")]
 
 
 def fig5(records: list, out: Path) -> list:
@@ -240,18 +205,18 @@ def fig6(records: list, out: Path) -> list:
     records = [r for r in records if r.get("counters_by_depth")]
     if not records:
         return []
-    plt = _pyplot()
+    plt = pyplot()
     files = []
     packets = sorted({r["labels"]["packet"] for r in records})
     packet = 16 if 16 in packets else packets[-1]
     records = [r for r in records if r["labels"]["packet"] == packet]
-    travs = _ordered(r["labels"]["traversal"] for r in records)
+    travs = ordered(r["labels"]["traversal"] for r in records)
     counters = ("ray_aabb", "ray_tri")
     titles = {"ray_aabb": "ray–AABB tests per ray", "ray_tri": "ray–triangle tests per ray"}
     totals = []
-    for scene in _ordered(r["labels"]["scene"] for r in records):
+    for scene in ordered(r["labels"]["scene"] for r in records):
         mine = [r for r in records if r["labels"]["scene"] == scene]
-        recs = _ordered(r["labels"]["recursion"] for r in mine)
+        recs = ordered(r["labels"]["recursion"] for r in mine)
         fig, axes = plt.subplots(len(counters), len(recs), figsize=(4.2 * len(recs), 5.4), squeeze=False)
         for j, rec in enumerate(recs):
             kind = main_kind(rec)
@@ -278,9 +243,9 @@ def fig6(records: list, out: Path) -> list:
                      f"({mine[0]['labels']['resolution']})", fontsize=10)
         fig.tight_layout()
         safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in scene)
-        files.append(_save(fig, out / f"fig6-{safe}.png"))
+        files.append(save(fig, out / f"fig6-{safe}.png"))
     if totals:
-        groups = _ordered((s, rec, k) for s, rec, k, *_ in totals)
+        groups = ordered((s, rec, k) for s, rec, k, *_ in totals)
         fig, axes = plt.subplots(1, 2, figsize=(max(7.0, 1.3 * len(groups) + 3), 3.6))
         width = 0.8 / max(len(travs), 1)
         for i, name in enumerate(counters):
@@ -295,7 +260,7 @@ def fig6(records: list, out: Path) -> list:
         axes[0].legend(fontsize=8)
         fig.suptitle(f"Tests per ray, {packet}×{packet} packets", fontsize=10)
         fig.tight_layout()
-        files.append(_save(fig, out / "fig6-totals.png"))
+        files.append(save(fig, out / "fig6-totals.png"))
     return files
 
 
@@ -323,7 +288,7 @@ def table2(records: list, out: Path) -> list:
     if not rows:
         return []
     lines = ["# Table 2: 2×2 SIMD rays vs 16×16 packets", "",
-             f"Machine: {_machine_line(records)}.", "",
+             f"Machine: {machine_line(records)}.", "",
              "FPS = 1 / (trace time per frame): frustum build + traversal of every ray of the frame, median over the "
              "repeats, shading excluded (the Python shading is the same for all columns: see the last column for "
              "whole frames). Embree traces the same rays.", "",
@@ -335,12 +300,12 @@ def table2(records: list, out: Path) -> list:
         benefit = row["culled"] / row["plain"] if row["plain"] else None
         versus = row["culled"] / row["embree"] if row["embree"] else None
         lines.append(f"| {row['scene']} | {row['recursion']} | {row['size']} | {row['triangles']:,} | "
-                     f"{row['rays']:,} | {_fmt(row['small'])} | {_fmt(row['plain'])} | {_fmt(row['culled'])} | "
-                     f"{speedup:.2f}× | {_fmt(benefit)}× | {_fmt(row['embree'])} | {_fmt(versus)}× | "
-                     f"{_fmt(row['frame'])} |")
+                     f"{row['rays']:,} | {fmt(row['small'])} | {fmt(row['plain'])} | {fmt(row['culled'])} | "
+                     f"{speedup:.2f}× | {fmt(benefit)}× | {fmt(row['embree'])} | {fmt(versus)}× | "
+                     f"{fmt(row['frame'])} |")
     md = out / "table2.md"
     md.write_text("\n".join(lines) + "\n")
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(2.2 * len(rows) + 2, 3.6))
     bars = (("small", "2×2 SIMD"), ("plain", "16×16, no culling"), ("culled", "16×16, culling"), ("embree", "Embree"))
     width = 0.2
@@ -351,7 +316,7 @@ def table2(records: list, out: Path) -> list:
     ax.set_ylabel("FPS (trace only)", fontsize=8)
     ax.legend(fontsize=8)
     ax.set_title(f"Table 2 at {rows[0]['size']}: frames per second of ray tracing", fontsize=10)
-    return [md, _save(fig, out / "table2.png")]
+    return [md, save(fig, out / "table2.png")]
 
 
 # -- roger ----------------------------------------------------------------------------------------
@@ -369,16 +334,16 @@ def roger(records: list, out: Path) -> list:
     present = [(tag, xl) for tag, xl in studies if any(tag in r.get("tags", []) for r in records)]
     if not present:
         return []
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(2, len(present), figsize=(4.4 * len(present), 7), squeeze=False)
-    lines = ["# Ray-space hierarchy analyses (Roger et al. 2007)", "", f"Machine: {_machine_line(records)}.", "",
+    lines = ["# Ray-space hierarchy analyses (Roger et al. 2007)", "", f"Machine: {machine_line(records)}.", "",
              "Secondary-ray trace time per frame (shadow + reflection + refraction, median ms) and the ray-space "
              "hierarchy's final triangle tests per ray.", "",
              "| study | scene | size | traversal | x | secondary rays | trace ms | Embree ms | candidates / ray |",
              "|---|---|---|---|---:|---:|---:|---:|---:|"]
     for j, (tag, xlabel) in enumerate(present):
         mine = [r for r in records if tag in r.get("tags", [])]
-        travs = _ordered(r["labels"]["traversal"] for r in mine)
+        travs = ordered(r["labels"]["traversal"] for r in mine)
         ax_t, ax_c = axes[0][j], axes[1][j]
         embree_points = {}
         for t, trav in enumerate(travs):
@@ -395,7 +360,7 @@ def roger(records: list, out: Path) -> list:
                 lines.append(f"| {tag} | {r['labels']['scene']} | {r['labels']['resolution']} | {trav} | "
                              f"{_roger_x(r, tag):,} | {sum(r['rays'][k] for k in SECONDARY):,} | "
                              f"{trace_seconds(r, SECONDARY) * 1e3:,.1f} | "
-                             f"{_fmt(None if e is None else e * 1e3, 1)} | {shown or '–'} |")
+                             f"{fmt(None if e is None else e * 1e3, 1)} | {shown or '–'} |")
             for k, style in (("reflection", "o-"), ("shadow", "s--")):
                 pts = [(x, r.get("extra", {}).get(k, {}).get("rayspace", {}).get("candidates_per_ray"))
                        for x, r in zip(xs, rs)]
@@ -422,24 +387,17 @@ def roger(records: list, out: Path) -> list:
     fig.tight_layout()
     md = out / "roger.md"
     md.write_text("\n".join(lines) + "\n")
-    return [md, _save(fig, out / "roger.png")]
-
-
-def packets(records: list, out: Path) -> list:
-    """packets.md + packets.png: ``engine.bench.packets_report`` (its own module; it imports helpers from here)."""
-    from engine.bench.packets_report import packets as report
-
-    return report(records, out)
+    return [md, save(fig, out / "roger.png")]
 
 
 #: Figure kinds a matrix may ask for (``plot = [...]``).
 PLOTS = {"summary": summary, "mrays": mrays, "fig5": fig5, "fig6": fig6, "fig7": fig7, "table2": table2,
-         "roger": roger, "packets": packets}
+         "roger": roger, "packets": packets_report.packets}
 
 
 def render_plots(records: list, out: Path, kinds) -> list:
     """Write ``summary`` and every kind in ``kinds``; returns the files written."""
     files = []
-    for kind in _ordered(["summary", *kinds]):
+    for kind in ordered(["summary", *kinds]):
         files += PLOTS[kind](records, out)
     return files

@@ -15,10 +15,12 @@ One line (schema 1; ``K`` = a ray kind, summaries = {median, min, max, q1, q3, r
                  "trace": {K: summary}            # inside the timed renders
                  "replay": {K: summary},          # our plugins on the recorded batches
                  "embree": {K: summary} | null,   # Embree on the very same batches
-                 "floor": {K: summary} | null},   # packet cells: the per-ray floor (bench_floor)
+                 "floor": {K: summary} | null},   # packet cells: the per-ray floor (engine.bench.floor)
      "rays": {K: n, "all": n}, "batches": {K: n}, "packets": {K: n}  # packets traced per frame
      "mrays_per_s": {K: x, "all": x}, "embree_mrays_per_s": {...} | null,
      "ratio_to_embree": {K: ours / Embree Mrays/s, "all": x} | null,
+     "checks": {"ours" | "embree": {K: {"checked", "ties", "mismatches"}}},  # answers of the
+               # timed replays against the ``single`` reference; a mismatching kind's rate is null
      "fps": {"frame", "trace", "embree_trace"},
      "counters": {name: {K: n}}, "counters_by_depth": {name: {K: [n per BVH depth]}},
      "extra": {K: plugin statistics}, "machine": {...}, "started", "wall_seconds",

@@ -5,12 +5,16 @@ Each cell of the matrix (``engine.bench.matrix``) is measured in this process, o
 1. a warm-up render that absorbs JIT compilation and records every ray batch the Whitted loop
    casts (kind, query, rays, packets) through the renderer's ``observer`` hook;
 2. ``repeat`` timed renders: frame time (shading included), per-kind trace time, shading time;
-3. ``repeat`` replays of the recorded batches through the cell's frustum builder and traversal
-   (timed like the render times them: frustum build + query + answer arrays), then, when every
+3. ``repeat`` replays of the recorded batches through the renderer's own ``Tracer`` (timed as
+   the render times them: frustum build + query + answer arrays), then, when every
    ray kind uses a packet traversal, ``repeat`` replays of the per-ray floor
    (``engine.bench.floor``: the same with the BVH walk taken out), then Embree (the ``embree``
    traversal, same thread count) on exactly the same batches: the ratios to Embree compare the
    same rays, the same work, minutes apart at most;
+   Every timed variant keeps the answers of its last replay, and they are checked against the
+   reference answers of the same batches (the ``single`` traversal, once per batch set) by the
+   audit's tie-aware rules: a variant that disagrees on a ray kind is reported on stderr, its
+   rates for that kind are dropped (None) and ``checks`` in the record says how many rays;
 4. one counting render for the counters (ray-AABB and ray-triangle tests, per BVH depth) and
    the plugins' own statistics (e.g. the ray-space hierarchy's candidates per ray).
 
@@ -40,9 +44,11 @@ from pathlib import Path
 import numpy as np
 
 from engine.bench import results as results_io
-from engine.bench.floor import floor_trace, uses_packet_traversals
+from engine.bench.floor import floor_tracer, uses_packet_traversals
 from engine.bench.matrix import Cell, Matrix, load_matrix
-from engine.core.types import RAY_KINDS, empty_hits
+from engine.core.types import RAY_KINDS
+from engine.render.plugins import make_traversal
+from engine.render.tracer import Tally
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -76,22 +82,66 @@ class BatchRecorder:
         return h.hexdigest()
 
 
-def replay(batches, trace) -> dict:
-    """{kind: seconds} of ``trace(kind, query, rays, packets)`` over the batches, each timed alone."""
-    seconds = dict.fromkeys(RAY_KINDS, 0.0)
-    for kind, query, rays, packets in batches:
-        start = time.perf_counter()
-        trace(kind, query, rays, packets)
-        seconds[kind] += time.perf_counter() - start
-    return seconds
+def replay(batches, tracer) -> tuple:
+    """({kind: seconds}, answers) of tracing the recorded batches again with ``tracer``, each
+    batch timed by the tracer as a render times it (frustum build + query + answer arrays);
+    answers[i] is batch i's Hits or bool[R]."""
+    tally = Tally()
+    answers = [tracer.trace(kind, query, rays, packets, tally) for kind, query, rays, packets in batches]
+    return tally.seconds, answers
 
 
-def ours(renderer):
-    """The renderer's own frustum + traversal per kind, as ``WhittedRenderer._trace`` times it."""
-    def trace(kind, query, rays, packets):
-        frusta = renderer.frustum[kind].build(rays, packets, renderer.bounds)
-        _query(renderer.traversal[kind], renderer, query, rays, packets, frusta)
-    return trace
+def timed_replays(batches, tracer, repeat: int) -> tuple:
+    """([{kind: seconds}] of ``repeat`` replays, the last replay's answers)."""
+    seconds, answers = [], None
+    for _ in range(repeat):
+        answers = None  # one set of answers alive at a time
+        run, answers = replay(batches, tracer)
+        seconds.append(run)
+    return seconds, answers
+
+
+class ReferenceAnswers:
+    """The reference answers of a recorded batch set: the ``single`` traversal (audited against
+    Embree), closest hits for every batch (occlusion batches too: a differing occlusion answer is
+    judged by where the hits lie). Computed once per distinct batch set, by digest."""
+
+    def __init__(self):
+        self.digest, self.closest = None, None
+
+    def get(self, renderer, recorder: BatchRecorder) -> list:
+        digest = recorder.digest()
+        if digest != self.digest:
+            self.closest = None
+            tracer = renderer.tracer.with_traversal(dict.fromkeys(RAY_KINDS, make_traversal("single")),
+                                                    dict.fromkeys(RAY_KINDS))
+            self.closest = [tracer.trace(kind, "intersect", rays, packets)
+                            for kind, _, rays, packets in recorder.batches]
+            self.digest = digest
+        return self.closest
+
+
+def check_answers(batches, answers, reference: list, tracer, tris) -> dict:
+    """{kind: {"checked", "ties", "mismatches"}} of a timed variant's ``answers`` against the
+    ``reference`` closest hits of the same batches, by the audit's tie-aware rules
+    (``validation.compare``). For occlusion batches whose answers differ, the variant's own
+    closest hits (``tracer``, untimed) say whether the difference is a graze."""
+    from validation.compare import compare_hits, compare_occlusion
+
+    out = {k: {"checked": 0, "ties": 0, "mismatches": 0} for k in RAY_KINDS}
+    for (kind, query, rays, packets), answer, ref in zip(batches, answers, reference):
+        if query == "intersect":
+            result = compare_hits(rays, answer, ref, tris)
+        else:
+            ref_occluded = ref.prim >= 0
+            differ = (answer != ref_occluded) & (rays.tmin <= rays.tmax)
+            closest = tracer.trace(kind, "intersect", rays, packets) if differ.any() else ref
+            result = compare_occlusion(rays, answer, ref_occluded, tris, closest, ref)
+        row = out[kind]
+        row["checked"] += int(np.count_nonzero(rays.tmin <= rays.tmax))
+        row["ties"] += int(result.tie.sum())
+        row["mismatches"] += int(result.mismatch.sum())
+    return out
 
 
 class EmbreeYardstick:
@@ -101,31 +151,36 @@ class EmbreeYardstick:
     keep the interpreter from exiting; closing the pool wakes and ends every worker."""
 
     def __init__(self):
-        self.digest, self.runs, self.scenes = None, None, {}
+        self.digest, self.runs, self.answers, self.scenes = None, None, None, {}
+        self.plugin = None  # one Embree plugin for the run: its scene is reused across cells
 
     def note(self, renderer) -> None:
-        """Remember the Embree scene a cell used (the plugin keeps it; building it is not repeated)."""
-        from engine.core.registry import get_traversal
+        """Remember the Embree scenes a cell's renderer used (built once, closed at the end)."""
+        for plugin in renderer.traversal.values():
+            if plugin.name == "embree":
+                scene = plugin.scene_for(renderer.tris)
+                self.scenes[id(scene)] = scene
 
-        scene = get_traversal("embree").scene_for(renderer.tris)
+    def tracer(self, renderer):
+        """The renderer's BVH and triangles traced by Embree for every kind (no frusta)."""
+        if self.plugin is None:
+            self.plugin = make_traversal("embree")
+        scene = self.plugin.scene_for(renderer.tris)  # built outside the timing
         self.scenes[id(scene)] = scene
+        return renderer.tracer.with_traversal(dict.fromkeys(RAY_KINDS, self.plugin), dict.fromkeys(RAY_KINDS))
 
-    def seconds(self, renderer, recorder: BatchRecorder, repeat: int) -> list:
-        """``repeat`` dicts {kind: seconds} of Embree on exactly the recorded batches."""
-        from engine.core.registry import get_traversal
-
+    def seconds(self, renderer, recorder: BatchRecorder, repeat: int) -> tuple:
+        """(``repeat`` dicts {kind: seconds}, last answers) of Embree on exactly the recorded batches."""
         digest = recorder.digest()
         if digest != self.digest:
-            plugin = get_traversal("embree")
-            plugin.prepare(renderer.tris)  # build outside the timing
-            self.note(renderer)
-            trace = embree(renderer, plugin)
+            tracer = self.tracer(renderer)
             if recorder.batches:  # one untimed query: thread pool and first-touch costs
                 kind, query, rays, packets = recorder.batches[0]
-                trace(kind, query, rays, packets)
-            self.digest, self.runs = None, None  # one batch set alive at a time
-            self.runs, self.digest = [replay(recorder.batches, trace) for _ in range(repeat)], digest
-        return self.runs
+                tracer.trace(kind, query, rays, packets)
+            self.digest, self.runs, self.answers = None, None, None  # one batch set alive at a time
+            self.runs, self.answers = timed_replays(recorder.batches, tracer, repeat)
+            self.digest = digest
+        return self.runs, self.answers
 
     def close(self) -> None:
         for scene in self.scenes.values():
@@ -133,19 +188,19 @@ class EmbreeYardstick:
         self.scenes.clear()
 
 
-def embree(renderer, plugin):
-    """Embree on the same batches (it ignores packets and frusta)."""
-    def trace(kind, query, rays, packets):
-        _query(plugin, renderer, query, rays, packets, None)
-    return trace
+def _checked(rates: dict, check: dict) -> dict:
+    """``rates`` with the kinds whose answers mismatched the reference set to None (a wrong
+    answer's speed is not a result), and "all" too when any kind did."""
+    bad = [k for k in RAY_KINDS if check[k]["mismatches"]]
+    return {k: (None if k in bad or (k == "all" and bad) else v) for k, v in rates.items()}
 
 
-def _query(traversal, renderer, query, rays, packets, frusta):
-    n = rays.org.shape[0]
-    if query == "intersect":
-        traversal.intersect(renderer.bvh, renderer.tris, rays, packets, frusta, empty_hits(n), None)
-    else:
-        traversal.occluded(renderer.bvh, renderer.tris, rays, packets, frusta, np.zeros(n, np.bool_), None)
+def _report_mismatches(cell: Cell, checks: dict) -> None:
+    for variant, check in checks.items():
+        bad = {k: row["mismatches"] for k, row in check.items() if row["mismatches"]}
+        if bad:
+            print(f"packetrt bench: {cell.describe()}: {variant} answers disagree with the reference "
+                  f"(single) on {bad} rays; those rates are dropped", file=sys.stderr)
 
 
 def _rates(rays: dict, seconds: dict) -> dict:
@@ -189,10 +244,10 @@ def machine_info() -> dict:
     """CPU, cores, numba threads, library versions and the project's git commit."""
     import numba
 
-    from engine.core.embree_scene import _new_device
+    from engine.core.embree_scene import library_version
 
     try:
-        embree_version = _new_device()[1]  # the Embree library itself, not just the binding
+        embree_version = library_version()
     except Exception:  # no usable Embree: the cells that need it will say so
         embree_version = "unavailable"
     return {"cpu": _cpu_model(), "cores": os.cpu_count(), "numba_threads": numba.config.NUMBA_NUM_THREADS,
@@ -230,9 +285,11 @@ def cell_scene(base, cell: Cell):
 
 
 def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: EmbreeYardstick, machine: dict,
-             matrix_name: str) -> dict:
+             matrix_name: str, references: ReferenceAnswers | None = None) -> dict:
     """Measure one cell (see the module doc); returns its results.jsonl record."""
     from engine.render.whitted import WhittedRenderer
+
+    references = references or ReferenceAnswers()
 
     wall = time.perf_counter()
     started = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
@@ -245,30 +302,35 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
     renderer.observer = None
     frames = [renderer.render() for _ in range(repeat)]
 
-    trace_ours = ours(renderer)
     # Our share of the CPU while replaying: near 1 on an idle machine (parallel kernels keep
     # every thread busy), well below when other work competes for the cores.
     cpu, clock = time.process_time(), time.perf_counter()
-    replays = [replay(recorder.batches, trace_ours) for _ in range(repeat)]
+    replays, answers = timed_replays(recorder.batches, renderer.tracer, repeat)
     cpu_share = (time.process_time() - cpu) / max((time.perf_counter() - clock) * renderer.threads, 1e-9)
+    reference = references.get(renderer, recorder)
+    checks = {"ours": check_answers(recorder.batches, answers, reference, renderer.tracer, renderer.tris)}
+    answers = None
     # The packet traversals' per-ray floor on the same batches (engine.bench.floor): the part
-    # of the trace time no traversal can remove.
+    # of the trace time no traversal can remove. It answers "no hit" by design: not checked.
     floors = None
     if uses_packet_traversals(renderer):
-        trace_floor = floor_trace(renderer)
-        replay(recorder.batches, trace_floor)  # untimed: JIT and first touch
-        floors = [replay(recorder.batches, trace_floor) for _ in range(repeat)]
+        floor = floor_tracer(renderer)
+        replay(recorder.batches, floor)  # untimed: JIT and first touch
+        floors, _ = timed_replays(recorder.batches, floor, repeat)
     if "embree" in cell.traversal.names:
         yardstick.note(renderer)
     embree_seconds = None
     if cell.embree:
         if set(cell.traversal.names) == {"embree"}:
             embree_seconds = replays  # the cell is Embree: its replay is the yardstick
+            checks["embree"] = checks["ours"]
         else:
-            embree_seconds = yardstick.seconds(renderer, recorder, repeat)
+            embree_seconds, embree_answers = yardstick.seconds(renderer, recorder, repeat)
+            checks["embree"] = check_answers(recorder.batches, embree_answers, reference,
+                                             yardstick.tracer(renderer), renderer.tris)
+    _report_mismatches(cell, checks)
 
-    renderer.count = True
-    counted = renderer.render()
+    counted = renderer.with_counters(renderer.render())
 
     rays = dict(warm.rays)
     rays["all"] = sum(warm.rays[k] for k in RAY_KINDS)
@@ -276,12 +338,13 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
     packets = {k: sum(len(b[3].offsets) - 1 for b in recorder.batches if b[0] == k) for k in RAY_KINDS}
     replay_summary = {k: summarize([r[k] for r in replays]) for k in RAY_KINDS}
     replay_median = {k: replay_summary[k]["median"] for k in RAY_KINDS}
-    mrays = _rates(rays, replay_median)
+    mrays = _checked(_rates(rays, replay_median), checks["ours"])
     embree_summary = embree_mrays = ratio = None
     embree_fps = None
     if embree_seconds is not None:
         embree_summary = {k: summarize([r[k] for r in embree_seconds]) for k in RAY_KINDS}
-        embree_mrays = _rates(rays, {k: embree_summary[k]["median"] for k in RAY_KINDS})
+        embree_mrays = _checked(_rates(rays, {k: embree_summary[k]["median"] for k in RAY_KINDS}),
+                                checks["embree"])
         ratio = {k: (mrays[k] / embree_mrays[k] if mrays[k] and embree_mrays[k] else None) for k in mrays}
         total = sum(embree_summary[k]["median"] for k in RAY_KINDS)
         embree_fps = 1.0 / total if total > 0 else None
@@ -298,7 +361,7 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
                     "replay": replay_summary, "embree": embree_summary,
                     "floor": None if floors is None else {k: summarize([f[k] for f in floors]) for k in RAY_KINDS}},
         "rays": rays, "batches": batches, "packets": packets, "mrays_per_s": mrays, "embree_mrays_per_s": embree_mrays,
-        "ratio_to_embree": ratio,
+        "ratio_to_embree": ratio, "checks": checks,
         "fps": {"frame": 1.0 / frame["median"] if frame["median"] > 0 else None,
                 "trace": 1.0 / trace_total if trace_total > 0 else None, "embree_trace": embree_fps},
         "counters": counted.counters, "counters_by_depth": counted.counters_by_depth, "extra": counted.extra,
@@ -390,13 +453,13 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
             scenes = preflight(todo)
             machine = machine_info()
             costs = [_cost(c, scenes[(c.scene.name, c.scene.params, c.scene.time)], matrix.repeat) for c in todo]
-            scene_cache, yardstick = SceneCache(), EmbreeYardstick()
+            scene_cache, yardstick, references = SceneCache(), EmbreeYardstick(), ReferenceAnswers()
             bar = tqdm(total=sum(costs), disable=not progress, file=sys.stderr, dynamic_ncols=True,
                        bar_format="{l_bar}{bar}| {postfix} [{elapsed}<{remaining}]")
             try:
                 for i, (cell, cost) in enumerate(zip(todo, costs)):
                     bar.set_postfix_str(f"cell {i + 1}/{len(todo)}: {cell.describe()}")
-                    record = run(cell, matrix.repeat, scene_cache, yardstick, machine, matrix.name)
+                    record = run(cell, matrix.repeat, scene_cache, yardstick, machine, matrix.name, references)
                     results_io.append(path, record)
                     ran += 1
                     bar.update(cost)

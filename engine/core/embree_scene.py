@@ -30,6 +30,11 @@ def _new_device():
     return device, (match.group(1) if match else "unknown")
 
 
+def library_version() -> str:
+    """The Embree library's own version (not the binding's), e.g. "3.13.5"."""
+    return _new_device()[1]
+
+
 class EmbreeScene:
     """A committed Embree scene over ``tris`` (robust mode by default).
 

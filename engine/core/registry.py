@@ -1,16 +1,19 @@
-"""Plugin registry: config names -> traversal and frustum plugins.
+"""Plugin registry: config names -> plugin *factories* (classes), never instances.
 
-A traversal plugin is a module-level object with two methods::
+A traversal plugin is a class whose instances answer two queries::
 
     intersect(bvh, tris, rays, packets, frusta, hits, stats) -> None   # closest hit
     occluded(bvh, tris, rays, packets, frusta, occluded, stats) -> None  # any hit
 
-that fill the output arrays in place (``stats`` may be None: no counting). A frustum
-plugin has ``build(rays, packets, scene_bounds) -> Frusta``.
+filling the output arrays in place (``stats`` may be None: no counting). A frustum plugin's
+instances have ``build(rays, packets, scene_bounds) -> Frusta``. A plugin that takes options
+declares their defaults in a class attribute ``OPTIONS`` ({key: default}) and accepts them as
+keyword arguments of ``__init__``, checking the values (ConfigError).
 
-Built-in plugins register on import of the ``traversals`` and ``frusta`` packages.
-Third-party packages add plugins through the entry-point groups ``packetrt.traversals``
-and ``packetrt.frusta``; those are loaded only when asked (``load_entry_points``).
+This module only keeps the tables: it imports no plugin package. ``engine.render.plugins``
+(the composition root) imports the built-in ``traversals`` and ``frusta`` packages, whose
+``@register_traversal`` / ``@register_frustum`` decorators fill the tables, and hands out a
+new configured instance per request, so nothing one config sets reaches another.
 """
 from __future__ import annotations
 
@@ -25,59 +28,46 @@ ENTRY_POINT_GROUPS = {"traversal": "packetrt.traversals", "frustum": "packetrt.f
 
 
 def register_traversal(name: str):
-    """Class or instance decorator: ``@register_traversal("partition")``."""
+    """Class decorator: ``@register_traversal("partition")`` makes the class the factory for
+    config name "partition" (and sets its ``name``)."""
     return _registrar(TRAVERSALS, name)
 
 
 def register_frustum(name: str):
-    """Class or instance decorator: ``@register_frustum("pinhole")``."""
+    """Class decorator: ``@register_frustum("pinhole")``."""
     return _registrar(FRUSTA, name)
 
 
 def _registrar(table: dict, name: str):
-    def decorate(plugin):
-        instance = plugin() if isinstance(plugin, type) else plugin
-        instance.name = name
-        table[name] = instance
-        return plugin
+    def decorate(cls):
+        if not isinstance(cls, type):
+            raise TypeError(f"plugin {name!r}: register a class (a factory), not {type(cls).__name__} instance")
+        cls.name = name
+        table[name] = cls
+        return cls
 
     return decorate
 
 
-def _ensure_builtins_loaded() -> None:
-    # Importing the packages registers the built-in plugins; done lazily so that
-    # engine modules can import the registry without a cycle.
-    import frusta  # noqa: F401
-    import traversals  # noqa: F401
-
-
-def get_traversal(name: str):
-    """The traversal plugin registered as ``name``; ConfigError listing names if unknown."""
-    _ensure_builtins_loaded()
-    return _lookup(TRAVERSALS, name, "traversal")
-
-
-def get_frustum(name: str):
-    """The frustum plugin registered as ``name``; ConfigError listing names if unknown."""
-    _ensure_builtins_loaded()
-    return _lookup(FRUSTA, name, "frustum")
-
-
-def _lookup(table: dict, name: str, what: str):
+def factory(table: dict, name: str, what: str) -> type:
+    """The class registered as ``name`` in ``table``; ConfigError listing the names if unknown."""
     if name not in table:
         allowed = ", ".join(sorted(table))
         raise ConfigError(f"unknown {what} {name!r}; registered {what}s: {allowed}")
     return table[name]
 
 
-def traversal_names() -> list[str]:
-    _ensure_builtins_loaded()
-    return sorted(TRAVERSALS)
-
-
-def frustum_names() -> list[str]:
-    _ensure_builtins_loaded()
-    return sorted(FRUSTA)
+def instantiate(cls: type, name: str, options: dict | None):
+    """A new instance of plugin class ``cls`` configured with ``options`` (None: defaults).
+    Keys the class does not declare in ``OPTIONS`` are a ConfigError naming the allowed ones."""
+    options = dict(options or {})
+    allowed = getattr(cls, "OPTIONS", {})
+    unknown = set(options) - set(allowed)
+    if unknown and not allowed:
+        raise ConfigError(f"options.{name}: {name!r} takes no options, got {sorted(unknown)}")
+    if unknown:
+        raise ConfigError(f"options.{name}: unknown key(s) {sorted(unknown)}; allowed: {', '.join(sorted(allowed))}")
+    return cls(**options)
 
 
 def load_entry_points() -> list[str]:
@@ -85,7 +75,6 @@ def load_entry_points() -> list[str]:
 
     A plugin that fails to import is reported as a ConfigError naming the entry point.
     """
-    _ensure_builtins_loaded()
     loaded = []
     for group in ENTRY_POINT_GROUPS.values():
         for entry in metadata.entry_points(group=group):
@@ -98,12 +87,26 @@ def load_entry_points() -> list[str]:
     return loaded
 
 
-def describe() -> dict:
-    """{"traversals": [{"name", "doc"}], "frusta": [...]} for ``packetrt plugins``."""
-    _ensure_builtins_loaded()
+def describe_table(table: dict) -> list:
+    """[{"name", "doc"}] for the classes of ``table``, by name; doc is the docstring's first line."""
+    def first_line(cls):
+        doc = (cls.__doc__ or "").strip()
+        return doc.splitlines()[0] if doc else ""
 
-    def rows(table):
-        return [{"name": n, "doc": (type(p).__doc__ or "").strip().splitlines()[0]
-                 if (type(p).__doc__ or "").strip() else ""} for n, p in sorted(table.items())]
+    return [{"name": n, "doc": first_line(cls)} for n, cls in sorted(table.items())]
 
-    return {"traversals": rows(TRAVERSALS), "frusta": rows(FRUSTA)}
+
+# -- transitional: the names tests and debug tools used before the composition root ----------
+
+def get_traversal(name: str, options: dict | None = None):
+    """A new instance of traversal ``name`` (see ``engine.render.plugins.make_traversal``)."""
+    from engine.render.plugins import make_traversal
+
+    return make_traversal(name, options)
+
+
+def get_frustum(name: str):
+    """A new instance of frustum builder ``name`` (see ``engine.render.plugins.make_frustum``)."""
+    from engine.render.plugins import make_frustum
+
+    return make_frustum(name)

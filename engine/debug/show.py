@@ -573,18 +573,3 @@ def write_show(scene, config, kind, packet_index, output, size=PICTURE_SIZE) -> 
     except OSError as exc:
         raise PacketrtError(f"cannot write image {output!r}: {exc.strerror or exc}") from None
     return pic.summary
-
-
-def cmd_show(args) -> int:
-    from engine.cli import _config_from, _load_scene
-    from engine.render.config import parse_size
-
-    size = parse_size(args.picture) if getattr(args, "picture", None) else PICTURE_SIZE
-    if not (64 <= size[0] <= 4096 and 64 <= size[1] <= 4096):
-        raise ConfigError(f"--picture must be between 64x64 and 4096x4096, got {size[0]}x{size[1]}")
-    config = _config_from(args)
-    scene = _load_scene(config)
-    summary = write_show(scene, config, args.kind, args.packet_index, args.output, size)
-    detail = ", ".join(f"{k} {v}" for k, v in summary.items() if k not in ("packet", "packets"))
-    print(f"{args.kind} packet {summary['packet']} of {summary['packets']} ({detail}) -> {args.output}")
-    return 0

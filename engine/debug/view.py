@@ -207,7 +207,7 @@ class Viewer:
     def _build_panel(self, config):
         gui = self.gui
         from engine.packet.layout import PACKET_SIZES
-        from engine.core.registry import frustum_names, traversal_names
+        from engine.render.plugins import frustum_names, traversal_names
 
         em = 14
         panel = gui.Vert(4, gui.Margins(em // 2, em // 2, em // 2, em // 2))
@@ -391,26 +391,19 @@ class Viewer:
         self.app.run()
 
 
-def cmd_view(args) -> int:
+def run_viewer(scene, config, status_file=None, exit_after=None) -> None:
+    """Open the window on ``scene`` rendered with ``config`` and run until it is closed;
+    PacketrtError when no window can be opened."""
     problem = display_problem()
     if problem:
         raise PacketrtError(problem)
-    from engine.cli import _config_from, _load_scene
-    from engine.render.config import validate
-
-    config = _config_from(args)
-    if args.size is None:
-        config = validate(replace(config, render=replace(config.render, width=VIEW_SIZE[0], height=VIEW_SIZE[1])))
-    scene = _load_scene(config)
     from engine.debug.show import import_open3d
 
     import_open3d()
     try:
-        viewer = Viewer(scene, config, status_file=getattr(args, "status_file", None),
-                        exit_after=getattr(args, "exit_after", None))
+        viewer = Viewer(scene, config, status_file=status_file, exit_after=exit_after)
     except RuntimeError as exc:
         hint = (" (Open3D draws through Vulkan: on Debian install libvulkan1 and mesa-vulkan-drivers)"
                 if "vulkan" in str(exc).lower() else "")
         raise PacketrtError(f"Open3D could not open its window: {exc}{hint}") from None
     viewer.run()
-    return 0

@@ -69,10 +69,9 @@ class RenderConfig:
 
 def _defaults(table: dict) -> dict:
     """The paper's choice where that plugin is registered, else the reference ``single``/``none``."""
-    from engine.core.registry import FRUSTA, TRAVERSALS, _ensure_builtins_loaded
+    from engine.render.plugins import frustum_names, traversal_names
 
-    _ensure_builtins_loaded()
-    known = TRAVERSALS if table is PAPER_TRAVERSAL else FRUSTA
+    known = traversal_names() if table is PAPER_TRAVERSAL else frustum_names()
     fallback = "single" if table is PAPER_TRAVERSAL else "none"
     return {kind: (name if name in known else fallback) for kind, name in table.items()}
 
@@ -158,18 +157,14 @@ def validate(config: Config) -> Config:
         raise ConfigError(f"render.threads must be in 0..1024 (0 = all cores), got {r.threads}")
     if config.override not in ("none", "reflective", "refractive"):
         raise ConfigError(f"materials.override must be 'none', 'reflective' or 'refractive', got {config.override!r}")
-    from engine.core.registry import get_frustum, get_traversal, load_entry_points
+    from engine.render.plugins import configured, load_entry_points, make_traversal
 
     if config.load_entry_points:
         load_entry_points()
-    for kind in RAY_KINDS:
-        get_traversal(config.traversal.get(kind))
-        get_frustum(config.frustum.get(kind))
+    # Throwaway instances: building them checks names, keys and values; nothing is kept.
+    configured(config)
     for name, options in config.options:
-        plugin = get_traversal(name)
-        if not hasattr(plugin, "configure"):
-            raise ConfigError(f"options.{name}: traversal {name!r} takes no options")
-        plugin.configure(dict(options))
+        make_traversal(name, dict(options))
     return config
 
 

@@ -10,12 +10,14 @@ Wavefront by depth:
 5. repeat from 2 with the secondary batches, up to ``max_depth`` generations (mirror
    reflections only off hits of depth < ``max_reflection_depth``).
 
-The traversal and frustum for each ray kind come from the config. Shading is vectorised
-numpy over a whole batch; the hot loops are the traversals' numba kernels.
+The traversal and frustum for each ray kind come from the config (new plugin instances per
+renderer, ``engine.render.plugins``); every batch is cast through ``engine.render.tracer``,
+which times and counts it. Shading is vectorised numpy over a whole batch; the hot loops are
+the traversals' numba kernels.
 
 A traversal plugin may define ``prepare(tris) -> seconds`` to build its own structure before
 timing starts. ``observer(kind, query, rays, packets, answer)`` is called after every cast batch
-(query "intersect" with Hits, or "occluded" with bool[R]); the audit uses it.
+(query "intersect" with Hits, or "occluded" with bool[R]); the audit and the benchmark use it.
 """
 from __future__ import annotations
 
@@ -28,10 +30,11 @@ import numpy as np
 
 from engine.core.bvh import build_bvh, scene_bounds
 from engine.render.config import Config
+from engine.render.plugins import configured
+from engine.render.tracer import Tally, Tracer
 from engine.render.direct_light import add_light, light_directions
 from engine.core.offset import coordinate_magnitude, hit_points, offset_origin, triangle_magnitudes
 from engine.packet.layout import gather_batch, make_batch, packet_order
-from engine.core.registry import get_frustum, get_traversal
 from engine.core.scene import Scene
 from engine.core.types import RAY_KINDS, Hits, RayBatch, empty_hits, new_stats, stats_by_depth, stats_totals
 
@@ -41,7 +44,14 @@ MIN_WEIGHT = np.float32(1e-3)               # rays carrying less are not worth c
 
 @dataclass
 class RenderResult:
-    """image: f32[H,W,3] linear RGB; stats: the --stats dictionary (see ``stats_dict``)."""
+    """One render's image and measurements.
+
+    image: f32[H,W,3] linear RGB. seconds: {"bvh", "trace": {kind: s}, "shade", "total",
+    "plugin_build": {plugin: s}}. rays: {kind: live rays cast}. counters: {"ray_aabb" |
+    "ray_tri" | "nodes": {kind: n}} and counters_by_depth (the same per BVH depth, lists), empty
+    unless the render counted. extra: {kind: plugin statistics}. ``engine.render.report``
+    turns it into the ``--stats`` document.
+    """
 
     image: np.ndarray
     seconds: dict
@@ -118,35 +128,19 @@ class WhittedRenderer:
         self.count = count
         self.threads = config.render.threads or numba.config.NUMBA_NUM_THREADS
         numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
-        self.traversal = {k: get_traversal(config.traversal.get(k)) for k in RAY_KINDS}
-        self.frustum = {k: get_frustum(config.frustum.get(k)) for k in RAY_KINDS}
+        self.traversal, self.frustum = configured(config)
         self.materials = MaterialTable(scene.materials)
         self.tris = scene.triangles
         self.bvh = build_bvh(self.tris, leaf_size=config.render.leaf_size, bins=config.render.bins)
         self.bounds = scene_bounds(self.bvh)
         self.corner_magnitude = triangle_magnitudes(self.tris)  # for secondary-ray offsets
+        self.tracer = Tracer(self.bvh, self.tris, self.bounds, self.traversal, self.frustum)
         # Plugins with their own acceleration structure (Embree) build it now, outside the
         # timed trace, and report the build time.
-        self.prepare_seconds = {}
-        for plugin in {id(p): p for p in self.traversal.values()}.values():
-            if hasattr(plugin, "prepare"):
-                self.prepare_seconds[plugin.name] = plugin.prepare(self.tris)
+        self.prepare_seconds = self.tracer.prepare()
 
-    # -- tracing -------------------------------------------------------------------------
-    def _trace(self, kind, rays, packets, query, acc):
-        traversal, frustum = self.traversal[kind], self.frustum[kind]
-        # One Stats per ray kind per render: plugins accumulate into it across batches.
-        stats = acc["stats"].setdefault(kind, new_stats(numba.get_num_threads())) if self.count else None
-        start = time.perf_counter()
-        frusta = frustum.build(rays, packets, self.bounds)
-        if query == "intersect":
-            answer = empty_hits(rays.org.shape[0])
-            traversal.intersect(self.bvh, self.tris, rays, packets, frusta, answer, stats)
-        else:
-            answer = np.zeros(rays.org.shape[0], np.bool_)
-            traversal.occluded(self.bvh, self.tris, rays, packets, frusta, answer, stats)
-        acc["trace"][kind] += time.perf_counter() - start
-        acc["rays"][kind] += int(np.count_nonzero(rays.tmin <= rays.tmax))
+    def _trace(self, kind, rays, packets, query, tally):
+        answer = self.tracer.trace(kind, query, rays, packets, tally)
         if self.observer is not None:
             self.observer(kind, query, rays, packets, answer)
         return answer
@@ -155,8 +149,7 @@ class WhittedRenderer:
     def render(self) -> RenderResult:
         cfg = self.config.render
         width, height, n = cfg.width, cfg.height, cfg.packet
-        acc = {"trace": dict.fromkeys(RAY_KINDS, 0.0), "rays": dict.fromkeys(RAY_KINDS, 0),
-               "stats": {}}
+        tally = Tally(count=self.count)
         start = time.perf_counter()
         image = np.zeros((width * height, 3), np.float32)
         org, dirs = camera_rays(self.scene, width, height)
@@ -170,12 +163,12 @@ class WhittedRenderer:
             for rays, packets in batches:
                 if rays.org.shape[0] == 0:
                     continue
-                hits = self._trace(rays.kind, rays, packets, "intersect", acc)
+                hits = self._trace(rays.kind, rays, packets, "intersect", tally)
                 shade_start = time.perf_counter()
-                trace_before = sum(acc["trace"].values())
-                spawned = self._shade(rays, packets, hits, image, depth < cfg.max_depth, acc,
+                trace_before = sum(tally.seconds.values())
+                spawned = self._shade(rays, packets, hits, image, depth < cfg.max_depth, tally,
                                       reflect=depth < cfg.max_reflection_depth)
-                shade_seconds += time.perf_counter() - shade_start - (sum(acc["trace"].values()) - trace_before)
+                shade_seconds += time.perf_counter() - shade_start - (sum(tally.seconds.values()) - trace_before)
                 for kind, parts in spawned.items():
                     children[kind].append(parts)
             batches = []
@@ -189,12 +182,23 @@ class WhittedRenderer:
             if not batches:
                 break
         total = time.perf_counter() - start
-        counters, by_depth, extra = _summarise_stats(acc["stats"])
-        seconds = {"bvh": self.bvh.build_seconds, "trace": acc["trace"], "shade": shade_seconds, "total": total,
+        counters, by_depth, extra = _summarise_stats(tally.stats)
+        seconds = {"bvh": self.bvh.build_seconds, "trace": tally.seconds, "shade": shade_seconds, "total": total,
                    "plugin_build": self.prepare_seconds}
-        return RenderResult(image.reshape(height, width, 3), seconds, acc["rays"], counters, by_depth, extra)
+        return RenderResult(image.reshape(height, width, 3), seconds, tally.rays, counters, by_depth, extra)
 
-    def _shade(self, rays: RayBatch, packets, hits: Hits, image, spawn: bool, acc, reflect: bool = True) -> dict:
+    def with_counters(self, result: RenderResult) -> RenderResult:
+        """``result`` with counters and plugin statistics from a second, counting render (so the
+        timed render does not pay for counting)."""
+        count, self.count = self.count, True
+        try:
+            counted = self.render()
+        finally:
+            self.count = count
+        result.counters, result.counters_by_depth, result.extra = counted.counters, counted.counters_by_depth, counted.extra
+        return result
+
+    def _shade(self, rays: RayBatch, packets, hits: Hits, image, spawn: bool, tally, reflect: bool = True) -> dict:
         """Add this batch's direct light and background to ``image``; return its children as
         {"reflection": (org, dir, pixel, weight), "refraction": (...)}. ``reflect`` False: no
         mirror reflections (total internal reflection still continues a refraction path)."""
@@ -261,7 +265,7 @@ class WhittedRenderer:
             # Lanes index the batch's hits directly (cand[gather]): no intermediate copies.
             shadow = gather_batch("shadow", np.where(gather >= 0, cand[np.maximum(gather, 0)], -1), leave, l,
                                   shadow_tmin, dist * SHADOW_TMAX_SCALE, pixel, shadow_weight)
-            occluded = self._trace("shadow", shadow, shadow_packets, "occluded", acc)
+            occluded = self._trace("shadow", shadow, shadow_packets, "occluded", tally)
             visible = cand[gather[(gather >= 0) & ~occluded]]
             add_light(color, visible, ns, l, ndotl, view, mat, m.diffuse, m.specular, m.shininess, texel,
                       np.asarray(light.color, np.float32))

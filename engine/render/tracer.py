@@ -1,0 +1,81 @@
+"""The one place a batch of rays is traced.
+
+``Tracer.trace(kind, query, rays, packets, tally)`` builds the kind's frusta, allocates the
+answer arrays, calls the kind's traversal plugin, and adds the seconds (frustum build and query
+together: culling is part of what a traversal strategy costs), the live rays and, when the tally
+counts, the traversal counters to ``tally``. Everything that casts rays through a plugin goes
+through it: the Whitted loop, the ``RayTracer`` API, the audit's reference answers, the
+benchmark runner's replays (ours, the per-ray floor, Embree) and ``packetrt show``.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+from engine.core.types import RAY_KINDS, Hits, RayBatch, empty_hits, new_stats
+
+
+@dataclass
+class Tally:
+    """What a run of traces cost, per ray kind: seconds, live rays and (counting) Stats."""
+
+    count: bool = False
+    seconds: dict = field(default_factory=lambda: dict.fromkeys(RAY_KINDS, 0.0))
+    rays: dict = field(default_factory=lambda: dict.fromkeys(RAY_KINDS, 0))
+    stats: dict = field(default_factory=dict)  # kind -> Stats, one per kind, when counting
+
+    def stats_for(self, kind: str):
+        """The kind's Stats to accumulate into (None when not counting)."""
+        if not self.count:
+            return None
+        return self.stats.setdefault(kind, new_stats(numba.get_num_threads()))
+
+
+class Tracer:
+    """Traces batches over one BVH and triangle set with one traversal and frustum builder per kind.
+
+    bvh, tris: as in ``engine.core.types``; bounds: the scene box f32[2,3] (frustum builders
+    clip to it); traversal: {ray kind: plugin instance}; frustum: {ray kind: frustum builder,
+    or None for traversals that take no frusta (``single``, ``embree``)}.
+    """
+
+    def __init__(self, bvh, tris, bounds, traversal: dict, frustum: dict):
+        self.bvh, self.tris, self.bounds = bvh, tris, bounds
+        self.traversal, self.frustum = traversal, frustum
+
+    def prepare(self) -> dict:
+        """Let plugins with their own acceleration structure (Embree) build it now, outside any
+        timing: {plugin name: build seconds}."""
+        seconds = {}
+        for plugin in {id(p): p for p in self.traversal.values()}.values():
+            if hasattr(plugin, "prepare"):
+                seconds[plugin.name] = plugin.prepare(self.tris)
+        return seconds
+
+    def trace(self, kind: str, query: str, rays: RayBatch, packets, tally: Tally | None = None):
+        """Hits (query "intersect") or bool[R] occlusion flags (query "occluded") of ``rays``
+        (R rays in ``packets``), in batch order."""
+        traversal, frustum = self.traversal[kind], self.frustum[kind]
+        stats = tally.stats_for(kind) if tally is not None else None
+        n = rays.org.shape[0]
+        start = time.perf_counter()
+        frusta = None if frustum is None else frustum.build(rays, packets, self.bounds)
+        if query == "intersect":
+            answer = empty_hits(n)
+            traversal.intersect(self.bvh, self.tris, rays, packets, frusta, answer, stats)
+        elif query == "occluded":
+            answer = np.zeros(n, np.bool_)
+            traversal.occluded(self.bvh, self.tris, rays, packets, frusta, answer, stats)
+        else:
+            raise ValueError(f"query must be 'intersect' or 'occluded', got {query!r}")
+        if tally is not None:
+            tally.seconds[kind] += time.perf_counter() - start
+            tally.rays[kind] += int(np.count_nonzero(rays.tmin <= rays.tmax))
+        return answer
+
+    def with_traversal(self, traversal: dict, frustum: dict | None = None) -> "Tracer":
+        """The same BVH and triangles traced with other plugins."""
+        return Tracer(self.bvh, self.tris, self.bounds, traversal, frustum or self.frustum)
