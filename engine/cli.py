@@ -24,7 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from engine.core.errors import ConfigError, PacketrtError
-from engine.render.report import stats_dict
+from engine.render.report import frames_dict, stats_dict
 
 EXIT_USAGE = 2
 EXIT_MISMATCH = 1
@@ -98,17 +98,33 @@ def cmd_render(args) -> int:
     if args.audit:
         return _run_audit(scene, config, args.output, None, None, args.stats)
     renderer = WhittedRenderer(scene, config)
+    compile_seconds = renderer.warm_up()  # JIT compile or cache load, out of every frame time
     result = renderer.render()
     save_png(result.image, args.output)
+    frames = [result.seconds["total"]] + [renderer.render().seconds["total"] for _ in range(args.repeat)]
+    result.seconds["compile"] = compile_seconds
     if args.stats:
         renderer.with_counters(result)
     mrays = result.mrays_per_s()
     rates = ", ".join(f"{k} {result.rays[k]:,} rays {mrays[k]:.2f} Mrays/s" for k in result.rays if result.rays[k])
+    timing = frames_dict(frames)
+    over = f"median of {timing['n']} frames" if timing["n"] > 1 else "1 frame"
     print(f"{scene.name}: {scene.n_triangles:,} triangles, {config.render.width}x{config.render.height}, "
-          f"{result.seconds['total']:.2f} s -> {args.output} ({rates})")
+          f"{timing['median']:.2f} s/frame = {timing['fps']:.2f} FPS ({over}; compile {compile_seconds:.1f} s apart) "
+          f"-> {args.output} (first frame: {rates})")
     if args.stats:
-        _write_json(args.stats, stats_dict(scene, config, result))
+        _write_json(args.stats, stats_dict(scene, config, result, frames))
     return 0
+
+
+def _repeat_count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of frames 0..1000, got {text!r}") from None
+    if not 0 <= value <= 1000:
+        raise argparse.ArgumentTypeError(f"expected a whole number of frames 0..1000, got {value}")
+    return value
 
 
 def cmd_show(args) -> int:
@@ -236,6 +252,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_selectors(p)
     p.add_argument("-o", "--output", default="out/render.png", help="PNG to write")
     p.add_argument("--stats", help="write timings, ray counts and counters as JSON")
+    p.add_argument("--repeat", type=_repeat_count, default=0, metavar="N",
+                   help="render N more frames in the same process after the first (FPS = median)")
     p.add_argument("--audit", action="store_true", help="also check every ray against Embree")
     p.set_defaults(run=cmd_render)
     p = sub.add_parser("audit", help="check every ray of a render against Embree")

@@ -80,6 +80,25 @@ def test_render_writes_png_and_stats(tmp_path, capsys):
     assert set(data["seconds"]["trace"]) == {"primary", "shadow", "reflection", "refraction"}
     assert data["rays"]["primary"] == 64 * 48 and data["mrays_per_s"]["primary"] > 0
     assert data["counters"]["ray_aabb"]["primary"] > 0 and data["counters"]["ray_tri"]["shadow"] > 0
+    assert data["frames"]["n"] == 1 and data["frames"]["seconds"] == [data["seconds"]["total"]]
+    assert data["seconds"]["compile"] >= 0
+
+
+def test_repeat_renders_more_frames_and_prints_fps_with_compile_apart(tmp_path, capsys):
+    out, stats = tmp_path / "a.png", tmp_path / "a.json"
+    assert main(["render", "--size", "32x32", "--repeat", "2", "-o", str(out), "--stats", str(stats)]) == 0
+    line = capsys.readouterr().out
+    assert "FPS (median of 3 frames; compile " in line and "s apart)" in line
+    frames = json.loads(stats.read_text())["frames"]
+    assert frames["n"] == 3 and len(frames["seconds"]) == 3 and all(s > 0 for s in frames["seconds"])
+    assert frames["median"] == sorted(frames["seconds"])[1] and abs(frames["fps"] * frames["median"] - 1) < 1e-9
+
+
+@pytest.mark.parametrize("bad", ["-1", "lots", "1001"])
+def test_bad_repeat_is_one_line_and_exit_2(tmp_path, capsys, bad):
+    with pytest.raises(SystemExit) as info:
+        main(["render", "--repeat", bad, "-o", str(tmp_path / "a.png")])
+    assert info.value.code == 2 and "--repeat" in capsys.readouterr().err
 
 
 def test_audit_json_schema_and_exit_code(tmp_path, capsys):

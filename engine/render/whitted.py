@@ -40,6 +40,7 @@ from engine.core.types import RAY_KINDS, Hits, RayBatch, empty_hits, new_stats, 
 
 SHADOW_TMAX_SCALE = np.float32(1.0 - 1e-4)  # stop shadow rays just short of the light
 MIN_WEIGHT = np.float32(1e-3)               # rays carrying less are not worth casting
+WARM_UP_SIZE = 32                           # pixels a side of the compile-absorbing warm-up frame
 
 
 @dataclass
@@ -146,9 +147,25 @@ class WhittedRenderer:
         return answer
 
     # -- the loop ------------------------------------------------------------------------
-    def render(self) -> RenderResult:
+    def warm_up(self) -> float:
+        """Compile (or load from numba's disk cache) the kernels this config uses, by one small
+        render (WARM_UP_SIZE square, at least two packets a side) that no observer sees; returns
+        its seconds, which ``packetrt render`` reports as ``seconds.compile``. A kernel only
+        reached by rays the small image does not cast still compiles in the first frame."""
+        side = max(WARM_UP_SIZE, 2 * self.config.render.packet)
+        observer, self.observer = self.observer, None
+        start = time.perf_counter()
+        try:
+            self.render(size=(side, side))
+        finally:
+            self.observer = observer
+        return time.perf_counter() - start
+
+    def render(self, size: tuple | None = None) -> RenderResult:
+        """One frame; ``size`` (width, height) overrides the config's image size."""
         cfg = self.config.render
-        width, height, n = cfg.width, cfg.height, cfg.packet
+        width, height = size or (cfg.width, cfg.height)
+        n = cfg.packet
         tally = Tally(count=self.count)
         start = time.perf_counter()
         image = np.zeros((width * height, 3), np.float32)
