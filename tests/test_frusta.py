@@ -18,7 +18,7 @@ from numba import njit
 from engine.packet.frustum_cull import frustum_misses_box, frustum_misses_triangle, load_frustum
 from engine.core.triangle import F32_INF, intersect_triangle, ray_shear, safe_inverse, slab_test
 from engine.packet.kernels import node_box
-from engine.core.registry import get_frustum
+from engine.render.plugins import make_frustum
 from engine.core.types import Packets, RayBatch
 
 BUILDERS = ["pinhole", "pointlight", "general"]
@@ -137,7 +137,7 @@ def cull_check(kind, seed):
     # A scene box around everything the geometry below can reach.
     live = rays.tmin <= rays.tmax
     bounds = np.stack([rays.org[live].min(0) - 40, rays.org[live].max(0) + 40]).astype(np.float32)
-    frusta = get_frustum(kind).build(rays, packets, bounds)
+    frusta = make_frustum(kind).build(rays, packets, bounds)
     assert frusta.valid.tolist() == [True]
     bmin, bmax, v0, v1, v2 = random_geometry(rays, spread, extremal_rays(rays, frusta.planes[0]), rng)
     return culled_yet_hit(frusta.planes, frusta.valid, rays.org, rays.dir, rays.inv_dir, rays.tmin, rays.tmax,
@@ -178,20 +178,20 @@ def test_mixed_sign_packets_are_invalid(kind):
         rays, packets = one_packet(org, -d, np.zeros(8), np.full(8, 5.0))
     else:
         rays, packets = one_packet(np.tile([0.5, 0.5, 0.5], (8, 1)), d, np.zeros(8), np.full(8, np.inf))
-    assert get_frustum(kind).build(rays, packets, BOUNDS).valid.tolist() == [False]
+    assert make_frustum(kind).build(rays, packets, BOUNDS).valid.tolist() == [False]
 
 
 @pytest.mark.parametrize("kind", BUILDERS)
 def test_dead_packets_are_invalid(kind):
     rays, packets = one_packet(np.zeros((4, 3)), np.tile([0, 0, 1.0], (4, 1)), np.ones(4), np.zeros(4))
-    assert get_frustum(kind).build(rays, packets, BOUNDS).valid.tolist() == [False]
+    assert make_frustum(kind).build(rays, packets, BOUNDS).valid.tolist() == [False]
 
 
 def test_pinhole_needs_one_eye():
     d = np.tile([0.0, 0.0, 1.0], (4, 1))
     org = np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [0.5, 0, 0]], np.float64)
     rays, packets = one_packet(org, d, np.zeros(4), np.full(4, np.inf))
-    assert get_frustum("pinhole").build(rays, packets, BOUNDS).valid.tolist() == [False]
+    assert make_frustum("pinhole").build(rays, packets, BOUNDS).valid.tolist() == [False]
 
 
 def test_pointlight_needs_one_light():
@@ -200,4 +200,4 @@ def test_pointlight_needs_one_light():
     # Parallel rays (a directional light) and rays without an end never meet at one point.
     for tmax in (np.full(4, 5.0), np.full(4, np.inf)):
         rays, packets = one_packet(org, d, np.zeros(4), tmax)
-        assert get_frustum("pointlight").build(rays, packets, BOUNDS).valid.tolist() == [False]
+        assert make_frustum("pointlight").build(rays, packets, BOUNDS).valid.tolist() == [False]

@@ -5,7 +5,7 @@ import trimesh
 from engine.core.bvh import build_bvh
 from engine.core.triangle import intersect_triangle, ray_shear, safe_inverse, slab_test
 from engine.packet.layout import gather_batch
-from engine.core.registry import get_traversal
+from engine.render.plugins import make_traversal
 from engine.core.scene import make_triangles
 from engine.core.types import empty_hits
 
@@ -32,7 +32,7 @@ def trace(tris, org, d):
     rays = gather_batch("primary", gather, org, d, np.zeros(n), np.full(n, np.inf), np.arange(n),
                         np.ones((n, 3)), )
     hits = empty_hits(n)
-    get_traversal("single").intersect(build_bvh(tris), tris, rays, None, None, hits, None)
+    make_traversal("single").intersect(build_bvh(tris), tris, rays, None, None, hits, None)
     return hits
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from engine.packet.layout import PACKET_SIZES, make_batch
-from engine.core.registry import get_frustum, get_traversal
+from engine.render.plugins import make_frustum, make_traversal
 from engine.core.types import COUNTER_NODES, RAY_KINDS, Frusta, empty_hits, new_stats, stats_totals
 from conftest import needs_shared_scenes
 from packet_raysets import scene_rays
@@ -40,7 +40,7 @@ def rayset(request):
 
 def answers(name, rs, rays, packets, frusta, stats=None):
     """(Hits, occluded bool[R]) of traversal ``name``."""
-    traversal = get_traversal(name)
+    traversal = make_traversal(name)
     hits = empty_hits(rays.org.shape[0])
     traversal.intersect(rs.bvh, rs.tris, rays, packets, frusta, hits, stats)
     occluded = np.zeros(rays.org.shape[0], np.bool_)
@@ -63,7 +63,7 @@ def test_same_hits_as_single(rayset, kind, traversal, frustum):
     for n in PACKET_SIZES:
         rays, packets, ref_hits, ref_occluded = batch_and_reference(rayset, kind, n)
         assert (ref_hits.prim >= 0).any(), "a ray set without hits tests nothing"
-        frusta = get_frustum(FRUSTUM_FOR[kind]).build(rays, packets, rayset.bounds) if frustum else None
+        frusta = make_frustum(FRUSTUM_FOR[kind]).build(rays, packets, rayset.bounds) if frustum else None
         hits, occluded = answers(traversal, rayset, rays, packets, frusta)
         for field in ("prim", "t", "u", "v"):
             np.testing.assert_array_equal(getattr(hits, field), getattr(ref_hits, field),
@@ -80,7 +80,7 @@ def counted(name, rs, rays, packets, frusta):
 @pytest.mark.parametrize("traversal", PACKET_TRAVERSALS)
 def test_counters_filled_without_changing_hits(rayset, traversal):
     rays, packets, ref_hits, ref_occluded = batch_and_reference(rayset, "primary", 8)
-    frusta = get_frustum("pinhole").build(rays, packets, rayset.bounds)
+    frusta = make_frustum("pinhole").build(rays, packets, rayset.bounds)
     hits, occluded, stats = counted(traversal, rayset, rays, packets, frusta)
     np.testing.assert_array_equal(hits.prim, ref_hits.prim)
     np.testing.assert_array_equal(hits.t, ref_hits.t)
@@ -98,7 +98,7 @@ def test_counters_filled_without_changing_hits(rayset, traversal):
 @pytest.mark.parametrize("kind", RAY_KINDS)
 def test_frustum_culling_only_removes_work(rayset, kind, traversal):
     rays, packets, _, _ = batch_and_reference(rayset, kind, 8)
-    frusta = get_frustum(FRUSTUM_FOR[kind]).build(rays, packets, rayset.bounds)
+    frusta = make_frustum(FRUSTUM_FOR[kind]).build(rays, packets, rayset.bounds)
     _, _, plain = counted(traversal, rayset, rays, packets, None)
     _, _, culled = counted(traversal, rayset, rays, packets, frusta)
     assert (culled.counters.sum(axis=0) <= plain.counters.sum(axis=0)).all()
@@ -115,7 +115,7 @@ def test_figure6_partition_fewer_triangle_tests_ranged_fewer_box_tests():
     rs = scene_rays(load_scene("bunny", {"lod": 3}), 256, 256)
     for kind, row in (("primary", "ray_aabb"), ("reflection", "ray_tri")):
         rays, packets = rs.rays[kind].batch(rs.width, rs.height, 16)
-        for frusta in (None, get_frustum(FRUSTUM_FOR[kind]).build(rays, packets, rs.bounds)):
+        for frusta in (None, make_frustum(FRUSTUM_FOR[kind]).build(rays, packets, rs.bounds)):
             ranged = stats_totals(counted("ranged", rs, rays, packets, frusta)[2])[row]
             partition = stats_totals(counted("partition", rs, rays, packets, frusta)[2])[row]
             if kind == "primary":
@@ -131,7 +131,7 @@ def test_empty_batch_and_mismatched_frusta(traversal):
     rs = scene_rays(whitted_scene([], {"subdivisions": 1}, 0.0), 8, 8)
     rays, packets = make_batch("primary", np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0),
                                np.zeros(0, np.int32), np.zeros((0, 3)), 8, 8, 4)
-    hits, occluded = answers(traversal, rs, rays, packets, get_frustum("pinhole").build(rays, packets, rs.bounds))
+    hits, occluded = answers(traversal, rs, rays, packets, make_frustum("pinhole").build(rays, packets, rs.bounds))
     assert hits.t.shape == (0,) and occluded.shape == (0,)
     rays, packets = rs.rays["primary"].batch(8, 8, 4)
     wrong = Frusta(np.zeros((1, 4, 4), np.float32), np.zeros(1, np.bool_))

@@ -1,5 +1,6 @@
-"""``packetrt show``: the packet recorder agrees with the real traversals, the picture's geometry
-is right, the PNG shows the packet, its frustum and its nodes, and mistakes are one-line errors."""
+"""``packetrt show``: the packet traces recorded by the traversal kernel agree with the answers
+and counters of the real traversals and with the BVH, the picture's geometry is right, the PNG
+shows the packet, its frustum and its nodes, and mistakes are one-line errors."""
 import os
 import subprocess
 import sys
@@ -14,7 +15,8 @@ from engine.render.config import Config, with_overrides
 from engine.debug.packet_trace import CULLED, ENTERED, PACKET_WALKS, rayspace_node, trace_packet
 from engine.debug.show import (FRUSTUM, RAY_HIT, build_picture, capture_batch, centre_packet, legend_height,
                          node_colours)
-from engine.core.registry import get_traversal
+from engine.render.plugins import make_traversal
+from engine.core.triangle import slab_test
 from engine.core.types import COUNTER_NODES, Frusta, Packets, RayBatch, empty_hits, new_stats
 from engine.render.whitted import WhittedRenderer
 from scenes.catalog import scene_from_config
@@ -42,13 +44,33 @@ def every_kind(seen):
     return first.values()
 
 
+def node_parents(bvh):
+    """i64[N]: each node's parent (-1 for the root)."""
+    parent = np.full(bvh.first.shape[0], -1)
+    inner = np.flatnonzero(bvh.count == 0)
+    parent[bvh.first[inner]] = inner
+    parent[bvh.first[inner] + 1] = inner
+    return parent
+
+
+def leaf_of_triangle(bvh):
+    """i32[T]: the leaf holding each triangle (every triangle is in exactly one leaf)."""
+    leaf_of = np.full(bvh.prim.shape[0], -1, np.int32)
+    for leaf in np.flatnonzero(bvh.count > 0):
+        leaf_of[bvh.prim[bvh.first[leaf]:bvh.first[leaf] + bvh.count[leaf]]] = leaf
+    assert (leaf_of >= 0).all()
+    return leaf_of
+
+
 @pytest.mark.parametrize("walk", PACKET_WALKS + ("single",))
 @pytest.mark.parametrize("frustum", [None, "none"])
 def test_recorded_walk_gives_the_real_traversals_hits(walk, frustum):
-    """The recorder's answers are the plugin's, bit for bit, and every hit lies in a leaf the
-    recorder says the lane found it in (a leaf it entered)."""
+    """The recorded walk's answers are the plugin's on the whole batch, bit for bit, and the leaf
+    holding every hit triangle is one the record says the packet entered, with that triangle
+    among those tested there."""
     renderer, seen = render_batches(walk, frustum)
     bvh = renderer.bvh
+    leaf_of = leaf_of_triangle(bvh)
     for kind, query, rays, packets, answer in every_kind(seen):
         frusta = renderer.frustum[kind].build(rays, packets, renderer.bounds)
         n_packets = len(packets.offsets) - 1
@@ -63,13 +85,47 @@ def test_recorded_walk_gives_the_real_traversals_hits(walk, frustum):
                 assert np.array_equal(trace.prim >= 0, answer[start:stop]), (kind, k)
                 real = trace.prim
             entered_leaves = {int(n) for n, o in zip(trace.nodes, trace.outcome) if o == ENTERED and bvh.count[n]}
-            for lane in np.flatnonzero(real >= 0):
-                leaf = int(trace.hit_leaf[lane])
-                assert leaf in entered_leaves
-                assert real[lane] in bvh.prim[bvh.first[leaf]:bvh.first[leaf] + bvh.count[leaf]]
+            assert set(trace.leaves) == entered_leaves
+            for tri in real[real >= 0]:
+                leaf = int(leaf_of[tri])
+                assert leaf in entered_leaves, (kind, k, tri)
+                assert tri in trace.leaves[leaf]
             assert (trace.alive <= trace.live).all()
             if frustum == "none":
                 assert CULLED not in trace.outcome
+
+
+def test_recorded_walk_descends_the_tree():
+    """Every recorded node but the root is a child of a node entered before it, at its parent's
+    depth plus one; a culled or missed node has no live lane counted, an entered one some; the
+    root counts the live lanes whose segment meets its box (by the scalar ``slab_test``); a
+    packet-wise walk visits each node once."""
+    renderer, seen = render_batches("partition")
+    bvh = renderer.bvh
+    parent = node_parents(bvh)
+    for walk in PACKET_WALKS:
+        for kind, query, rays, packets, answer in every_kind(seen):
+            frusta = renderer.frustum[kind].build(rays, packets, renderer.bounds)
+            for k in range(0, len(packets.offsets) - 1, 3):
+                trace = trace_packet(bvh, renderer.tris, rays, packets, frusta, k, walk, query == "occluded")
+                if trace.outcome[0] != CULLED:
+                    at_root = sum(rays.tmin[r] <= rays.tmax[r] and slab_test(
+                        *rays.org[r], *rays.inv_dir[r], rays.tmin[r], rays.tmax[r], bvh.bmin, bvh.bmax, 0) < np.inf
+                        for r in range(packets.offsets[k], packets.offsets[k + 1]))
+                    assert trace.alive[0] == at_root, (walk, kind, k)
+                if walk != "simd":
+                    assert trace.pops.sum() == len(trace.nodes)
+                seen_at = {}
+                for i, (node, depth, outcome, alive) in enumerate(zip(trace.nodes.tolist(), trace.depth.tolist(),
+                                                                        trace.outcome, trace.alive.tolist())):
+                    if node:
+                        up = int(parent[node])
+                        assert up in seen_at and trace.outcome[seen_at[up]] == ENTERED, (walk, kind, k, node)
+                        assert depth == trace.depth[seen_at[up]] + 1
+                    else:
+                        assert i == 0 and depth == 0
+                    assert (alive > 0) == (outcome == ENTERED), (walk, kind, k, node)
+                    seen_at[node] = i
 
 
 def one_packet(rays, packets, frusta, k):
@@ -85,7 +141,7 @@ def test_recorded_walk_pops_the_nodes_the_kernel_counts(walk):
     """The kernels count every stack pop per BVH depth; run on the packet alone, they count
     exactly what the recorder walked: same order, same decisions, same early exits."""
     renderer, seen = render_batches(walk)
-    plugin = get_traversal(walk)
+    plugin = make_traversal(walk)
     for kind, query, rays, packets, answer in every_kind(seen):
         frusta = renderer.frustum[kind].build(rays, packets, renderer.bounds)
         n_packets = len(packets.offsets) - 1
@@ -107,10 +163,7 @@ def test_partition_rays_only_thin_out_going_down():
     """A partition child never has more rays alive than its parent, and the frusta cull nodes."""
     renderer, seen = render_batches("partition")
     bvh = renderer.bvh
-    parent = np.full(bvh.first.shape[0], -1)
-    inner = np.flatnonzero(bvh.count == 0)
-    parent[bvh.first[inner]] = inner
-    parent[bvh.first[inner] + 1] = inner
+    parent = node_parents(bvh)
     culled = 0
     for kind, query, rays, packets, answer in every_kind(seen):
         frusta = renderer.frustum[kind].build(rays, packets, renderer.bounds)

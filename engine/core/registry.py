@@ -94,19 +94,3 @@ def describe_table(table: dict) -> list:
         return doc.splitlines()[0] if doc else ""
 
     return [{"name": n, "doc": first_line(cls)} for n, cls in sorted(table.items())]
-
-
-# -- transitional: the names tests and debug tools used before the composition root ----------
-
-def get_traversal(name: str, options: dict | None = None):
-    """A new instance of traversal ``name`` (see ``engine.render.plugins.make_traversal``)."""
-    from engine.render.plugins import make_traversal
-
-    return make_traversal(name, options)
-
-
-def get_frustum(name: str):
-    """A new instance of frustum builder ``name`` (see ``engine.render.plugins.make_frustum``)."""
-    from engine.render.plugins import make_frustum
-
-    return make_frustum(name)

@@ -1,28 +1,25 @@
-"""One packet, walked again with a recorder: which BVH nodes it visited and how many of its
-rays were alive at each (``packetrt show``). And, for the ray-space hierarchy, the cone-sphere
-node of one packet's screen tile with the triangles that survive down to it.
+"""One packet's walk through the BVH as recorded by the traversal kernel itself: which nodes it
+visited and how many of its rays were alive at each (``packetrt show``). And, for the ray-space
+hierarchy, the cone-sphere node of one packet's screen tile with the triangles that survive
+down to it.
 
-Speed does not matter here (one packet), faithfulness does. The walk is Python, but every
-decision is taken by the very numba functions the packet kernels inline -- ``load_packet``,
-``slab_mask4``, ``first_hit``, ``last_hit``, ``part_rays``, ``leaf_triangles``,
-``intersect_lanes``, ``frustum_misses_box`` -- called through the small wrappers below, on the
-kernels' own packet-local state (rf, ri), in the kernels' order (near child first from the
-packet's direction signs). So the recorded hits are the traversal's hits bit for bit, which
-the tests check against the real plugins.
+The packet traversals (``PACKET_WALKS``, the strategies of ``engine.packet.strategies``) are
+not walked again here: the packet is cut out of its batch and run through the one packet walk
+(``engine.packet.walk``, by ``engine.packet.plugin.walk_batch`` as the plugins run it) with a
+record (``engine.packet.record``), so the nodes, their order and the answers are the
+kernel's. Per traversal, a visit's ``alive`` counts the live lanes whose segment meets the
+node's box among
 
-Per traversal:
-
-- ``partition``: a node is visited when popped; the frustum may reject it (``culled``); else
-  the SIMD rays listed for it are partitioned, and ``alive`` is the lanes of those that hit
-  its box.
-- ``masked``: the whole packet enters while one SIMD ray hits; ``alive`` counts every live
-  lane that hits the box (the kernel stops at the first, the count is for the picture).
-- ``ranged``: rays from the entry's ``ia`` on; ``alive`` counts the lanes of SIMD rays
-  ia .. end that hit the box.
-- ``simd``: each SIMD ray walks alone; a node's ``alive`` sums the lanes of every SIMD ray
+- ``partition``: the SIMD rays listed for the node (those that hit its parent);
+- ``masked``: every SIMD ray of the packet (the kernel stops at the first that hits; the
+  record tests the rest, for the picture);
+- ``ranged``: the SIMD rays from the entry's ``ia`` on (likewise);
+- ``simd``: the one SIMD ray walking; a node's ``alive`` sums the lanes of every SIMD ray
   that entered it.
-- ``single`` (and ``embree``, whose own BVH is not ours to show): each ray walks alone as
-  ``single`` does; ``alive`` is the number of rays that reached the node.
+
+``single`` (and ``embree``, whose own BVH is not ours to show): each ray walks alone as
+``single`` does; ``alive`` is the number of rays that reached the node. ``single``'s kernel
+keeps no record, so this module repeats its walk (``_single_walk``).
 
 ``alive`` is measured against each lane's segment at that moment: a closest-hit search
 shortens a lane's segment as it finds hits, an occlusion query kills the lane.
@@ -34,107 +31,51 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from engine.rayspace.cone_sphere import absolute_slack, build_hierarchy, cone_sphere_overlap
-from engine.packet.frustum_cull import frustum_misses_box, load_frustum
 from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear, slab_test
-from engine.packet.kernels import (BEST_PRIM, BEST_T, BEST_U, BEST_V, child_order_keys, first_hit,
-                             intersect_lanes, leaf_triangles, live_mask4, load_packet, node_box,
-                             packet_scratch, slab_mask4)
+from engine.core.types import MAX_BVH_DEPTH, Frusta, Packets, RayBatch, empty_hits
+from engine.packet.frustum_cull import load_frustum
+from engine.packet.kernels import leaf_triangles
+from engine.packet.plugin import walk_batch
+from engine.packet.record import DEPTH, LANES, NODE, OUTCOME, kept_visits, new_record
+from engine.packet import strategies
+from engine.rayspace.cone_sphere import absolute_slack, build_hierarchy, cone_sphere_overlap
 from engine.rayspace.triangle_spheres import triangle_spheres
-from engine.core.types import MAX_BVH_DEPTH
-
-# The two traversal-specific steps, from the plugins themselves (importing them registers
-# nothing new: the registry loads the same modules).
-from traversals.partition import part_rays  # noqa: E402
-from traversals.ranged import last_hit  # noqa: E402
 
 #: Traversals walked packet-wise, and the ones walked ray by ray as ``single`` does.
-PACKET_WALKS = ("partition", "masked", "ranged", "simd")
+PACKET_WALKS = tuple(strategies.STRATEGIES)
 RAY_WALKS = ("single", "embree")
 
 CULLED, MISSED, ENTERED = "culled", "missed", "entered"
+OUTCOME_NAMES = {strategies.CULLED: CULLED, strategies.MISSED: MISSED, strategies.ENTERED: ENTERED}
 
-
-# -- thin wrappers: the kernels' own inline functions, callable from Python --------------------
-
-@njit(cache=True)
-def _load(org, inv, dirs, tmin, tmax, start, n):
-    rf, ri, near, fr, _ = packet_scratch(n, 1)
-    live = load_packet(org, inv, dirs, tmin, tmax, start, n, rf, ri, near)
-    return rf, ri, near, live
+#: Visits a first record has room for; a walk that makes more is recorded again with room for all.
+RECORD_CAPACITY = 4096
 
 
 @njit(cache=True)
-def _load_frustum(planes, valid, k):
+def _tested_triangles(first, count, prim, node, v0, v1, v2, planes, valid, k):
+    """i32[M]: the triangles of leaf ``node`` that packet k's frustum does not cull, as the
+    kernel's leaf step lists them."""
     fr = np.zeros(16, np.float32)
     cull = load_frustum(planes, valid, k, fr)
-    return fr, cull
-
-
-@njit(cache=True)
-def _frustum_misses(fr, bmin, bmax, node):
-    return frustum_misses_box(fr, node_box(bmin, bmax, node))
-
-
-@njit(cache=True)
-def _masks(rf, lo, hi, bmin, bmax, node):
-    """i32[hi-lo]: slab_mask4 of SIMD rays lo .. hi-1 against the node's box."""
-    box = node_box(bmin, bmax, node)
-    out = np.zeros(max(hi - lo, 0), np.int32)
-    for i in range(lo, hi):
-        out[i - lo] = slab_mask4(rf, 4 * i, box)
-    return out
-
-
-@njit(cache=True)
-def _live_masks(rf, n_simd):
-    out = np.zeros(n_simd, np.int32)
-    for i in range(n_simd):
-        out[i] = live_mask4(rf, 4 * i)
-    return out
-
-
-@njit(cache=True)
-def _first_hit(rf, lo, hi, bmin, bmax, node, fr, cull):
-    return first_hit(rf, lo, hi, node_box(bmin, bmax, node), fr, cull)
-
-
-@njit(cache=True)
-def _part_rays(rf, ids, masks, m, bmin, bmax, node):
-    return part_rays(rf, ids, masks, m, node_box(bmin, bmax, node))
-
-
-@njit(cache=True)
-def _last_hit(rf, ia, hi, bmin, bmax, node):
-    return last_hit(rf, ia, hi, node_box(bmin, bmax, node))
-
-
-@njit(cache=True)
-def _leaf_triangles(first, count, prim, node, v0, v1, v2, fr, cull):
     out = np.empty(max(count[node], 1), np.int32)
     n = leaf_triangles(first, count, prim, node, v0, v1, v2, fr, cull, out)
     return out[:n].copy()
 
 
 @njit(cache=True)
-def _intersect(rf, ri, simd, mask, tris, v0, v1, v2, any_hit):
-    return intersect_lanes(rf, ri, 4 * simd, mask, tris, tris.shape[0], v0, v1, v2, any_hit)
-
-
-@njit(cache=True)
 def _single_walk(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax, r,
                  any_hit, nodes):
     """``single``'s walk of ray r (see traversals/single.py), recording each popped node in
-    nodes (i32[N]); returns (visited, t, prim, u, v, leaves holding the best hit)."""
+    nodes (i32[N]); returns (visited, t, prim, u, v)."""
     best_t = F32_INF
     best_prim = -1
     best_u = np.float32(0.0)
     best_v = np.float32(0.0)
-    best_leaf = -1
     t_lo = tmin[r]
     t_hi = tmax[r]
     if not t_lo <= t_hi:
-        return 0, best_t, best_prim, best_u, best_v, best_leaf
+        return 0, best_t, best_prim, best_u, best_v
     ox, oy, oz = org[r, 0], org[r, 1], org[r, 2]
     ix, iy, iz = inv[r, 0], inv[r, 1], inv[r, 2]
     kx, ky, kz, sx, sy, sz = ray_shear(dirs[r, 0], dirs[r, 1], dirs[r, 2])
@@ -156,7 +97,7 @@ def _single_walk(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmi
                 tri = prim[i]
                 t, u, v = intersect_triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi, v0, v1, v2, tri)
                 if t < F32_INF and closer(t, tri, best_t, best_prim):
-                    best_t, best_prim, best_u, best_v, best_leaf = t, tri, u, v, node
+                    best_t, best_prim, best_u, best_v = t, tri, u, v
                     if any_hit:
                         done = True
                         break
@@ -176,11 +117,7 @@ def _single_walk(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmi
         if t_near < F32_INF:
             stack[top] = near
             top += 1
-    return visited, best_t, best_prim, best_u, best_v, best_leaf
-
-
-def _popcount(masks) -> int:
-    return int(sum(bin(int(m)).count("1") for m in masks))
+    return visited, best_t, best_prim, best_u, best_v
 
 
 # -- the record ---------------------------------------------------------------------------------
@@ -196,7 +133,6 @@ class PacketTrace:
     leaves: {leaf node: triangles tested there (after frustum culling)} for entered leaves.
     pops i64[MAX_BVH_DEPTH]: stack pops per BVH depth, as the kernels count them (their
         ``nodes`` counter): every visit of every SIMD ray or ray, repeats included.
-    hit_leaf i32[n]: the leaf in which each lane found its final hit (-1 = none).
     t f32[n], prim i32[n], u, v f32[n]: the packet's answers (closest hit, or for an occlusion
         query the first hit found: prim >= 0 means occluded).
     """
@@ -211,7 +147,6 @@ class PacketTrace:
     outcome: list
     leaves: dict
     pops: np.ndarray
-    hit_leaf: np.ndarray
     t: np.ndarray
     prim: np.ndarray
     u: np.ndarray
@@ -220,10 +155,11 @@ class PacketTrace:
 
 
 class _Recorder:
+    """Visits merged per node, in first-visit order."""
+
     def __init__(self):
         self.index = {}
         self.nodes, self.depth, self.alive, self.outcome = [], [], [], []
-        self.leaves = {}
         self.pops = np.zeros(MAX_BVH_DEPTH, np.int64)
 
     def visit(self, node, depth, outcome, alive):
@@ -240,9 +176,14 @@ class _Recorder:
         self.alive.append(alive)
         self.outcome.append(outcome)
 
+    def trace(self, walk, start, n, live, leaves, answers, notes=()) -> PacketTrace:
+        return PacketTrace(walk, start, n, live, np.array(self.nodes, np.int32), np.array(self.depth, np.int32),
+                           np.array(self.alive, np.int32), self.outcome, leaves, self.pops,
+                           answers.t, answers.prim, answers.u, answers.v, list(notes))
+
 
 def trace_packet(bvh, tris, rays, packets, frusta, k: int, walk: str, any_hit: bool) -> PacketTrace:
-    """Walk packet ``k`` of ``rays`` (in ``packets``) through ``bvh`` as traversal ``walk`` does
+    """Packet ``k`` of ``rays`` (in ``packets``) through ``bvh`` as traversal ``walk`` takes it
     (one of PACKET_WALKS or RAY_WALKS), with its frustum from ``frusta`` (None = no culling)."""
     if walk not in PACKET_WALKS + RAY_WALKS:
         raise ValueError(f"no packet walk for traversal {walk!r}; known: {', '.join(PACKET_WALKS + RAY_WALKS)}")
@@ -250,165 +191,62 @@ def trace_packet(bvh, tris, rays, packets, frusta, k: int, walk: str, any_hit: b
     if not 0 <= k < len(offsets) - 1:
         raise ValueError(f"packet {k} out of range 0..{len(offsets) - 2}")
     start, n = int(offsets[k]), int(offsets[k + 1] - offsets[k])
-    if frusta is None:
-        planes, valid = np.zeros((k + 1, 4, 4), np.float32), np.zeros(k + 1, np.bool_)
-    else:
-        planes = np.ascontiguousarray(frusta.planes, np.float32)
-        valid = np.ascontiguousarray(frusta.valid, np.bool_)
     rec = _Recorder()
     if walk in RAY_WALKS:
         return _ray_walk(bvh, tris, rays, start, n, any_hit, rec, walk)
-    rf, ri, near, live = _load(rays.org, rays.inv_dir, rays.dir, rays.tmin, rays.tmax, start, n)
-    fr, cull = _load_frustum(planes, valid, k)
-    order = child_order_keys(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
-    hit_leaf = np.full(n, -1, np.int32)
-    walker = {"partition": _walk_partition, "masked": _walk_masked, "ranged": _walk_ranged,
-              "simd": _walk_simd}[walk]
-    walker(bvh, tris, rf, ri, near, order, fr, cull, n // 4, int(live), any_hit, rec, hit_leaf)
-    return PacketTrace(walk, start, n, int(live), np.array(rec.nodes, np.int32), np.array(rec.depth, np.int32),
-                       np.array(rec.alive, np.int32), rec.outcome, rec.leaves, rec.pops, hit_leaf,
-                       rf[BEST_T, :n].copy(), ri[BEST_PRIM, :n].copy(), rf[BEST_U, :n].copy(),
-                       rf[BEST_V, :n].copy())
+    alone, alone_packets, alone_frusta = packet_alone(rays, packets, frusta, k)
+    answers = empty_hits(n)
+    capacity = RECORD_CAPACITY
+    while True:
+        record = new_record(capacity)
+        walk_batch(strategies.STRATEGIES[walk], bvh, tris, alone, alone_packets, alone_frusta, any_hit,
+                   answers.t, answers.prim, answers.u, answers.v, record=record)
+        if record.count[0] <= capacity:
+            break
+        capacity = int(record.count[0])
+    for node, depth, outcome, lanes in kept_visits(record)[:, [NODE, DEPTH, OUTCOME, LANES]].tolist():
+        rec.visit(node, depth, OUTCOME_NAMES[outcome], lanes)
+    leaves = {node: _tested_triangles(bvh.first, bvh.count, bvh.prim, node, tris.v0, tris.v1, tris.v2,
+                                      alone_frusta.planes, alone_frusta.valid, 0)
+              for node, outcome in zip(rec.nodes, rec.outcome) if outcome == ENTERED and bvh.count[node] > 0}
+    live = int(np.count_nonzero(alone.tmin <= alone.tmax))
+    return rec.trace(walk, start, n, live, leaves, answers)
 
 
-def _children(bvh, order, near, node):
-    near_child = int(bvh.first[node] + near[order[node]])
-    return near_child, 2 * int(bvh.first[node]) + 1 - near_child
-
-
-def _leaf(bvh, tris, rf, ri, fr, cull, node, simds, masks, any_hit, rec, hit_leaf):
-    """Intersect the given SIMD rays' masked lanes with the leaf; returns lanes that died."""
-    leaf_tris = _leaf_triangles(bvh.first, bvh.count, bvh.prim, node, tris.v0, tris.v1, tris.v2, fr, cull)
-    rec.leaves[node] = leaf_tris
-    died = 0
-    for i, mask in zip(simds, masks):
-        before = ri[BEST_PRIM, 4 * i:4 * i + 4].copy()
-        best_t = rf[BEST_T, 4 * i:4 * i + 4].copy()
-        _, d = _intersect(rf, ri, int(i), int(mask), leaf_tris, tris.v0, tris.v1, tris.v2, any_hit)
-        died += d
-        changed = (ri[BEST_PRIM, 4 * i:4 * i + 4] != before) | (rf[BEST_T, 4 * i:4 * i + 4] != best_t)
-        hit_leaf[4 * i:4 * i + 4][changed] = node
-    return died
-
-
-def _walk_partition(bvh, tris, rf, ri, near, order, fr, cull, n_simd, live, any_hit, rec, hit_leaf):
-    ids = np.flatnonzero(_live_masks(rf, n_simd)).astype(np.int32)
-    masks = np.zeros(max(n_simd, 1), np.int32)
-    stack = [(0, len(ids), 0)] if len(ids) else []
-    while stack and live > 0:
-        node, m_in, depth = stack.pop()
-        if cull and _frustum_misses(fr, bvh.bmin, bvh.bmax, node):
-            rec.visit(node, depth, CULLED, 0)
-            continue
-        m = _part_rays(rf, ids, masks, m_in, bvh.bmin, bvh.bmax, node)
-        rec.visit(node, depth, ENTERED if m else MISSED, _popcount(masks[:m]))
-        if m == 0:
-            continue
-        if bvh.count[node] > 0:
-            live -= _leaf(bvh, tris, rf, ri, fr, cull, node, ids[:m].tolist(), masks[:m].tolist(), any_hit,
-                          rec, hit_leaf)
-            continue
-        near_child, far_child = _children(bvh, order, near, node)
-        stack.append((far_child, m, depth + 1))
-        stack.append((near_child, m, depth + 1))
-
-
-def _walk_masked(bvh, tris, rf, ri, near, order, fr, cull, n_simd, live, any_hit, rec, hit_leaf):
-    stack = [(0, 0)] if live > 0 else []
-    while stack and live > 0:
-        node, depth = stack.pop()
-        masks = _masks(rf, 0, n_simd, bvh.bmin, bvh.bmax, node)
-        alive = _popcount(masks)
-        if bvh.count[node] > 0:
-            if cull and _frustum_misses(fr, bvh.bmin, bvh.bmax, node):
-                rec.visit(node, depth, CULLED, 0)
-                continue
-            hit = [i for i in range(n_simd) if masks[i]]
-            rec.visit(node, depth, ENTERED if hit else MISSED, alive)
-            live -= _leaf(bvh, tris, rf, ri, fr, cull, node, hit, [masks[i] for i in hit], any_hit, rec, hit_leaf)
-            continue
-        first, _ = _first_hit(rf, 0, n_simd, bvh.bmin, bvh.bmax, node, fr, cull)
-        if first >= n_simd:
-            # Rejected by the frustum when SIMD ray 0 missed and a valid frustum misses the box.
-            culled = cull and masks[0] == 0 and _frustum_misses(fr, bvh.bmin, bvh.bmax, node)
-            rec.visit(node, depth, CULLED if culled else MISSED, 0 if culled else alive)
-            continue
-        rec.visit(node, depth, ENTERED, alive)
-        near_child, far_child = _children(bvh, order, near, node)
-        stack.append((far_child, depth + 1))
-        stack.append((near_child, depth + 1))
-
-
-def _walk_ranged(bvh, tris, rf, ri, near, order, fr, cull, n_simd, live, any_hit, rec, hit_leaf):
-    stack = [(0, 0, 0)] if live > 0 else []
-    while stack and live > 0:
-        node, ia_in, depth = stack.pop()
-        ia, _ = _first_hit(rf, ia_in, n_simd, bvh.bmin, bvh.bmax, node, fr, cull)
-        masks = _masks(rf, ia_in, n_simd, bvh.bmin, bvh.bmax, node)
-        alive = _popcount(masks)
-        if ia >= n_simd:
-            culled = (cull and ia_in < n_simd and masks[0] == 0
-                      and _frustum_misses(fr, bvh.bmin, bvh.bmax, node))
-            rec.visit(node, depth, CULLED if culled else MISSED, 0 if culled else alive)
-            continue
-        rec.visit(node, depth, ENTERED, alive)
-        if bvh.count[node] > 0:
-            ie, _ = _last_hit(rf, ia, n_simd, bvh.bmin, bvh.bmax, node)
-            simds = list(range(ia, ie))
-            live -= _leaf(bvh, tris, rf, ri, fr, cull, node, simds, [0xF] * len(simds), any_hit, rec, hit_leaf)
-            continue
-        near_child, far_child = _children(bvh, order, near, node)
-        stack.append((far_child, ia, depth + 1))
-        stack.append((near_child, ia, depth + 1))
-
-
-def _walk_simd(bvh, tris, rf, ri, near, order, fr, cull, n_simd, live, any_hit, rec, hit_leaf):
-    for i in range(n_simd):
-        lanes = int(_live_masks(rf, n_simd)[i])
-        stack = [(0, 0)] if lanes else []
-        while stack and lanes:
-            node, depth = stack.pop()
-            if cull and _frustum_misses(fr, bvh.bmin, bvh.bmax, node):
-                rec.visit(node, depth, CULLED, 0)
-                continue
-            mask = int(_masks(rf, i, i + 1, bvh.bmin, bvh.bmax, node)[0])
-            rec.visit(node, depth, ENTERED if mask else MISSED, _popcount([mask]))
-            if mask == 0:
-                continue
-            if bvh.count[node] > 0:
-                if _leaf(bvh, tris, rf, ri, fr, cull, node, [i], [mask], any_hit, rec, hit_leaf):
-                    lanes = int(_live_masks(rf, n_simd)[i])
-                continue
-            near_child, far_child = _children(bvh, order, near, node)
-            stack.append((far_child, depth + 1))
-            stack.append((near_child, depth + 1))
+def packet_alone(rays, packets, frusta, k: int):
+    """Packet k as a batch of its own: (RayBatch, Packets, Frusta), the frustum all-invalid
+    when ``frusta`` is None."""
+    start, stop = int(packets.offsets[k]), int(packets.offsets[k + 1])
+    alone = RayBatch(*(np.ascontiguousarray(getattr(rays, f)[start:stop]) for f in RayBatch._fields[:-1]),
+                     rays.kind)
+    if frusta is None:
+        frustum = Frusta(np.zeros((1, 4, 4), np.float32), np.zeros(1, np.bool_))
+    else:
+        frustum = Frusta(np.ascontiguousarray(frusta.planes[k:k + 1], np.float32),
+                         np.ascontiguousarray(frusta.valid[k:k + 1], np.bool_))
+    return alone, Packets(np.array([0, stop - start], np.int32), packets.size, packets.width, packets.height), frustum
 
 
 def _ray_walk(bvh, tris, rays, start, n, any_hit, rec, walk) -> PacketTrace:
     depth_of = _node_depths(bvh)
     buffer = np.empty(bvh.first.shape[0], np.int32)
-    t = np.full(n, np.inf, np.float32)
-    prim = np.full(n, -1, np.int32)
-    u = np.zeros(n, np.float32)
-    v = np.zeros(n, np.float32)
-    hit_leaf = np.full(n, -1, np.int32)
+    answers = empty_hits(n)
+    leaves = {}
     live = 0
     for lane in range(n):
         r = start + lane
         live += bool(rays.tmin[r] <= rays.tmax[r])
-        count, t[lane], prim[lane], u[lane], v[lane], hit_leaf[lane] = _single_walk(
+        count, answers.t[lane], answers.prim[lane], answers.u[lane], answers.v[lane] = _single_walk(
             bvh.bmin, bvh.bmax, bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
             rays.org, rays.inv_dir, rays.dir, rays.tmin, rays.tmax, r, any_hit, buffer)
-        for node in buffer[:count]:
-            node = int(node)
+        for node in buffer[:count].tolist():
             rec.visit(node, int(depth_of[node]), ENTERED, 1)
-            if bvh.count[node] > 0 and node not in rec.leaves:
+            if bvh.count[node] > 0 and node not in leaves:
                 f, c = int(bvh.first[node]), int(bvh.count[node])
-                rec.leaves[node] = bvh.prim[f:f + c].copy()
+                leaves[node] = bvh.prim[f:f + c].copy()
     notes = ["embree uses its own BVH: shown is packetrt's BVH walked ray by ray as `single` does"] \
         if walk == "embree" else []
-    return PacketTrace("single", start, n, live, np.array(rec.nodes, np.int32), np.array(rec.depth, np.int32),
-                       np.array(rec.alive, np.int32), rec.outcome, rec.leaves, rec.pops, hit_leaf, t, prim, u, v, notes)
+    return rec.trace("single", start, n, live, leaves, answers, notes)
 
 
 def _node_depths(bvh) -> np.ndarray:

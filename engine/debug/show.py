@@ -5,7 +5,7 @@
 Renders the configured image once, keeps the ray batch of the chosen kind (its first batch:
 depth 1 for reflections and refractions, the first light for shadows) and picks one packet:
 ``--packet-index``, or by default the packet whose rays' pixels lie nearest the image centre.
-That packet is walked again by ``engine.debug.packet_trace`` (same decisions as the real traversal),
+That packet's walk is recorded by the traversal kernel itself (``engine.debug.packet_trace``),
 and the picture shows
 
 - the scene as a light-grey wireframe (a sample of it for big meshes), the triangles of the

@@ -1,1 +1,2 @@
-"""Large ray packets: packet layout, the shared packet-traversal kernels, frustum build and cull, 4-lane SIMD helpers."""
+"""Large ray packets: packet layout, the one packet walk and its per-strategy steps, frustum build
+and cull, 4-lane SIMD helpers."""

@@ -1,7 +1,9 @@
 """Packet-local ray state and the kernels every packet traversal shares.
 
 The packet traversals of Overbeck, Ramamoorthi and Mark (2008) -- simd, masked, ranged,
-partition -- differ only in how a packet walks the BVH. What they share lives here:
+partition -- differ only in the steps a packet takes at a node and at a leaf
+(``engine.packet.steps``) of their one walk (``engine.packet.walk``). What else they share lives
+here:
 
 - ``load_packet`` copies packet k (rays offsets[k] : offsets[k+1], whole 2x2 SIMD rays) into
   packet-local structure-of-arrays rows, so the four lanes of SIMD ray i are the consecutive
@@ -9,9 +11,7 @@ partition -- differ only in how a packet walks the BVH. What they share lives he
   the per-ray set-up of the watertight test once (``engine.core.triangle.ray_shear``) and picks the
   packet's near-child order from its direction signs.
 - ``slab_mask4``: the 4-lane ray-box test of one SIMD ray (``engine.packet.simd4.slab4``), a bit mask
-  of the lanes that hit.
-- ``first_hit``: Overbeck's getFirstHit (the first SIMD ray at or after ``lo`` that hits a box,
-  the frustum as early reject).
+  of the lanes that hit; ``live_mask4`` and ``lane_count`` for the lanes still live.
 - ``leaf_triangles`` / ``intersect_lanes``: the leaf, frustum-culled, then the shared
   ``intersect_triangle`` and tie rule ``closer`` for each lane, exactly as ``single`` does, run
   on the four lanes at once (``engine.packet.simd4_triangle.intersect4``).
@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from engine.packet.frustum_cull import frustum_misses_box, frustum_misses_triangle
+from engine.packet.frustum_cull import frustum_misses_triangle
 from engine.core.triangle import F32_INF, ray_shear
 from engine.packet.simd4 import slab4
 from engine.packet.simd4_triangle import ROWS_F, ROWS_I, intersect4
@@ -115,6 +115,23 @@ def child_order_keys(bmin, bmax, first, count):
 
 
 @njit(cache=True, inline="always")
+def set_segment(rf, ri, i, tlo, thi, kx, ky, kz, sx, sy, sz, okx, oky, okz):
+    """Lane i's live segment [tlo, thi] and the watertight test's set-up (shear axes kx, ky, kz,
+    shear sx, sy, sz, permuted origin okx, oky, okz) into the packet-local rows."""
+    rf[TLO, i] = tlo
+    rf[THI, i] = thi
+    ri[KX, i] = kx
+    ri[KY, i] = ky
+    ri[KZ, i] = kz
+    rf[SX, i] = sx
+    rf[SY, i] = sy
+    rf[SZ, i] = sz
+    rf[OKX, i] = okx
+    rf[OKY, i] = oky
+    rf[OKZ, i] = okz
+
+
+@njit(cache=True, inline="always")
 def load_packet(org, inv, dirs, tmin, tmax, start, n, rf, ri, near):
     """Transpose rays start .. start+n (org, inv, dirs: f32[R,3]; tmin, tmax: f32[R]) into the
     packet-local rows rf, ri and set the near-child table from the live rays' summed direction.
@@ -137,33 +154,14 @@ def load_packet(org, inv, dirs, tmin, tmax, start, n, rf, ri, near):
         ri[BEST_PRIM, i] = -1
         if tmin[r] <= tmax[r]:
             live += 1
-            rf[TLO, i] = tmin[r]
-            rf[THI, i] = tmax[r]
             kx, ky, kz, sx, sy, sz = ray_shear(dirs[r, 0], dirs[r, 1], dirs[r, 2])
-            ri[KX, i] = kx
-            ri[KY, i] = ky
-            ri[KZ, i] = kz
-            rf[SX, i] = sx
-            rf[SY, i] = sy
-            rf[SZ, i] = sz
-            rf[OKX, i] = org[r, kx]
-            rf[OKY, i] = org[r, ky]
-            rf[OKZ, i] = org[r, kz]
+            set_segment(rf, ri, i, tmin[r], tmax[r], kx, ky, kz, sx, sy, sz, org[r, kx], org[r, ky], org[r, kz])
             sum_x += dirs[r, 0]
             sum_y += dirs[r, 1]
             sum_z += dirs[r, 2]
         else:
-            rf[TLO, i] = F32_INF
-            rf[THI, i] = F32_NEG_INF
-            ri[KX, i] = 0
-            ri[KY, i] = 1
-            ri[KZ, i] = 2
-            rf[SX, i] = F32_ZERO
-            rf[SY, i] = F32_ZERO
-            rf[SZ, i] = F32_ZERO
-            rf[OKX, i] = F32_ZERO
-            rf[OKY, i] = F32_ZERO
-            rf[OKZ, i] = F32_ZERO
+            set_segment(rf, ri, i, F32_INF, F32_NEG_INF, 0, 1, 2, F32_ZERO, F32_ZERO, F32_ZERO,
+                        F32_ZERO, F32_ZERO, F32_ZERO)
     # Travelling towards -axis, the upper child comes first: near offset = upper XOR negative.
     neg_x = 1 if sum_x < 0.0 else 0
     neg_y = 1 if sum_y < 0.0 else 0
@@ -199,22 +197,9 @@ def live_mask4(rf, lane0):
 
 
 @njit(cache=True, inline="always")
-def first_hit(rf, lo, hi, box, fr, cull):
-    """Overbeck's getFirstHit over SIMD rays lo .. hi-1: (index of the first one that hits
-    ``box``, or hi; ray-box tests done). SIMD ray ``lo`` is tried first (early accept); if it
-    misses, a valid frustum that misses the box rejects the rest at once."""
-    if lo >= hi:
-        return hi, 0
-    if slab_mask4(rf, 4 * lo, box) != 0:
-        return lo, 4
-    if cull and frustum_misses_box(fr, box):
-        return hi, 4
-    tests = 4
-    for i in range(lo + 1, hi):
-        tests += 4
-        if slab_mask4(rf, 4 * i, box) != 0:
-            return i, tests
-    return hi, tests
+def lane_count(mask):
+    """Number of lanes set in a 4-bit lane mask."""
+    return (mask & 1) + ((mask >> 1) & 1) + ((mask >> 2) & 1) + ((mask >> 3) & 1)
 
 
 @njit(cache=True, inline="always")

@@ -1,32 +1,24 @@
 """The plugin side shared by the packet traversals and frustum builders: contracts in, kernel
 call, answers out.
 
-Each packet traversal (``traversals/simd.py`` and friends) is a subclass naming its numba
-kernel; every kernel has the signature
+Each packet traversal (``traversals/simd.py`` and friends) is a subclass naming its strategy
+(``engine.packet.strategies``); ``walk_batch`` checks the batch and calls the one packet walk
+``engine.packet.walk.walk_packets`` with it, optionally counting (``Stats``) or recording the
+walk of a one-packet batch (``engine.packet.record``, for ``packetrt show``).
 
-    kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
-           offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
-           counters)
-
-with the BVH and triangle arrays as in ``engine.core.types``, ``planes`` f32[K,4,4] and ``valid``
-bool[K] (all False when there is no frustum), ``order`` the i8[N] child-order keys of
-``engine.packet.kernels.child_order_keys``, ``n_chunks`` the number of interleaved packet
-decks dealt to the threads, and ``counters`` i64[threads,3,D] or None.
-
-Each frustum builder (``frusta/pinhole.py`` and friends) names a kernel
-
-    kernel(org, dirs, tmin, tmax, offsets, bounds, n_chunks, planes, valid)
-
-that fills ``planes`` f32[K,4,4] and ``valid`` bool[K] for the packets, given the scene box
-``bounds`` f32[2,3].
+Each frustum builder (``frusta/pinhole.py`` and friends) is a subclass naming its builder
+(``engine.packet.frustum_builders``), whose one kernel fills ``planes`` f32[K,4,4] and
+``valid`` bool[K] for the packets, given the scene box f32[2,3].
 """
 from __future__ import annotations
 
 import numba
 import numpy as np
 
-from engine.packet.kernels import child_order_keys
 from engine.core.types import Frusta, check_answer_arrays, empty_hits
+from engine.packet.frustum_builders import build_frusta
+from engine.packet.kernels import child_order_keys
+from engine.packet.walk import walk_packets
 
 #: Packet decks per thread: packet k goes to deck k % n_chunks, so neighbouring (similarly
 #: expensive) tiles land on different threads and the threads finish together.
@@ -56,9 +48,43 @@ def deck_count(n_packets: int) -> int:
     return min(n_packets, DECKS_PER_THREAD * numba.get_num_threads())
 
 
-class PacketTraversal:
-    """Adapter from the traversal plugin interface to a packet kernel (set ``kernel``)."""
+def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
+               counters=None, record=None, kernel=None):
+    """Walk every packet of ``rays`` (in ``packets``) through ``bvh`` by ``strategy``, with its
+    frustum from ``frusta`` (None: no culling), writing the best (any_hit: first) hits into
+    out_t, out_prim, out_u, out_v (f32/i32[R]). counters: i64[threads,3,D] or None; record: a
+    PacketRecord for a batch of one packet, or None. ``kernel``: instead of the walk, a kernel
+    of the walk's arguments without strategy and record (``engine.bench.floor``)."""
+    check_answer_arrays(rays.org.shape[0], out_t, out_prim, out_u, out_v)
+    offsets = np.ascontiguousarray(packets.offsets, np.int32)
+    n_packets = offsets.shape[0] - 1
+    if offsets[-1] != rays.org.shape[0] or np.any(np.diff(offsets) % 4):
+        raise ValueError("packets must cover the batch in whole 2x2 SIMD rays "
+                         f"(offsets end at {int(offsets[-1])}, batch has {rays.org.shape[0]} rays)")
+    if record is not None and n_packets != 1:
+        raise ValueError(f"a walk is recorded one packet at a time, not {n_packets}")
+    if frusta is None:
+        planes = np.zeros((n_packets, 4, 4), np.float32)
+        valid = np.zeros(n_packets, np.bool_)
+    else:
+        planes = np.ascontiguousarray(frusta.planes, np.float32)
+        valid = np.ascontiguousarray(frusta.valid, np.bool_)
+        if planes.shape != (n_packets, 4, 4) or valid.shape != (n_packets,):
+            raise ValueError(f"frusta for {planes.shape[0]} packets given to a batch of {n_packets}")
+    args = (bvh.bmin, bvh.bmax, bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
+            rays.org, rays.inv_dir, rays.dir, rays.tmin, rays.tmax, offsets, planes, valid,
+            cached_child_order(bvh), deck_count(n_packets), any_hit, out_t, out_prim, out_u, out_v, counters)
+    if kernel is not None:
+        kernel(*args)
+    else:
+        walk_packets(strategy, *args, record)
 
+
+class PacketTraversal:
+    """Adapter from the traversal plugin interface to the packet walk (set ``strategy``; the
+    benchmark's walk-less floor sets ``kernel`` instead, see ``walk_batch``)."""
+
+    strategy = None
     kernel = None
 
     def intersect(self, bvh, tris, rays, packets, frusta, hits, stats):
@@ -72,31 +98,14 @@ class PacketTraversal:
         occluded[:] = any_hit.prim >= 0
 
     def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats):
-        check_answer_arrays(rays.org.shape[0], out_t, out_prim, out_u, out_v)
-        offsets = np.ascontiguousarray(packets.offsets, np.int32)
-        n_packets = offsets.shape[0] - 1
-        if offsets[-1] != rays.org.shape[0] or np.any(np.diff(offsets) % 4):
-            raise ValueError("packets must cover the batch in whole 2x2 SIMD rays "
-                             f"(offsets end at {int(offsets[-1])}, batch has {rays.org.shape[0]} rays)")
-        if frusta is None:
-            planes = np.zeros((n_packets, 4, 4), np.float32)
-            valid = np.zeros(n_packets, np.bool_)
-        else:
-            planes = np.ascontiguousarray(frusta.planes, np.float32)
-            valid = np.ascontiguousarray(frusta.valid, np.bool_)
-            if planes.shape != (n_packets, 4, 4) or valid.shape != (n_packets,):
-                raise ValueError(f"frusta for {planes.shape[0]} packets given to a batch of {n_packets}")
-        order = cached_child_order(bvh)
-        type(self).kernel(bvh.bmin, bvh.bmax, bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
-                          rays.org, rays.inv_dir, rays.dir, rays.tmin, rays.tmax,
-                          offsets, planes, valid, order, deck_count(n_packets), any_hit,
-                          out_t, out_prim, out_u, out_v, None if stats is None else stats.counters)
+        walk_batch(self.strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
+                   None if stats is None else stats.counters, kernel=type(self).kernel)
 
 
 class PacketFrustum:
-    """Adapter from the frustum plugin interface to a builder kernel (set ``kernel``)."""
+    """Adapter from the frustum plugin interface to the frustum kernel (set ``builder``)."""
 
-    kernel = None
+    builder = None
 
     def build(self, rays, packets, scene_bounds):
         """One frustum per packet: Frusta(planes f32[K,4,4], valid bool[K])."""
@@ -104,8 +113,7 @@ class PacketFrustum:
         planes = np.zeros((n_packets, 4, 4), np.float32)
         valid = np.zeros(n_packets, np.bool_)
         if n_packets:
-            type(self).kernel(rays.org, rays.dir, rays.tmin, rays.tmax,
-                              np.ascontiguousarray(packets.offsets, np.int32),
-                              np.ascontiguousarray(scene_bounds, np.float32), deck_count(n_packets),
-                              planes, valid)
+            build_frusta(self.builder, rays.org, rays.dir, rays.tmin, rays.tmax,
+                         np.ascontiguousarray(packets.offsets, np.int32),
+                         np.ascontiguousarray(scene_bounds, np.float32), deck_count(n_packets), planes, valid)
         return Frusta(planes, valid)

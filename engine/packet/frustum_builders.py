@@ -1,0 +1,136 @@
+"""The frustum builders' one kernel: what each builder takes from a packet's rays, then the
+construction of ``engine.packet.frustum_build`` (Overbeck et al. 2008, Section 4).
+
+``build_frusta(builder, ...)`` deals the packets to the threads in interleaved decks, as the
+packet walk does, and per packet gathers its live rays as the builder needs them:
+
+- ``PINHOLE`` (``frusta/pinhole.py``): primary rays sharing one origin, the apex; the frustum
+  spans their directions from it. None when the live rays do not share one origin.
+- ``POINTLIGHT`` (``frusta/pointlight.py``): shadow rays that end at one light, the first live
+  ray's end point org + tmax dir (every end point within END_SPREAD times the shortest ray of
+  it); the frustum spans, from the light, the vectors back to the segment starts, widened by
+  the end points' spread.
+- ``GENERAL`` (``frusta/general.py``): reflection and refraction rays with scattered segment
+  starts; the slab frustum between a near plane before the starts and a far one beyond the
+  scene.
+
+A packet with no live ray, or whose rays fail its builder's condition, gets no frustum
+(valid False). The builder is a run-time number, tested once per packet (nothing next to the
+pass over its rays): one disk-cached kernel serves all three.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from engine.packet.frustum_build import abs_max3, apex_frustum, bounds_scale, farthest_corner, slab_frustum
+from engine.packet.kernels import longest_packet
+
+PINHOLE, POINTLIGHT, GENERAL = range(3)
+
+#: How far the end points of a shadow packet may scatter around the first one, relative to the
+#: shortest ray, for the rays to count as meeting at one light.
+END_SPREAD = 1e-2
+
+
+@njit(cache=True, inline="always")
+def pinhole_frustum(org, dirs, tmin, tmax, lo, hi, bounds, scene_scale, g, apex, plane):
+    """Frustum of rays lo .. hi-1 from one eye into plane (f32[4,4]); False when there is none.
+    Scratch: g f64[>= hi-lo, 3] the live directions, apex f64[3]."""
+    m = 0
+    for r in range(lo, hi):
+        if not tmin[r] <= tmax[r]:
+            continue
+        if m == 0:
+            apex[0], apex[1], apex[2] = org[r, 0], org[r, 1], org[r, 2]
+        elif org[r, 0] != apex[0] or org[r, 1] != apex[1] or org[r, 2] != apex[2]:
+            return False
+        g[m, 0], g[m, 1], g[m, 2] = dirs[r, 0], dirs[r, 1], dirs[r, 2]
+        m += 1
+    if m == 0:
+        return False
+    scale = max(scene_scale, abs_max3(apex[0], apex[1], apex[2]))
+    reach = farthest_corner(apex[0], apex[1], apex[2], bounds)
+    return apex_frustum(apex, g, m, scale, reach, 0.0, plane)
+
+
+@njit(cache=True, inline="always")
+def pointlight_frustum(org, dirs, tmin, tmax, lo, hi, scene_scale, g, light, plane):
+    """Frustum of shadow rays lo .. hi-1 towards one point light into plane (f32[4,4]); False
+    when there is none. Scratch: g f64[>= hi-lo, 3] the vectors light -> segment start, light
+    f64[3]."""
+    # The light: the end point of the first live ray (the others' spread is measured below).
+    first_live = -1
+    for r in range(lo, hi):
+        if tmin[r] <= tmax[r]:
+            first_live = r
+            break
+    if first_live < 0:
+        return False
+    for a in range(3):
+        light[a] = org[first_live, a] + np.float64(tmax[first_live]) * dirs[first_live, a]
+    if not (math.isfinite(light[0]) and math.isfinite(light[1]) and math.isfinite(light[2])):
+        return False  # a ray without an end (infinite tmax) meets no light
+    # Squared lengths: one root per packet, not per ray.
+    spread2 = 0.0
+    shortest2 = np.inf
+    reach2 = 0.0
+    scale = max(scene_scale, abs_max3(light[0], light[1], light[2]))
+    m = 0
+    for r in range(lo, hi):
+        if not tmin[r] <= tmax[r]:
+            continue
+        ex = org[r, 0] + np.float64(tmax[r]) * dirs[r, 0] - light[0]
+        ey = org[r, 1] + np.float64(tmax[r]) * dirs[r, 1] - light[1]
+        ez = org[r, 2] + np.float64(tmax[r]) * dirs[r, 2] - light[2]
+        spread2 = max(spread2, ex * ex + ey * ey + ez * ez)
+        for a in range(3):
+            # Vector from the light back to where the ray's segment starts.
+            g[m, a] = org[r, a] + np.float64(tmin[r]) * dirs[r, a] - light[a]
+        length2 = g[m, 0] * g[m, 0] + g[m, 1] * g[m, 1] + g[m, 2] * g[m, 2]
+        shortest2 = min(shortest2, length2)
+        reach2 = max(reach2, length2)
+        scale = max(scale, abs_max3(org[r, 0], org[r, 1], org[r, 2]))
+        m += 1
+    if not spread2 <= END_SPREAD * END_SPREAD * shortest2:
+        return False
+    return apex_frustum(light, g, m, scale, math.sqrt(reach2), math.sqrt(spread2), plane)
+
+
+@njit(cache=True, inline="always")
+def general_frustum(org, dirs, tmin, tmax, lo, hi, bounds, g, p0, plane):
+    """Slab frustum of rays lo .. hi-1 into plane (f32[4,4]); False when there is none.
+    Scratch: g, p0 f64[>= hi-lo, 3] the live directions and segment starts."""
+    m = 0
+    for r in range(lo, hi):
+        if not tmin[r] <= tmax[r]:
+            continue
+        for a in range(3):
+            g[m, a] = dirs[r, a]
+            p0[m, a] = org[r, a] + np.float64(tmin[r]) * dirs[r, a]
+        m += 1
+    return m > 0 and slab_frustum(p0, g, m, bounds, plane)
+
+
+@njit(cache=True, parallel=True)
+def build_frusta(builder, org, dirs, tmin, tmax, offsets, bounds, n_chunks, planes, valid):
+    """Fill planes (f32[K,4,4]) and valid (bool[K]) by ``builder`` for rays org, dirs (f32[R,3]),
+    tmin, tmax (f32[R]) in packets offsets (i32[K+1]); bounds: the scene box f32[2,3]; n_chunks
+    the packet decks."""
+    n_packets = offsets.shape[0] - 1
+    scene_scale = bounds_scale(bounds)
+    for chunk in prange(n_chunks):
+        longest = longest_packet(offsets)
+        g = np.empty((longest, 3))
+        p0 = np.empty((longest, 3))
+        point = np.empty(3)
+        for k in range(chunk, n_packets, n_chunks):
+            lo, hi = offsets[k], offsets[k + 1]
+            if builder == PINHOLE:
+                valid[k] = pinhole_frustum(org, dirs, tmin, tmax, lo, hi, bounds, scene_scale, g, point, planes[k])
+            elif builder == POINTLIGHT:
+                valid[k] = pointlight_frustum(org, dirs, tmin, tmax, lo, hi, scene_scale, g, point, planes[k])
+            else:
+                valid[k] = general_frustum(org, dirs, tmin, tmax, lo, hi, bounds, g, p0, planes[k])
