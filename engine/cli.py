@@ -21,8 +21,8 @@ import argparse
 import json
 import sys
 from dataclasses import replace
-from pathlib import Path
 
+from engine.core.atomic import write_text
 from engine.core.errors import ConfigError, PacketrtError
 from engine.render.report import frames_dict, stats_dict
 
@@ -82,9 +82,7 @@ def _load_scene(config):
 
 def _write_json(path: str, data: dict) -> None:
     try:
-        target = Path(path)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        target.write_text(json.dumps(data, indent=2, default=float) + "\n")
+        write_text(path, json.dumps(data, indent=2, default=float) + "\n")
     except OSError as exc:
         raise PacketrtError(f"cannot write {path!r}: {exc.strerror or exc}") from None
 

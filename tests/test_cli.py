@@ -129,3 +129,19 @@ def test_console_script_prints_no_traceback():
                          capture_output=True, text=True)
     assert run.returncode == 2
     assert run.stderr.strip().startswith("packetrt: error: render.packet") and "Traceback" not in run.stderr
+
+
+def test_outputs_replace_their_target_whole_and_leave_nothing_behind(tmp_path, monkeypatch):
+    """A failed write keeps the old file and no temporary; a good one replaces it."""
+    from engine.core import atomic
+
+    target = tmp_path / "out" / "stats.json"
+    atomic.write_text(target, "old\n")
+    with pytest.raises(RuntimeError):
+        with atomic.replacing(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("crash mid-write")
+    assert target.read_text() == "old\n" and sorted(p.name for p in target.parent.iterdir()) == ["stats.json"]
+    assert main(["render", "--size", "16x16", "-o", str(tmp_path / "out" / "a.png"), "--stats", str(target)]) == 0
+    assert json.loads(target.read_text())["width"] == 16
+    assert sorted(p.name for p in target.parent.iterdir()) == ["a.png", "stats.json"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from engine.core.atomic import replacing
 from engine.core.types import RAY_KINDS
 
 
@@ -32,7 +33,8 @@ def pyplot():
 
 
 def save(fig, path: Path) -> Path:
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    with replacing(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
     pyplot().close(fig)
     return path
 

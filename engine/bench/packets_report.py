@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.bench.figures import fmt, machine_line, ordered, pyplot, save, trace_seconds
+from engine.core.atomic import write_text
 from engine.core.types import RAY_KINDS
 
 #: Targets of the issue: 16x16 over 2x2 SIMD for the frame, culling benefit (primary and
@@ -316,5 +317,5 @@ def packets(records: list, out: Path) -> list:
         lines += _cost_lines(rs)
         figures.append(_plot(rs, travs, out / ("packets.png" if i == 0 else f"packets-{i + 1}.png")))
     md = out / "packets.md"
-    md.write_text("\n".join(lines) + "\n")
+    write_text(md, "\n".join(lines) + "\n")
     return [md, *figures]

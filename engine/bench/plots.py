@@ -27,6 +27,7 @@ from pathlib import Path
 
 from engine.bench import packets_report
 from engine.bench.figures import fmt, machine_line, ordered, pyplot, save, trace_seconds
+from engine.core.atomic import write_text
 from engine.core.types import RAY_KINDS
 
 SECONDARY = ("shadow", "reflection", "refraction")
@@ -76,7 +77,7 @@ def summary(records: list, out: Path) -> list:
                          f"{fmt(r['mrays_per_s']['all'])} | {fmt((r['embree_mrays_per_s'] or {}).get('all'))} | "
                          f"{fmt(ratio)} | {fmt(r.get('load', {}).get('cpu_share_replay'))} |")
     path = out / "summary.md"
-    path.write_text("\n".join(lines) + "\n")
+    write_text(path, "\n".join(lines) + "\n")
     return [path]
 
 
@@ -194,7 +195,7 @@ def fig7(records: list, out: Path) -> list:
                         f"{off / on:.2f} |")
     if found:
         path = out / "fig7.md"
-        path.write_text("\n".join(rows) + "\n")
+        write_text(path, "\n".join(rows) + "\n")
         files.append(path)
     return files
 
@@ -304,7 +305,7 @@ def table2(records: list, out: Path) -> list:
                      f"{speedup:.2f}× | {fmt(benefit)}× | {fmt(row['embree'])} | {fmt(versus)}× | "
                      f"{fmt(row['frame'])} |")
     md = out / "table2.md"
-    md.write_text("\n".join(lines) + "\n")
+    write_text(md, "\n".join(lines) + "\n")
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(2.2 * len(rows) + 2, 3.6))
     bars = (("small", "2×2 SIMD"), ("plain", "16×16, no culling"), ("culled", "16×16, culling"), ("embree", "Embree"))
@@ -386,7 +387,7 @@ def roger(records: list, out: Path) -> list:
     fig.suptitle("Ray-space hierarchy (Roger et al. 2007): costs of secondary rays", fontsize=10)
     fig.tight_layout()
     md = out / "roger.md"
-    md.write_text("\n".join(lines) + "\n")
+    write_text(md, "\n".join(lines) + "\n")
     return [md, save(fig, out / "roger.png")]
 
 

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from engine.core import atomic
 from engine.core.types import RAY_KINDS
 
 RESULTS = "results.jsonl"
@@ -142,9 +143,7 @@ def csv_row(r: dict) -> dict:
 
 def write_atomic(path: Path, text: str) -> None:
     """Write through a temporary file and rename: readers never see half a file."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
+    atomic.write_text(path, text)
 
 
 def write_csv(path: Path, records: list) -> None:

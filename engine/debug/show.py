@@ -32,10 +32,10 @@ import sys
 import tempfile
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
+from engine.core.atomic import replacing
 from engine.core.errors import ConfigError, PacketrtError
 from engine.core.types import RAY_KINDS
 
@@ -566,10 +566,9 @@ def write_show(scene, config, kind, packet_index, output, size=PICTURE_SIZE) -> 
     if size[1] - band < 64:
         raise ConfigError(f"--picture {size[0]}x{size[1]} leaves no room below the {band}-pixel legend")
     image = compose(render_lines(pic.lines, pic.focus, pic.view_dir, pic.up, (size[0], size[1] - band)), pic)
-    target = Path(output)
     try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(image).save(target, format="PNG", optimize=True)
+        with replacing(output) as tmp:
+            Image.fromarray(image).save(tmp, format="PNG", optimize=True)
     except OSError as exc:
         raise PacketrtError(f"cannot write image {output!r}: {exc.strerror or exc}") from None
     return pic.summary

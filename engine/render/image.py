@@ -1,7 +1,8 @@
 """Writing images: float32 linear RGB -> clamped, gamma-encoded 8-bit PNG."""
 from __future__ import annotations
 
-from pathlib import Path
+from engine.core.atomic import replacing
+
 
 import numpy as np
 
@@ -20,9 +21,8 @@ def save_png(image: np.ndarray, path: str) -> None:
     """Write ``image`` (f32[H,W,3] linear) as PNG, creating the folder; errors name the path."""
     from PIL import Image
 
-    target = Path(path)
     try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(to_srgb8(image)).save(target, format="PNG")
+        with replacing(path) as tmp:
+            Image.fromarray(to_srgb8(image)).save(tmp, format="PNG")
     except OSError as exc:
         raise PacketrtError(f"cannot write image {path!r}: {exc.strerror or exc}") from None
