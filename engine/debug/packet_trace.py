@@ -19,7 +19,7 @@ node's box among
 
 ``single`` (and ``embree``, whose own BVH is not ours to show): each ray walks alone as
 ``single`` does; ``alive`` is the number of rays that reached the node. ``single``'s kernel
-keeps no record, so this module repeats its walk (``_single_walk``).
+keeps no record, so this module runs its per-ray walk (``traversals.single.walk_ray``) with a node list.
 
 ``alive`` is measured against each lane's segment at that moment: a closest-hit search
 shortens a lane's segment as it finds hits, an occlusion query kills the lane.
@@ -31,13 +31,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear, slab_test
 from engine.core.types import MAX_BVH_DEPTH, Frusta, Packets, RayBatch, empty_hits
 from engine.packet.frustum_cull import load_frustum
 from engine.packet.kernels import leaf_triangles
 from engine.packet.plugin import walk_batch
 from engine.packet.record import DEPTH, LANES, NODE, OUTCOME, kept_visits, new_record
 from engine.packet import strategies
+from traversals.single import walk_ray
 from engine.rayspace.cone_sphere import absolute_slack, build_hierarchy, cone_sphere_overlap
 from engine.rayspace.triangle_spheres import triangle_spheres
 
@@ -66,58 +66,13 @@ def _tested_triangles(first, count, prim, node, v0, v1, v2, planes, valid, k):
 @njit(cache=True)
 def _single_walk(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax, r,
                  any_hit, nodes):
-    """``single``'s walk of ray r (see traversals/single.py), recording each popped node in
-    nodes (i32[N]); returns (visited, t, prim, u, v)."""
-    best_t = F32_INF
-    best_prim = -1
-    best_u = np.float32(0.0)
-    best_v = np.float32(0.0)
-    t_lo = tmin[r]
-    t_hi = tmax[r]
-    if not t_lo <= t_hi:
-        return 0, best_t, best_prim, best_u, best_v
-    ox, oy, oz = org[r, 0], org[r, 1], org[r, 2]
-    ix, iy, iz = inv[r, 0], inv[r, 1], inv[r, 2]
-    kx, ky, kz, sx, sy, sz = ray_shear(dirs[r, 0], dirs[r, 1], dirs[r, 2])
-    okx, oky, okz = org[r, kx], org[r, ky], org[r, kz]
+    """``single``'s own walk of ray r (``traversals.single.walk_ray``), recording each popped
+    node in nodes (i32[N]); returns (visited, t, prim, u, v)."""
     stack = np.empty(2 * MAX_BVH_DEPTH + 2, np.int32)
-    top = 0
-    if slab_test(ox, oy, oz, ix, iy, iz, t_lo, t_hi, bmin, bmax, 0) < F32_INF:
-        stack[0] = 0
-        top = 1
-    visited = 0
-    done = False
-    while top > 0 and not done:
-        top -= 1
-        node = stack[top]
-        nodes[visited] = node
-        visited += 1
-        if count[node] > 0:
-            for i in range(first[node], first[node] + count[node]):
-                tri = prim[i]
-                t, u, v = intersect_triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi, v0, v1, v2, tri)
-                if t < F32_INF and closer(t, tri, best_t, best_prim):
-                    best_t, best_prim, best_u, best_v = t, tri, u, v
-                    if any_hit:
-                        done = True
-                        break
-                    t_hi = t
-            continue
-        left = first[node]
-        t_left = slab_test(ox, oy, oz, ix, iy, iz, t_lo, t_hi, bmin, bmax, left)
-        t_right = slab_test(ox, oy, oz, ix, iy, iz, t_lo, t_hi, bmin, bmax, left + 1)
-        near, far = left, left + 1
-        t_near, t_far = t_left, t_right
-        if t_right < t_left:
-            near, far = left + 1, left
-            t_near, t_far = t_right, t_left
-        if t_far < F32_INF:
-            stack[top] = far
-            top += 1
-        if t_near < F32_INF:
-            stack[top] = near
-            top += 1
-    return visited, best_t, best_prim, best_u, best_v
+    stack_depth = np.empty(2 * MAX_BVH_DEPTH + 2, np.int32)
+    t, hit, u, v, visited = walk_ray(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
+                                     r, any_hit, stack, stack_depth, None, 0, nodes)
+    return visited, t, hit, u, v
 
 
 # -- the record ---------------------------------------------------------------------------------
