@@ -28,7 +28,7 @@ def shared_scenes():
 def primary_batch(scene, width=64, height=64, n=8):
     """(RayBatch, Packets) of camera rays in packet order."""
     from engine.packet.layout import make_batch
-    from engine.render.whitted import camera_rays
+    from engine.render.camera import camera_rays
 
     org, d = camera_rays(scene, width, height)
     count = width * height

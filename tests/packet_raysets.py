@@ -16,7 +16,7 @@ from engine.core.offset import coordinate_magnitude, hit_points, offset_origin
 from engine.packet.layout import make_batch
 from engine.render.plugins import make_traversal
 from engine.core.types import empty_hits
-from engine.render.whitted import camera_rays
+from engine.render.camera import camera_rays
 
 #: Index of refraction of the refraction-like rays.
 IOR = np.float32(1.5)

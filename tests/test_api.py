@@ -109,7 +109,7 @@ def test_random_incoherent_rays_on_the_bunny_equal_embreex(bunny_scene):
 
 
 def test_primary_rays_of_the_bunny_equal_embreex(bunny_scene):
-    from engine.render.whitted import camera_rays
+    from engine.render.camera import camera_rays
 
     origins, directions = camera_rays(bunny_scene, 96, 96)
     hits = assert_equal_to_embree(RayTracer(bunny_scene, traversal="ranged", frustum="pinhole"),

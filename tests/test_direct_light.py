@@ -1,7 +1,7 @@
 """engine.render.direct_light against the numpy expressions of the shading it replaced."""
 import numpy as np
 
-from engine.render.direct_light import add_light, light_directions
+from engine.render.direct_light import SHADOW_TMAX_SCALE, add_light, light_directions
 
 
 def unit(v):
@@ -16,7 +16,12 @@ def test_light_directions_and_lit_mask():
     light = np.array([1.5, 7.0, -2.0], np.float32)
     leave[0] = light  # a hit at the light: zero distance must not divide by zero
     l, dist, ndotl, lit = np.empty_like(leave), np.empty(m, np.float32), np.empty(m, np.float32), np.empty(m, bool)
-    light_directions(leave, ns, ng, light, l, dist, ndotl, lit)
+    shadow_tmax = np.empty(m, np.float32)
+    hit = rng.random(m) < 0.9
+    hit[0] = True
+    light_directions(hit, leave, ns, ng, light, l, dist, ndotl, lit, shadow_tmax)
+    assert not lit[~hit].any()  # lanes without a hit cast no shadow ray
+    ns, ng, leave, l, dist, ndotl, lit, shadow_tmax = (a[hit] for a in (ns, ng, leave, l, dist, ndotl, lit, shadow_tmax))
     to = light - leave
     ref_dist = np.linalg.norm(to, axis=1)
     ref_l = to / np.maximum(ref_dist, 1e-30)[:, None]
@@ -25,6 +30,7 @@ def test_light_directions_and_lit_mask():
     np.testing.assert_allclose(ndotl, np.einsum("ij,ij->i", ns, ref_l), atol=1e-6)
     ref_lit = (np.einsum("ij,ij->i", ns, ref_l) > 0) & (np.einsum("ij,ij->i", ng, ref_l) > 0)
     assert np.array_equal(lit, ref_lit) and 0.1 < lit.mean() < 0.5
+    assert np.array_equal(shadow_tmax, dist * SHADOW_TMAX_SCALE) and (shadow_tmax < dist)[dist > 0].all()
     assert dist[0] == 0 and not lit[0] and np.isfinite(l[0]).all()
 
 
@@ -40,9 +46,12 @@ def test_add_light_is_diffuse_plus_phong_on_visible_hits_only():
     lc = np.array([0.9, 0.7, 0.4], np.float32)
     color = rng.random((m, 3)).astype(np.float32)
     before = color.copy()
-    visible = np.sort(rng.choice(m, m // 3, replace=False)).astype(np.int64)
-    add_light(color, visible, ns, l, ndotl, view, mat, diffuse, specular, shininess, texel, lc)
-    v = visible
+    # Shadow rays name their lanes (-1: padding); only the unoccluded ones add light.
+    lane = np.full(m // 2 + 8, -1, np.int64)
+    lane[: m // 2] = rng.choice(m, m // 2, replace=False)
+    occluded = rng.random(lane.size) < 0.3
+    add_light(color, lane, occluded, ns, l, ndotl, view, mat, diffuse, specular, shininess, texel, lc)
+    v = np.sort(lane[(lane >= 0) & ~occluded])
     r = 2 * ndotl[v, None] * ns[v] - l[v]
     spec = np.maximum(np.einsum("ij,ij->i", r, -view[v]), 0) ** shininess[mat[v]]
     expected = before.copy()

@@ -19,7 +19,7 @@ from engine.render.plugins import make_traversal
 from engine.core.scene import make_triangles
 from engine.rayspace.triangle_spheres import triangle_spheres
 from engine.core.types import COUNTER_RAY_TRI, empty_hits, new_stats
-from engine.render.whitted import camera_rays
+from engine.render.camera import camera_rays
 
 from brute_force import brute_force
 from conftest import needs_shared_scenes

@@ -1,0 +1,104 @@
+"""Camera rays: one ray through each pixel centre of a pinhole camera.
+
+``camera_batch`` makes the primary batch straight in packet order (``engine.packet.layout``:
+one packet per n x n tile, tiles row by row, inside a tile 2x2 blocks row by row), in parallel
+over tiles: no per-pixel sort. ``camera_rays`` is the same rays in row-major pixel order, for
+callers that want plain arrays (the API, the tests); both evaluate the direction the same way,
+in double, rounded once to float32.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from engine.core.scene import Scene
+from engine.core.types import Packets, RayBatch
+from engine.packet.compact import inverse_component
+
+
+def image_plane(scene: Scene, width: int, height: int):
+    """(eye, forward, right, up as f64[3], half_w, half_h): the camera basis and the image
+    plane's half extents at distance 1."""
+    eye, forward, right, up = scene.camera.basis()
+    half_h = math.tan(math.radians(scene.camera.fov) / 2)
+    return eye, forward, right, up, half_h * width / height, half_h
+
+
+def camera_rays(scene: Scene, width: int, height: int):
+    """(org f32[W*H,3], dir f32[W*H,3] unit): one ray through each pixel centre, row-major."""
+    eye, forward, right, up, half_w, half_h = image_plane(scene, width, height)
+    ys, xs = np.mgrid[0:height, 0:width]
+    px = ((xs + 0.5) / width * 2 - 1) * half_w
+    py = (1 - (ys + 0.5) / height * 2) * half_h
+    d = forward + px[..., None] * right + py[..., None] * up
+    d = (d / np.linalg.norm(d, axis=-1, keepdims=True)).reshape(-1, 3).astype(np.float32)
+    return np.tile(eye.astype(np.float32), (width * height, 1)), d
+
+
+@njit(cache=True, parallel=True)
+def _camera_packets(eye, forward, right, up, half_w, half_h, width, height, n):
+    """The primary batch in packet order: (offsets i32[K+1], org, dir, inv_dir f32[R,3],
+    tmin, tmax f32[R], pixel i32[R], weight f32[R,3]); eye f32[3], basis f64[3] each."""
+    tiles_x = -(-width // n)
+    n_tiles = tiles_x * (-(-height // n))
+    offsets = np.empty(n_tiles + 1, np.int32)
+    total = 0
+    for t in range(n_tiles):
+        offsets[t] = total
+        ty, tx = divmod(t, tiles_x)
+        inside = min(n, width - tx * n) * min(n, height - ty * n)
+        total += (inside + 3) // 4 * 4
+    offsets[n_tiles] = total
+    org = np.empty((total, 3), np.float32)
+    dirs = np.empty((total, 3), np.float32)
+    inv = np.empty((total, 3), np.float32)
+    tmin = np.zeros(total, np.float32)
+    tmax = np.full(total, np.inf, np.float32)
+    pixel = np.empty(total, np.int32)
+    weight = np.ones((total, 3), np.float32)
+    half = n // 2
+    for t in prange(n_tiles):
+        ty, tx = divmod(t, tiles_x)
+        out = offsets[t]
+        for q in range(n * n):
+            block, corner = divmod(q, 4)
+            y = ty * n + (block // half) * 2 + corner // 2
+            x = tx * n + (block % half) * 2 + corner % 2
+            if y >= height or x >= width:
+                continue
+            # The expressions of camera_rays, in the same order (float64, rounded once).
+            px = ((x + 0.5) / width * 2 - 1) * half_w
+            py = (1 - (y + 0.5) / height * 2) * half_h
+            dx = forward[0] + px * right[0] + py * up[0]
+            dy = forward[1] + px * right[1] + py * up[1]
+            dz = forward[2] + px * right[2] + py * up[2]
+            norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+            d = (np.float32(dx / norm), np.float32(dy / norm), np.float32(dz / norm))
+            for a in range(3):
+                org[out, a] = eye[a]
+                dirs[out, a] = d[a]
+                inv[out, a] = inverse_component(d[a])
+            pixel[out] = y * width + x
+            out += 1
+        while out < offsets[t + 1]:  # dead padding to whole 2x2 SIMD rays
+            for a in range(3):
+                org[out, a] = eye[a]
+                dirs[out, a] = np.float32(1.0 if a == 2 else 0.0)
+                inv[out, a] = inverse_component(dirs[out, a])
+                weight[out, a] = np.float32(0.0)
+            tmin[out] = np.float32(1.0)
+            tmax[out] = np.float32(0.0)
+            pixel[out] = -1
+            out += 1
+    return offsets, org, dirs, inv, tmin, tmax, pixel, weight
+
+
+def camera_batch(scene: Scene, width: int, height: int, n: int) -> tuple[RayBatch, Packets]:
+    """(RayBatch "primary", Packets): the camera rays of a width x height image in n x n packets,
+    the layout ``engine.packet.layout.make_batch`` gives ``camera_rays``."""
+    eye, forward, right, up, half_w, half_h = image_plane(scene, width, height)
+    offsets, org, dirs, inv, tmin, tmax, pixel, weight = _camera_packets(
+        eye.astype(np.float32), forward, right, up, half_w, half_h, width, height, n)
+    return RayBatch(org, dirs, inv, tmin, tmax, pixel, weight, "primary"), Packets(offsets, n, width, height)

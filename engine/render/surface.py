@@ -1,0 +1,149 @@
+"""What a ray hit: the surface at each hit of a batch, and the background where it missed.
+
+``shade_surface`` is the first shading pass over a traced batch, in parallel over its packets:
+for every live lane that missed it adds the background (times the lane's weight) to the lane's
+pixel; for every hit it fills the lane's row of a ``Surface``: the hit point, rounded once from
+double (``engine.core.offset``), the ray-facing geometric normal, the interpolated shading normal,
+the material, the texel, the ambient term and the origin for rays that leave towards the ray's
+side. A pixel belongs to one tile and a tile to one packet, so a packet's lanes are the only
+writers of their pixels: no atomics, and a pixel's contributions land in lane order.
+
+Every expression follows the numpy shading it replaced, operation for operation, in the same
+precision, so images stay bit-identical: dot products are (x + y) + z of float32 products, as
+numpy's einsum sums three terms.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit, prange
+
+from engine.core.offset import MIN_MAGNITUDE, OFFSET_SCALE
+
+
+class Surface(NamedTuple):
+    """Per-lane shading state of a batch of R rays (rows of lanes that did not hit are unset).
+
+    hit: bool[R]; point: f32[R,3] the hit point; magnitude: f32[R] the offset scale
+    (``engine.core.offset.coordinate_magnitude``); view: f32[R,3] the unit ray direction;
+    normal: f32[R,3] the shading normal, facing the ray; facing: f32[R,3] the geometric normal,
+    facing the ray; entering: bool[R] the ray hit the front face; material: i32[R];
+    texel: f32[R,3]; color: f32[R,3] the light gathered so far (ambient, then each light);
+    leave: f32[R,3] the origin of rays leaving towards the ray's side.
+    """
+
+    hit: np.ndarray
+    point: np.ndarray
+    magnitude: np.ndarray
+    view: np.ndarray
+    normal: np.ndarray
+    facing: np.ndarray
+    entering: np.ndarray
+    material: np.ndarray
+    texel: np.ndarray
+    color: np.ndarray
+    leave: np.ndarray
+
+
+def new_surface(r: int) -> Surface:
+    """Uninitialised per-lane arrays for a batch of ``r`` rays."""
+    v3 = lambda: np.empty((r, 3), np.float32)  # noqa: E731
+    return Surface(np.empty(r, np.bool_), v3(), np.empty(r, np.float32), v3(), v3(), v3(),
+                   np.empty(r, np.bool_), np.empty(r, np.int32), v3(), v3(), v3())
+
+
+@njit(cache=True, inline="always")
+def dot3(a, b):
+    """(a0 b0 + a1 b1) + a2 b2 for float32 rows, summed as numpy's einsum does."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True, inline="always")
+def texel_at(texels, start, width, height, s, t):
+    """Nearest texel, wrapping, of the texture at ``start`` (width x height) at (s, t)."""
+    one = np.float32(1.0)
+    x = math.floor((s % one) * np.float32(width)) % width
+    y = math.floor((one - t % one) * np.float32(height)) % height
+    return start + y * width + x
+
+
+@njit(cache=True, parallel=True)
+def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
+                  v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
+                  ambient, texture_start, texture_width, texture_height, texels,
+                  ambient_light, background, image,
+                  hit, point, magnitude, view, normal, facing, entering, material, texel, color, leave):
+    """Fill the Surface rows (hit .. leave, see ``Surface``) of a batch and add the background
+    of its misses to ``image`` (f32[W*H,3]).
+
+    Batch: packets offsets i32[K+1], dirs f32[R,3], pixel i32[R] (-1: padding), weight f32[R,3];
+    its hits prim i32[R], u, v f32[R]. Triangles: corners v0, v1, v2, unit normals ng f32[T,3],
+    corner normals f32[T,3,3] and uvs f32[T,3,2] (or none: first dimension 0), tri_material
+    i32[T], corner_magnitude f32[T] (``triangle_magnitudes``). Materials: ambient f32[M,3],
+    textures as in ``engine.render.materials.MaterialTable``. ambient_light, background f32[3].
+    """
+    has_normals = normals.shape[0] > 0
+    has_uvs = uvs.shape[0] > 0
+    one = np.float32(1.0)
+    for k in prange(offsets.shape[0] - 1):
+        for i in range(offsets[k], offsets[k + 1]):
+            hit[i] = False
+            if pixel[i] < 0:
+                continue
+            p = prim[i]
+            if p < 0:
+                for c in range(3):
+                    image[pixel[i], c] += weight[i, c] * background[c]
+                continue
+            hit[i] = True
+            length = np.float32(math.sqrt(dot3(dirs[i], dirs[i])))
+            for a in range(3):
+                view[i, a] = dirs[i, a] / length
+            # The hit point from the exact corners in double, rounded once.
+            u64, v64 = np.float64(u[i]), np.float64(v[i])
+            w64 = 1.0 - u64 - v64
+            largest = np.float32(0.0)
+            for a in range(3):
+                x = np.float32(w64 * np.float64(v0[p, a]) + u64 * v1[p, a] + v64 * v2[p, a])
+                point[i, a] = x
+                largest = max(largest, abs(x))
+            magnitude[i] = max(largest, corner_magnitude[p])
+            front = dot3(ng[p], view[i]) < 0
+            entering[i] = front
+            for a in range(3):
+                facing[i, a] = ng[p, a] if front else -ng[p, a]
+            w = one - u[i] - v[i]
+            if has_normals:
+                nx = w * normals[p, 0, 0] + u[i] * normals[p, 1, 0] + v[i] * normals[p, 2, 0]
+                ny = w * normals[p, 0, 1] + u[i] * normals[p, 1, 1] + v[i] * normals[p, 2, 1]
+                nz = w * normals[p, 0, 2] + u[i] * normals[p, 1, 2] + v[i] * normals[p, 2, 2]
+                size = np.float32(math.sqrt(nx * nx + ny * ny + nz * nz))
+                if size > 0:
+                    nx, ny, nz = nx / size, ny / size, nz / size
+                else:  # degenerate interpolation: the geometric normal (then turned to the ray)
+                    nx, ny, nz = ng[p, 0], ng[p, 1], ng[p, 2]
+                if nx * facing[i, 0] + ny * facing[i, 1] + nz * facing[i, 2] < 0:
+                    nx, ny, nz = -nx, -ny, -nz
+                normal[i, 0], normal[i, 1], normal[i, 2] = nx, ny, nz
+            else:
+                for a in range(3):
+                    normal[i, a] = facing[i, a]
+            m = tri_material[p]
+            material[i] = m
+            start = texture_start[m]
+            if has_uvs and start >= 0:
+                s = w * uvs[p, 0, 0] + u[i] * uvs[p, 1, 0] + v[i] * uvs[p, 2, 0]
+                t = w * uvs[p, 0, 1] + u[i] * uvs[p, 1, 1] + v[i] * uvs[p, 2, 1]
+                j = texel_at(texels, start, texture_width[m], texture_height[m], s, t)
+                for c in range(3):
+                    texel[i, c] = texels[j, c]
+            else:
+                for c in range(3):
+                    texel[i, c] = one
+            for c in range(3):
+                color[i, c] = ambient_light[c] * ambient[m, c] * texel[i, c]
+            step = OFFSET_SCALE * max(magnitude[i], MIN_MAGNITUDE)
+            for a in range(3):
+                leave[i, a] = point[i, a] + step * facing[i, a]
