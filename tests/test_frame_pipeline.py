@@ -114,3 +114,15 @@ def test_real_scene_images_are_bit_identical_to_the_numpy_loop(shared_scenes, na
     if name == "bart-kitchen":
         assert result.rays["reflection"] > 0 and result.rays["refraction"] > 0
     assert np.array_equal(result.image, render_reference(renderer, 96, 80))
+
+
+def test_frames_reuse_their_arrays_without_changing_the_image():
+    """The renderer keeps per-lane arrays between frames: a later frame (of another size in
+    between) gives the same image and leaves an earlier result's image alone."""
+    renderer = WhittedRenderer(load_named("whitted"), _config("partition", width=40, height=36, packet=8))
+    first = renderer.render()
+    kept = first.image.copy()
+    renderer.render(size=(72, 50))  # grows every buffer
+    again = renderer.render()
+    assert np.array_equal(again.image, kept) and np.array_equal(first.image, kept)
+    assert renderer.scratch.nbytes() > 0

@@ -10,9 +10,10 @@ same position keep the order of the sources, then their lane order. That is exac
 ``layout.make_batch`` gives the concatenated candidates with its stable sort, without the sort
 and without the concatenated copy. Children start at tmin 0.
 
-``compact_into_packets`` is the kernel: sources come as tuples of arrays, one entry per source
-(numba compiles one copy per number of sources: 1 for shadow rays, 2 or 4 for the secondary
-kinds of a generation).
+``compact_into_packets`` plans the packets (``plan_packets``: which parent packet holds each
+tile, how many children each tile gets) and fills them (``fill_packets``), both in parallel over
+tiles. Sources come as tuples of arrays, one entry per source (numba compiles one copy per
+number of sources: 1 for shadow rays, 2 or 4 for the secondary kinds of a generation).
 """
 from __future__ import annotations
 
@@ -55,21 +56,43 @@ def next_flagged(flags, i, end):
     return i
 
 
-@njit(cache=True, parallel=True)
-def compact_into_packets(n, width, height, offsets_t, pixel_t, flag_t, org_t, dir_t, tmax_t, weight_t):
+def new_array(name, rows, tail=(), dtype=np.float32):
+    """The default ``allocate``: a new uninitialised array of shape (rows, *tail)."""
+    return np.empty((rows,) + tuple(tail), dtype)
+
+
+def compact_into_packets(n, width, height, offsets_t, pixel_t, flag_t, org_t, dir_t, tmax_t, weight_t,
+                         allocate=new_array):
     """The child batch of the flagged lanes of S sources, in packet order.
 
     Source s: parent packets offsets_t[s] (i32[K_s+1], one packet per tile, first lane live),
     ancestral pixels pixel_t[s] (i32[R_s]), flags flag_t[s] (bool[R_s], only live lanes
     flagged), and per lane the child's origin org_t[s] and direction dir_t[s] (f32[R_s,3]),
     tmax_t[s] (f32[R_s]) and weight weight_t[s] (f32[R_s,3]). n: the packet size, the parents'
-    image width x height.
+    image width x height. ``allocate(name, rows, tail, dtype)`` gives the output arrays (a
+    renderer passes reused buffers).
 
     Returns (offsets i32[K+1], org, dir, inv_dir f32[C,3], tmin, tmax f32[C], pixel i32[C],
     weight f32[C,3], source i32[C], lane i64[C]): C lanes, every packet a multiple of four long,
     padding lanes dead (tmin 1 > tmax 0, pixel -1, weight 0, source and lane -1, origin of the
     packet's first ray, direction +z); source and lane say which parent lane a child came from.
     """
+    tile_packet, counts, starts, offsets = plan_packets(n, width, height, offsets_t, pixel_t, flag_t)
+    total = int(offsets[-1])
+    out = (allocate("org", total, (3,)), allocate("dir", total, (3,)), allocate("inv_dir", total, (3,)),
+           allocate("tmin", total), allocate("tmax", total), allocate("pixel", total, (), np.int32),
+           allocate("weight", total, (3,)), allocate("source", total, (), np.int32),
+           allocate("lane", total, (), np.int64))
+    fill_packets(n, width, tile_packet, counts, starts, offsets_t, pixel_t, flag_t, org_t, dir_t, tmax_t, weight_t,
+                 *out)
+    return (offsets,) + out
+
+
+@njit(cache=True, parallel=True)
+def plan_packets(n, width, height, offsets_t, pixel_t, flag_t):
+    """Where each tile's children go: (tile_packet i64[S, tiles] the parent packet of each tile
+    per source or -1, counts i64[tiles] flagged lanes per tile, starts i64[tiles] each tile's
+    first child lane, offsets i32[K+1] the child packets, tiles with children only)."""
     n_sources = len(offsets_t)
     tiles_x = -(-width // n)
     n_tiles = tiles_x * (-(-height // n))
@@ -104,17 +127,16 @@ def compact_into_packets(n, width, height, offsets_t, pixel_t, flag_t, org_t, di
             out_offsets[j] = starts[t]
             j += 1
     out_offsets[n_packets] = total
+    return tile_packet, counts, starts, out_offsets
 
-    org = np.empty((total, 3), np.float32)
-    dirs = np.empty((total, 3), np.float32)
-    inv = np.empty((total, 3), np.float32)
-    tmin = np.empty(total, np.float32)
-    tmax = np.empty(total, np.float32)
-    pix = np.empty(total, np.int32)
-    weight = np.empty((total, 3), np.float32)
-    source = np.empty(total, np.int32)
-    lane = np.empty(total, np.int64)
-    for t in prange(n_tiles):
+
+@njit(cache=True, parallel=True)
+def fill_packets(n, width, tile_packet, counts, starts, offsets_t, pixel_t, flag_t, org_t, dir_t, tmax_t, weight_t,
+                 org, dirs, inv, tmin, tmax, pix, weight, source, lane):
+    """Write the children planned by ``plan_packets`` into org .. lane (see
+    ``compact_into_packets``), in parallel over tiles."""
+    n_sources = len(offsets_t)
+    for t in prange(counts.shape[0]):
         if counts[t] == 0:
             continue
         cursor = np.zeros(n_sources, np.int64)
@@ -164,4 +186,3 @@ def compact_into_packets(n, width, height, offsets_t, pixel_t, flag_t, org_t, di
             source[out] = -1
             lane[out] = -1
             out += 1
-    return out_offsets, org, dirs, inv, tmin, tmax, pix, weight, source, lane

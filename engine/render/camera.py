@@ -15,7 +15,7 @@ from numba import njit, prange
 
 from engine.core.scene import Scene
 from engine.core.types import Packets, RayBatch
-from engine.packet.compact import inverse_component
+from engine.packet.compact import inverse_component, new_array
 
 
 def image_plane(scene: Scene, width: int, height: int):
@@ -37,10 +37,9 @@ def camera_rays(scene: Scene, width: int, height: int):
     return np.tile(eye.astype(np.float32), (width * height, 1)), d
 
 
-@njit(cache=True, parallel=True)
-def _camera_packets(eye, forward, right, up, half_w, half_h, width, height, n):
-    """The primary batch in packet order: (offsets i32[K+1], org, dir, inv_dir f32[R,3],
-    tmin, tmax f32[R], pixel i32[R], weight f32[R,3]); eye f32[3], basis f64[3] each."""
+@njit(cache=True)
+def camera_packet_offsets(width, height, n):
+    """i32[K+1]: one packet per n x n tile, row by row, each padded to whole 2x2 SIMD rays."""
     tiles_x = -(-width // n)
     n_tiles = tiles_x * (-(-height // n))
     offsets = np.empty(n_tiles + 1, np.int32)
@@ -51,13 +50,16 @@ def _camera_packets(eye, forward, right, up, half_w, half_h, width, height, n):
         inside = min(n, width - tx * n) * min(n, height - ty * n)
         total += (inside + 3) // 4 * 4
     offsets[n_tiles] = total
-    org = np.empty((total, 3), np.float32)
-    dirs = np.empty((total, 3), np.float32)
-    inv = np.empty((total, 3), np.float32)
-    tmin = np.zeros(total, np.float32)
-    tmax = np.full(total, np.inf, np.float32)
-    pixel = np.empty(total, np.int32)
-    weight = np.ones((total, 3), np.float32)
+    return offsets
+
+
+@njit(cache=True, parallel=True)
+def fill_camera_packets(eye, forward, right, up, half_w, half_h, width, height, n, offsets,
+                        org, dirs, inv, tmin, tmax, pixel, weight):
+    """Fill the primary batch in packet order (org, dir, inv_dir f32[R,3], tmin, tmax f32[R],
+    pixel i32[R], weight f32[R,3]) for packets ``offsets``; eye f32[3], basis f64[3] each."""
+    tiles_x = -(-width // n)
+    n_tiles = offsets.shape[0] - 1
     half = n // 2
     for t in prange(n_tiles):
         ty, tx = divmod(t, tiles_x)
@@ -80,6 +82,9 @@ def _camera_packets(eye, forward, right, up, half_w, half_h, width, height, n):
                 org[out, a] = eye[a]
                 dirs[out, a] = d[a]
                 inv[out, a] = inverse_component(d[a])
+                weight[out, a] = np.float32(1.0)
+            tmin[out] = np.float32(0.0)
+            tmax[out] = np.float32(np.inf)
             pixel[out] = y * width + x
             out += 1
         while out < offsets[t + 1]:  # dead padding to whole 2x2 SIMD rays
@@ -92,13 +97,16 @@ def _camera_packets(eye, forward, right, up, half_w, half_h, width, height, n):
             tmax[out] = np.float32(0.0)
             pixel[out] = -1
             out += 1
-    return offsets, org, dirs, inv, tmin, tmax, pixel, weight
 
 
-def camera_batch(scene: Scene, width: int, height: int, n: int) -> tuple[RayBatch, Packets]:
+def camera_batch(scene: Scene, width: int, height: int, n: int, allocate=new_array) -> tuple[RayBatch, Packets]:
     """(RayBatch "primary", Packets): the camera rays of a width x height image in n x n packets,
-    the layout ``engine.packet.layout.make_batch`` gives ``camera_rays``."""
+    the layout ``engine.packet.layout.make_batch`` gives ``camera_rays``. ``allocate(name, rows,
+    tail, dtype)`` gives the arrays (a renderer passes reused buffers)."""
     eye, forward, right, up, half_w, half_h = image_plane(scene, width, height)
-    offsets, org, dirs, inv, tmin, tmax, pixel, weight = _camera_packets(
-        eye.astype(np.float32), forward, right, up, half_w, half_h, width, height, n)
-    return RayBatch(org, dirs, inv, tmin, tmax, pixel, weight, "primary"), Packets(offsets, n, width, height)
+    offsets = camera_packet_offsets(width, height, n)
+    r = int(offsets[-1])
+    arrays = (allocate("org", r, (3,)), allocate("dir", r, (3,)), allocate("inv_dir", r, (3,)), allocate("tmin", r),
+              allocate("tmax", r), allocate("pixel", r, (), np.int32), allocate("weight", r, (3,)))
+    fill_camera_packets(eye.astype(np.float32), forward, right, up, half_w, half_h, width, height, n, offsets, *arrays)
+    return RayBatch(*arrays, "primary"), Packets(offsets, n, width, height)

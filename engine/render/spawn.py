@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit, prange
 
 from engine.core.offset import MIN_MAGNITUDE, OFFSET_SCALE
+from engine.packet.compact import new_array
 from engine.render.surface import dot3
 
 #: Rays carrying less than this weight (in every channel) are not cast.
@@ -46,11 +47,17 @@ class Children(NamedTuple):
     enter: np.ndarray
 
 
-def new_children(r: int) -> Children:
-    """Per-lane child arrays for a batch of ``r`` rays (flags cleared by the kernel)."""
-    v3 = lambda: np.empty((r, 3), np.float32)  # noqa: E731
-    return Children(np.empty(r, np.bool_), np.empty(r, np.bool_), np.empty(r, np.bool_),
-                    v3(), v3(), v3(), v3(), v3())
+#: Per-lane shape tail and dtype of each Children field.
+CHILDREN_FIELDS = {"mirror": ((), np.bool_), "total_internal": ((), np.bool_), "refract": ((), np.bool_),
+                   "reflect_dir": ((3,), np.float32), "refract_dir": ((3,), np.float32),
+                   "reflect_weight": ((3,), np.float32), "transmit_weight": ((3,), np.float32),
+                   "enter": ((3,), np.float32)}
+
+
+def new_children(r: int, allocate=new_array) -> Children:
+    """Per-lane child arrays for a batch of ``r`` rays (flags set by the kernel), from
+    ``allocate(name, rows, tail, dtype)``."""
+    return Children(*(allocate(name, r, tail, dtype) for name, (tail, dtype) in CHILDREN_FIELDS.items()))
 
 
 @njit(cache=True, parallel=True)

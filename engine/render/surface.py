@@ -21,6 +21,7 @@ import numpy as np
 from numba import njit, prange
 
 from engine.core.offset import MIN_MAGNITUDE, OFFSET_SCALE
+from engine.packet.compact import new_array
 
 
 class Surface(NamedTuple):
@@ -47,11 +48,17 @@ class Surface(NamedTuple):
     leave: np.ndarray
 
 
-def new_surface(r: int) -> Surface:
-    """Uninitialised per-lane arrays for a batch of ``r`` rays."""
-    v3 = lambda: np.empty((r, 3), np.float32)  # noqa: E731
-    return Surface(np.empty(r, np.bool_), v3(), np.empty(r, np.float32), v3(), v3(), v3(),
-                   np.empty(r, np.bool_), np.empty(r, np.int32), v3(), v3(), v3())
+#: Per-lane shape tail and dtype of each Surface field.
+SURFACE_FIELDS = {"hit": ((), np.bool_), "point": ((3,), np.float32), "magnitude": ((), np.float32),
+                  "view": ((3,), np.float32), "normal": ((3,), np.float32), "facing": ((3,), np.float32),
+                  "entering": ((), np.bool_), "material": ((), np.int32), "texel": ((3,), np.float32),
+                  "color": ((3,), np.float32), "leave": ((3,), np.float32)}
+
+
+def new_surface(r: int, allocate=new_array) -> Surface:
+    """Uninitialised per-lane arrays for a batch of ``r`` rays, from ``allocate(name, rows,
+    tail, dtype)``."""
+    return Surface(*(allocate(name, r, tail, dtype) for name, (tail, dtype) in SURFACE_FIELDS.items()))
 
 
 @njit(cache=True, inline="always")
@@ -61,11 +68,25 @@ def dot3(a, b):
 
 
 @njit(cache=True, inline="always")
-def texel_at(texels, start, width, height, s, t):
-    """Nearest texel, wrapping, of the texture at ``start`` (width x height) at (s, t)."""
+def unit_wrap(s):
+    """s mod 1 in [0, 1), as numpy's float remainder gives it; most coordinates already lie in
+    [0, 1), and skipping the fmod call for them halves the cost of a texture lookup."""
     one = np.float32(1.0)
-    x = math.floor((s % one) * np.float32(width)) % width
-    y = math.floor((one - t % one) * np.float32(height)) % height
+    return s if np.float32(0.0) <= s < one else s % one
+
+
+@njit(cache=True, inline="always")
+def texel_at(texels, start, width, height, s, t):
+    """Index into ``texels`` of the nearest texel, wrapping, of the texture at ``start``
+    (width x height) at (s, t)."""
+    x = math.floor(unit_wrap(s) * np.float32(width))
+    y = math.floor((np.float32(1.0) - unit_wrap(t)) * np.float32(height))
+    # x lies in [0, width] and y in [0, height] (the product may round up to the edge): the
+    # wrap of the edge is the integer modulo, without its division.
+    if x >= width:
+        x -= width
+    if y >= height:
+        y -= height
     return start + y * width + x
 
 

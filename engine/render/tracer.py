@@ -55,19 +55,26 @@ class Tracer:
                 seconds[plugin.name] = plugin.prepare(self.tris)
         return seconds
 
-    def trace(self, kind: str, query: str, rays: RayBatch, packets, tally: Tally | None = None):
+    def trace(self, kind: str, query: str, rays: RayBatch, packets, tally: Tally | None = None, answer=None):
         """Hits (query "intersect") or bool[R] occlusion flags (query "occluded") of ``rays``
-        (R rays in ``packets``), in batch order."""
+        (R rays in ``packets``), in batch order. ``answer``: arrays of that shape to answer
+        into (reset here to all misses), instead of new ones."""
         traversal, frustum = self.traversal[kind], self.frustum[kind]
         stats = tally.stats_for(kind) if tally is not None else None
         n = rays.org.shape[0]
         start = time.perf_counter()
         frusta = None if frustum is None else frustum.build(rays, packets, self.bounds)
         if query == "intersect":
-            answer = empty_hits(n)
+            if answer is None:
+                answer = empty_hits(n)
+            else:
+                answer.t.fill(np.inf), answer.prim.fill(-1), answer.u.fill(0), answer.v.fill(0)
             traversal.intersect(self.bvh, self.tris, rays, packets, frusta, answer, stats)
         elif query == "occluded":
-            answer = np.zeros(n, np.bool_)
+            if answer is None:
+                answer = np.zeros(n, np.bool_)
+            else:
+                answer.fill(False)
             traversal.occluded(self.bvh, self.tris, rays, packets, frusta, answer, stats)
         else:
             raise ValueError(f"query must be 'intersect' or 'occluded', got {query!r}")

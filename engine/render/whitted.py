@@ -36,13 +36,14 @@ import numpy as np
 from engine.core.bvh import build_bvh, scene_bounds
 from engine.core.offset import triangle_magnitudes
 from engine.core.scene import Scene
-from engine.core.types import RAY_KINDS, Packets, RayBatch, stats_by_depth, stats_totals
+from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch, stats_by_depth, stats_totals
 from engine.packet.compact import compact_into_packets
 from engine.render.camera import camera_batch
 from engine.render.config import Config
 from engine.render.direct_light import add_light, light_directions
 from engine.render.materials import MaterialTable
 from engine.render.plugins import configured
+from engine.render.scratch import Scratch
 from engine.render.spawn import gather_and_spawn, new_children
 from engine.render.surface import new_surface, shade_surface
 from engine.render.tracer import Tally, Tracer
@@ -109,9 +110,18 @@ class WhittedRenderer:
         # Plugins with their own acceleration structure (Embree) build it now, outside the
         # timed trace, and report the build time.
         self.prepare_seconds = self.tracer.prepare()
+        # Per-lane arrays reused from frame to frame (fresh pages cost more than the shading).
+        self.scratch = Scratch()
 
-    def _trace(self, kind, rays, packets, query, tally):
-        answer = self.tracer.trace(kind, query, rays, packets, tally)
+    def _trace(self, kind, rays, packets, query, tally, slot):
+        """Trace through the Tracer, answering into reused arrays under ``slot``."""
+        r = rays.org.shape[0]
+        take = self.scratch.allocator(slot)
+        if query == "intersect":
+            answer = Hits(take("t", r), take("prim", r, (), np.int32), take("u", r), take("v", r))
+        else:
+            answer = take("occluded", r, (), np.bool_)
+        answer = self.tracer.trace(kind, query, rays, packets, tally, answer)
         if self.observer is not None:
             self.observer(kind, query, rays, packets, answer)
         return answer
@@ -138,22 +148,23 @@ class WhittedRenderer:
         tally = Tally(count=self.count)
         start = time.perf_counter()
         image = np.zeros((width * height, 3), np.float32)
-        batches = [camera_batch(self.scene, width, height, cfg.packet)]
+        batches = [camera_batch(self.scene, width, height, cfg.packet, self.scratch.allocator(("primary", 0)))]
         shade_seconds = 0.0
         for depth in range(cfg.max_depth + 1):
             spawn = depth < cfg.max_depth
             parents = []
             for rays, packets in batches:
-                hits = self._trace(rays.kind, rays, packets, "intersect", tally)
+                slot = (rays.kind, depth % 2)  # a generation's arrays never overwrite its parents'
+                hits = self._trace(rays.kind, rays, packets, "intersect", tally, slot)
                 shade_start = time.perf_counter()
                 trace_before = sum(tally.seconds.values())
-                shaded = self._shade(rays, packets, hits, image, spawn, depth < cfg.max_reflection_depth, tally)
+                shaded = self._shade(rays, packets, hits, image, spawn, depth < cfg.max_reflection_depth, tally, slot)
                 parents.append((rays, packets) + shaded)
                 shade_seconds += time.perf_counter() - shade_start - (sum(tally.seconds.values()) - trace_before)
             if not spawn:
                 break
             shade_start = time.perf_counter()
-            batches = self._next_generation(parents, width, height, cfg.packet)
+            batches = self._next_generation(parents, width, height, cfg.packet, (depth + 1) % 2)
             shade_seconds += time.perf_counter() - shade_start
             if not batches:
                 break
@@ -176,47 +187,51 @@ class WhittedRenderer:
 
 
     # -- shading: numba kernels over the batch's lanes ---------------------------------------
-    def _shade(self, rays: RayBatch, packets: Packets, hits, image, spawn: bool, reflect: bool, tally):
+    def _shade(self, rays: RayBatch, packets: Packets, hits, image, spawn: bool, reflect: bool, tally, slot):
         """Add a traced batch's background, ambient and direct light to ``image`` (f32[W*H,3]),
         casting one shadow batch per light; returns (Surface, Children) of its lanes (children
-        flags all False unless ``spawn``). ``reflect`` False: no mirror reflections."""
+        flags all False unless ``spawn``). ``reflect`` False: no mirror reflections. ``slot``:
+        the scratch key of this batch's per-lane arrays."""
         m, tris, n = self.materials, self.tris, packets.size
         r = rays.org.shape[0]
-        surface = new_surface(r)
+        take = self.scratch.allocator(slot)
+        surface = new_surface(r, take)
         shade_surface(packets.offsets, rays.dir, rays.pixel, rays.weight, hits.prim, hits.u, hits.v,
                       tris.v0, tris.v1, tris.v2, tris.ng, tris.normals, tris.uvs, tris.material,
                       self.corner_magnitude, m.ambient, m.texture_start, m.texture_width, m.texture_height,
                       m.texels, self.ambient_light, self.background, image, *surface)
         if self.scene.lights:
-            to_light = np.empty((r, 3), np.float32)
-            dist, ndotl, shadow_tmax = (np.empty(r, np.float32) for _ in range(3))
-            lit = np.empty(r, np.bool_)
-            unit_weight = np.ones((r, 3), np.float32)
+            light = self.scratch.allocator("light")
+            to_light, dist, ndotl, shadow_tmax = (light("to_light", r, (3,)), light("dist", r), light("ndotl", r),
+                                                  light("shadow_tmax", r))
+            lit = light("lit", r, (), np.bool_)
+            unit_weight = light("unit_weight", r, (3,))
+            unit_weight.fill(1)
         for light in self.scene.lights:
             light_directions(surface.hit, surface.leave, surface.normal, surface.facing,
                              np.asarray(light.position, np.float32), to_light, dist, ndotl, lit, shadow_tmax)
             offsets, org, dirs, inv, tmin, tmax, pixel, weight, _, lane = compact_into_packets(
                 n, packets.width, packets.height, (packets.offsets,), (rays.pixel,), (lit,), (surface.leave,),
-                (to_light,), (shadow_tmax,), (unit_weight,))
+                (to_light,), (shadow_tmax,), (unit_weight,), self.scratch.allocator("shadow"))
             if offsets.shape[0] == 1:
                 continue  # no hit faces this light
             shadow = RayBatch(org, dirs, inv, tmin, tmax, pixel, weight, "shadow")
             occluded = self._trace("shadow", shadow, Packets(offsets, n, packets.width, packets.height),
-                                   "occluded", tally)
+                                   "occluded", tally, "shadow")
             add_light(surface.color, lane, occluded, surface.normal, to_light, ndotl, surface.view,
                       surface.material, m.diffuse, m.specular, m.shininess, surface.texel,
                       np.asarray(light.color, np.float32))
-        children = new_children(r)
+        children = new_children(r, take)
         gather_and_spawn(packets.offsets, rays.pixel, rays.weight, surface.hit, surface.point, surface.magnitude,
                          surface.view, surface.normal, surface.facing, surface.entering, surface.material,
                          surface.color, m.reflectance, m.transmission, m.ior, image, spawn, reflect, *children)
         return surface, children
 
-    @staticmethod
-    def _next_generation(parents, width: int, height: int, n: int) -> list:
+    def _next_generation(self, parents, width: int, height: int, n: int, parity: int) -> list:
         """The reflection and refraction batches of the next generation, each with its packets:
         the children of every parent batch (rays, packets, Surface, Children), merged in the
-        packets of their camera tiles. Kinds with no child are left out."""
+        packets of their camera tiles, in the scratch slots of generation ``parity``. Kinds with
+        no child are left out."""
         reflection = {"offsets": [], "pixel": [], "flag": [], "org": [], "dir": [], "tmax": [], "weight": []}
         refraction = {key: [] for key in reflection}
 
@@ -225,7 +240,8 @@ class WhittedRenderer:
                 into[key].append(value)
 
         for rays, packets, surface, children in parents:
-            endless = np.full(rays.org.shape[0], np.inf, np.float32)
+            endless = self.scratch.take(("endless", rays.kind), rays.org.shape[0])
+            endless.fill(np.inf)
             source(reflection, rays, packets, children.mirror, surface.leave, children.reflect_dir, endless,
                    children.reflect_weight)
             source(reflection, rays, packets, children.total_internal, surface.leave, children.reflect_dir,
@@ -234,8 +250,11 @@ class WhittedRenderer:
                    children.transmit_weight)
         batches = []
         for kind, sources in (("reflection", reflection), ("refraction", refraction)):
+            if not sources["offsets"]:
+                continue
             offsets, org, dirs, inv, tmin, tmax, pixel, weight, _, _ = compact_into_packets(
-                n, width, height, *(tuple(sources[key]) for key in sources))
+                n, width, height, *(tuple(sources[key]) for key in sources),
+                allocate=self.scratch.allocator((kind, parity)))
             if offsets.shape[0] > 1:
                 batches.append((RayBatch(org, dirs, inv, tmin, tmax, pixel, weight, kind),
                                 Packets(offsets, n, width, height)))
