@@ -48,7 +48,11 @@ named ``camera`` animates the camera: eye = M (0,0,0), looking along M (0,0,-1),
 the ``v`` angle stays the vertical field of view.
 
 Parameters: ``tessellation`` (R above, default 3), ``camera`` ("auto": the animated camera when
-the scene has ``k camera``, else ``v``; "static": always ``v``).
+the scene has ``k camera``, else ``v``; "static": always ``v``), ``lights`` ("all", the default, or
+an integer N >= 0: keep the first N point lights in file order, the order the walk meets ``l``
+directives, includes followed where they stand; 0 keeps none, and then no point light is made up
+either; an N larger than the file's count is a ConfigError naming the count, not a silent "all").
+``scene.info["file_lights"]`` is the file's count.
 
 Kept but not applied: ``hither`` and ``resolution`` go to ``scene.info`` (the renderer's config
 sets the image size); the detail level of ``i`` is read and ignored. Choices where the format
@@ -871,14 +875,19 @@ def _camera_from(view: Optional[dict], keyframes: dict, time: float, mode: str):
     return None, "auto-framed"
 
 
-def load_aff(path: Path, time: float = 0.0, tessellation: int = 3, camera: str = "auto"):
-    """Load the .aff scene rooted at ``path`` at ``time`` seconds."""
+def load_aff(path: Path, time: float = 0.0, tessellation: int = 3, camera: str = "auto",
+             lights: Optional[int] = None):
+    """Load the .aff scene rooted at ``path`` at ``time`` seconds, keeping the first ``lights``
+    point lights in file order (None: all of them)."""
     started = _time.perf_counter()
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"{path}: .aff file not found")
     loader = Loader(path, time, tessellation)
     loader.walk(path)
+    if lights is not None and lights > len(loader.lights):
+        raise ConfigError(f"lights = {lights}, but {path.name} has {len(loader.lights)} point light(s); "
+                          f"give 0..{len(loader.lights)} or \"all\"")
     world = loader.world_matrices()
     animated = loader.animated_nodes()
 
@@ -918,9 +927,8 @@ def load_aff(path: Path, time: float = 0.0, tessellation: int = 3, camera: str =
     builder.add_mesh(corners_all.reshape(-1, 3), np.arange(3 * t).reshape(t, 3), np.concatenate(materials),
                      normals=normals_all, uvs=uvs_all, source=str(path))
 
-    lights = []
-    for node, position, colour in loader.lights:
-        lights.append(PointLight(_floats(world[node][:3, :3] @ position + world[node][:3, 3]), _floats(colour)))
+    placed_lights = [PointLight(_floats(world[node][:3, :3] @ position + world[node][:3, 3]), _floats(colour))
+                     for node, position, colour in loader.lights]
     view = loader.settings["view"]
     cam, camera_kind = _camera_from(view, loader.keyframes, loader.time, camera)
     anim = loader.settings["animation"]
@@ -933,17 +941,22 @@ def load_aff(path: Path, time: float = 0.0, tessellation: int = 3, camera: str =
         "animation": ({"start": anim[0], "end": anim[1], "frames": anim[2]} if anim else None),
         "resolution": view.get("resolution") if view else None,
         "hither": float(view["hither"][0]) if view and "hither" in view else None,
+        "file_lights": len(loader.lights),
     }
     is_animated = bool(animated.any() or n_tpa or camera_kind == "animated")
-    scene = builder.build(camera=cam, lights=lights, background=loader.settings["background"],
+    scene = builder.build(camera=cam, lights=placed_lights, background=loader.settings["background"],
                           ambient_light=loader.settings["ambient"], animated=is_animated,
                           time=loader.time, info=info)
+    if lights is not None:
+        # After build: with no light, build() would make one up; lights = 0 means none at all.
+        scene.lights = placed_lights[:lights]
     info["load_seconds"] = round(_time.perf_counter() - started, 3)
     return scene
 
 
 def check_params(params: dict) -> tuple:
-    """(tessellation, camera) from loader parameters; bad values raise ConfigError."""
+    """(tessellation, camera, lights) from loader parameters, lights None for "all"; bad values
+    raise ConfigError. Whether the file has that many lights is checked when it is read."""
     tessellation = params.get("tessellation", 3)
     if isinstance(tessellation, bool) or not isinstance(tessellation, int) or not 1 <= tessellation <= 64:
         raise ConfigError(f"tessellation must be an integer in 1..64, got {tessellation!r}")
@@ -951,7 +964,13 @@ def check_params(params: dict) -> tuple:
     if camera not in ("auto", "static"):
         raise ConfigError(f"camera must be 'auto' (animated when the scene has one) or 'static', "
                           f"got {camera!r}")
-    return tessellation, camera
+    lights = params.get("lights", "all")
+    if lights == "all" and isinstance(lights, str):
+        lights = None
+    elif isinstance(lights, bool) or not isinstance(lights, int) or lights < 0:
+        raise ConfigError(f"lights must be \"all\" or an integer >= 0 (keep the first N point lights in "
+                          f"file order), got {lights!r}")
+    return tessellation, camera, lights
 
 
 @scene_loader("aff")
@@ -959,11 +978,11 @@ def aff_scene(files, params, time):
     """Catalog loader: the first file is the root .aff."""
     if not files:
         raise SceneError("the aff loader needs the root .aff file")
-    tessellation, camera = check_params(params)
+    tessellation, camera, lights = check_params(params)
     try:
         time = float(time)
     except (TypeError, ValueError):
         raise ConfigError(f"scene time must be a number of seconds, got {time!r}") from None
     if not math.isfinite(time):
         raise ConfigError(f"scene time must be finite, got {time!r}")
-    return load_aff(Path(files[0]), time, tessellation, camera)
+    return load_aff(Path(files[0]), time, tessellation, camera, lights)

@@ -359,3 +359,40 @@ def test_aff_files_load_by_path(tmp_path):
     from scenes.catalog import load_path
     scene = load_path(str(write(tmp_path, "direct.aff", TRIANGLE_MESH)))
     assert scene.n_triangles == 1 and scene.name == "direct"
+
+
+# ---------------------------------------------------------------------------------- lights = N
+
+LIGHTS_MAIN = """
+l 1 5 1
+i 1 more.aff
+l 3 5 3
+""" + TRIANGLE_MESH
+
+
+def test_lights_keeps_the_first_n_in_file_order_includes_where_they_stand(tmp_path):
+    write(tmp_path, "more.aff", "l 2 5 2\n")
+    every = load(tmp_path, LIGHTS_MAIN)
+    assert [l.position for l in every.lights] == [(1, 5, 1), (2, 5, 2), (3, 5, 3)]
+    assert every.info["file_lights"] == 3
+    assert load(tmp_path, LIGHTS_MAIN, lights="all").lights == every.lights
+    for n in range(4):
+        assert load(tmp_path, LIGHTS_MAIN, lights=n).lights == every.lights[:n]
+
+
+def test_lights_zero_leaves_no_light_not_a_made_up_one(tmp_path):
+    assert load(tmp_path, TRIANGLE_MESH, lights=0).lights == []
+    assert len(load(tmp_path, TRIANGLE_MESH).lights) == 1       # "all" of none: the default light, as before
+    assert load(tmp_path, "l 1 1 1\n" + TRIANGLE_MESH, lights=0).lights == []
+
+
+def test_lights_beyond_the_file_names_its_count(tmp_path):
+    with pytest.raises(ConfigError, match=r"^lights = 3, but scene.aff has 2 point light\(s\); give 0..2 or \"all\"$"):
+        load(tmp_path, "l 1 1 1\nl 2 2 2\n" + TRIANGLE_MESH, lights=3)
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, True, "two", "ALL", [1]])
+def test_bad_lights_values_are_one_line_config_errors(tmp_path, bad):
+    with pytest.raises(ConfigError, match=r"^lights must be \"all\" or an integer >= 0 .*got ") as caught:
+        load(tmp_path, TRIANGLE_MESH, lights=bad)
+    assert "\n" not in str(caught.value)

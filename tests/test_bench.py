@@ -20,7 +20,7 @@ SMOKE = ROOT / "benchmarks" / "smoke.toml"
 
 RECORD_KEYS = {"schema", "id", "matrix", "tags", "labels", "cell", "config", "scene", "repeat", "threads",
                "seconds", "rays", "batches", "packets", "mrays_per_s", "embree_mrays_per_s", "ratio_to_embree", "fps",
-               "checks", "counters", "counters_by_depth", "extra", "machine", "started", "wall_seconds", "load"}
+               "open3d_mrays_per_s", "ratio_to_open3d", "checks", "counters", "counters_by_depth", "extra", "machine", "started", "wall_seconds", "load"}
 SUMMARY_KEYS = {"median", "min", "max", "q1", "q3", "runs"}
 
 
@@ -46,7 +46,7 @@ def test_smoke_writes_jsonl_csv_and_plots(smoke_dir):
         s = r["seconds"]
         for name in ("frame", "shade"):
             assert set(s[name]) == SUMMARY_KEYS and len(s[name]["runs"]) == 2
-        for part in ("trace", "replay", "embree"):
+        for part in ("trace", "replay", "embree", "open3d"):
             assert set(s[part]) == set(RAY_KINDS) and all(set(v) == SUMMARY_KEYS for v in s[part].values())
         # The per-ray floor is measured for packet-traversal cells only ("paper" here, not "single").
         if r["labels"]["traversal"] == "paper":
@@ -57,15 +57,21 @@ def test_smoke_writes_jsonl_csv_and_plots(smoke_dir):
         assert r["rays"]["primary"] == 64 * 64 and r["rays"]["all"] == sum(r["rays"][k] for k in RAY_KINDS)
         assert set(r["mrays_per_s"]) == set(RAY_KINDS) | {"all"}
         assert r["ratio_to_embree"]["primary"] > 0 and r["embree_mrays_per_s"]["all"] > 0
-        # Every timed variant's answers were checked, ray for ray, and agreed.
-        for variant in ("ours", "embree"):
+        # Open3D, the second yardstick, traced the same batches (smoke.toml has embree = true,
+        # which turns it on by default).
+        assert r["cell"]["open3d"] is True and r["fps"]["open3d_trace"] > 0
+        assert set(r["open3d_mrays_per_s"]) == set(RAY_KINDS) | {"all"} and r["open3d_mrays_per_s"]["all"] > 0
+        assert r["ratio_to_open3d"]["all"] == pytest.approx(r["mrays_per_s"]["all"] / r["open3d_mrays_per_s"]["all"])
+        # Every timed variant's answers were checked, ray for ray, and agreed (Open3D too: on
+        # this scene it has no reason to disagree on a single ray).
+        for variant in ("ours", "embree", "open3d"):
             for k in RAY_KINDS:
                 row = r["checks"][variant][k]
                 assert row["checked"] == r["rays"][k] and row["mismatches"] == 0, (variant, k, row)
         assert r["counters"]["ray_tri"]["primary"] > 0 and r["counters_by_depth"]["ray_aabb"]["primary"]
         assert r["fps"]["frame"] > 0 and r["fps"]["trace"] > 0
         m = r["machine"]
-        assert {"cpu", "cores", "numba_threads", "python", "numpy", "numba", "embreex", "embree", "git"} <= set(m)
+        assert {"cpu", "cores", "numba_threads", "python", "numpy", "numba", "embreex", "embree", "open3d", "git"} <= set(m)
         assert len(m["git"]["commit"]) == 40 or m["git"]["commit"] == "unknown"
         assert r["config"]["render"]["width"] == 64 and r["cell"]["packet"] == 8
     by_preset = {}
@@ -82,10 +88,14 @@ def test_smoke_writes_jsonl_csv_and_plots(smoke_dir):
         rows = list(csv.DictReader(f))
     assert len(rows) == len(records)
     assert {"id", "scene", "traversal", "frustum", "packet", "recursion", "frame_s", "mrays_all", "ratio_all",
-            "rays_primary", "trace_s_shadow", "ratio_reflection", "ray_aabb_primary", "commit"} <= set(rows[0])
+            "rays_primary", "trace_s_shadow", "ratio_reflection", "ray_aabb_primary", "commit", "fps_open3d_trace",
+            "open3d_mrays_all", "ratio_open3d_all", "open3d_s_shadow", "open3d_mrays_primary", "ratio_open3d_reflection",
+            "open3d_mismatches_primary"} <= set(rows[0])
+    assert all(float(row["open3d_mrays_all"]) > 0 for row in rows)
     pngs = list(smoke_dir.glob("*.png"))
     assert pngs and all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
-    assert "| whitted |" in (smoke_dir / "summary.md").read_text()
+    summary = (smoke_dir / "summary.md").read_text()
+    assert "| whitted |" in summary and "| Open3D Mrays/s | ours / Open3D |" in summary
 
 
 def test_resume_does_no_work(smoke_dir, tmp_path, monkeypatch):

@@ -170,3 +170,37 @@ def test_cornell_box_walls_span_the_room(scene_path):
     red, green = by_material["red"], by_material["green"]
     assert np.all(red[:, 0] > 549) and np.ptp(red[:, 2]) > 559 and np.ptp(red[:, 1]) > 548
     assert np.all(green[:, 0] == 0) and np.ptp(green[:, 2]) > 559
+
+
+def test_kitchen_lights_parameter_keeps_the_first_lights(scene_path):
+    """lights = N keeps the first N of the kitchen's six point lights, in kitchen.aff's order."""
+    full = load_named("bart-kitchen")
+    assert len(full.lights) == 6
+    one = load_named("bart-kitchen", {"lights": 1})
+    assert [(l.position, l.color) for l in one.lights] == [(full.lights[0].position, full.lights[0].color)]
+    assert one.lights[0].position == (2.15, 2.0, 0.9)           # the file's first `l`
+    assert [l.position for l in load_named("bart-kitchen", {"lights": 4}).lights] == \
+        [l.position for l in full.lights[:4]]
+    assert load_named("bart-kitchen", {"lights": 0}).lights == []
+    assert one.n_triangles == full.n_triangles
+    np.testing.assert_array_equal(one.triangles.v0, full.triangles.v0)
+    with pytest.raises(ConfigError, match="has 6 point light"):
+        load_named("bart-kitchen", {"lights": 7})
+    with pytest.raises(ConfigError, match="lights must be"):
+        load_named("bart-kitchen", {"lights": -1})
+
+
+def test_lights_parameter_from_the_command_line(scene_path, tmp_path):
+    """``--param lights=N`` reaches the loader: the museum's shadow rays follow its light count."""
+    import json
+
+    from engine.cli import main
+
+    shadow = {}
+    for value in ("0", "1", "all"):
+        stats = tmp_path / f"{value}.json"
+        assert main(["render", "--scene", "bart-museum", "--param", f"lights={value}", "--size", "16x16",
+                     "--depth", "0", "-o", str(tmp_path / f"{value}.png"), "--stats", str(stats)]) == 0
+        shadow[value] = json.loads(stats.read_text())["rays"]["shadow"]
+    assert shadow["0"] == 0 < shadow["1"] < shadow["all"]
+    assert main(["render", "--scene", "bart-museum", "--param", "lights=3", "--size", "16x16"]) == 2

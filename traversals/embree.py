@@ -1,10 +1,15 @@
 """``embree``: Intel Embree through embreex, as a rendering backend.
 
 The yardstick for every speed figure: the same rays, the same thread count (a thread
-pool of ``threads`` workers, each answering one chunk; embreex releases the GIL). Ignores
+pool of numba's ``threads`` workers taking chunks of each batch; embreex releases the GIL),
+driven as fast as embreex can be from Python: the batch's own arrays are passed as views
+and the answers written straight into the caller's (``engine.core.embree_scene``). Ignores
 the packet layout, frusta and our BVH: Embree builds its own. The Embree scene is built
 once per triangle set and reused. Counters are not available (Embree does not expose
 them); ``stats.extra["embree"]`` records version, robust flag and build time.
+
+Options: ``robust`` (default true) sets Embree's robust (watertight) mode; false is
+Embree's faster default mode, whose answers may differ from the reference on edges.
 """
 from __future__ import annotations
 
@@ -51,11 +56,11 @@ class EmbreeTraversal:
     def intersect(self, bvh, tris, rays, packets, frusta, hits, stats):
         check_answer_arrays(rays.org.shape[0], hits.t, hits.prim, hits.u, hits.v)
         scene = self.scene_for(tris)
-        answer = scene.intersect(rays)
-        hits.t[:], hits.prim[:], hits.u[:], hits.v[:] = answer.t, answer.prim, answer.u, answer.v
+        scene.intersect_into(rays, hits.t, hits.prim, hits.u, hits.v)
         self._record(scene, stats)
 
     def occluded(self, bvh, tris, rays, packets, frusta, occluded, stats):
+        check_answer_arrays(rays.org.shape[0], occluded)
         scene = self.scene_for(tris)
-        occluded[:] = scene.occluded(rays)
+        scene.occluded_into(rays, occluded)
         self._record(scene, stats)

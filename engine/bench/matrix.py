@@ -7,6 +7,7 @@ A matrix is the cross product of six axes::
     repeat = 2                  # timed repeats per cell (``--repeat`` overrides); default 5
     threads = 0                 # numba threads (0 = every core numba sees); Embree gets the same
     embree = true               # also time Embree on the same ray batches (ratios to Embree)
+    open3d = true               # also time Open3D's RaycastingScene on them (default: embree's value)
     plot = ["mrays", "summary"] # figure kinds, see engine.bench.plots.PLOTS
 
     [axes]                      # every axis a non-empty list
@@ -53,22 +54,27 @@ from engine.core.types import RAY_KINDS
 
 @dataclass(frozen=True)
 class Recursion:
-    """A ray-recursion configuration: how deep, whether point lights cast shadow rays, and the
-    material override (Overbeck et al. 2008, Section 5)."""
+    """A ray-recursion configuration: how deep, whether point lights cast shadow rays (all of the
+    scene's, or only its first ``max_lights`` in file order), and the material override
+    (Overbeck et al. 2008, Section 5)."""
 
     max_depth: int
     lights: bool
     override: str
     max_reflection_depth: int = MAX_DEPTH
     doc: str = ""
+    max_lights: int | None = None
 
     def as_dict(self) -> dict:
+        # max_lights only when set: the cells of the other presets keep their hashes (--resume).
         return {"max_depth": self.max_depth, "max_reflection_depth": self.max_reflection_depth,
-                "lights": self.lights, "override": self.override}
+                "lights": self.lights, "override": self.override,
+                **({} if self.max_lights is None else {"max_lights": self.max_lights})}
 
 
 #: Named recursion presets. ``lights = False`` removes the scene's point lights: no shadow rays
-#: (and ambient-only shading), so the figure isolates the other ray kinds.
+#: (and ambient-only shading), so the figure isolates the other ray kinds; ``max_lights = N``
+#: keeps the first N (the runner's ``cell_scene``; a scene with fewer is an error naming its count).
 RECURSION = {
     "primary": Recursion(0, False, "none", doc="camera rays only"),
     "shadows": Recursion(0, True, "none", doc="camera rays + point-light shadows"),
@@ -83,11 +89,14 @@ RECURSION = {
     "museum-reflect3": Recursion(3, False, "none", doc="BART Museum: 3-bounce reflections"),
     "kitchen-full": Recursion(4, True, "none", max_reflection_depth=1,
                               doc="BART Kitchen: 1-bounce reflections, 4-deep refractions, point-light shadows"),
+    "kitchen-paper": Recursion(4, True, "none", max_reflection_depth=1, max_lights=1,
+                               doc="the paper's Kitchen row: 1-bounce reflections, 4-deep refractions, "
+                                   "shadows of the first point light only"),
     "bunny-floor": Recursion(1, False, "none", doc="bunny on a mirror floor: 1-bounce reflections"),
 }
 
 AXES = ("scene", "traversal", "frustum", "packet", "recursion", "resolution")
-TOP_KEYS = ("name", "description", "repeat", "threads", "embree", "plot", "axes", "group", "options")
+TOP_KEYS = ("name", "description", "repeat", "threads", "embree", "open3d", "plot", "axes", "group", "options")
 PAPER = {"traversal": PAPER_TRAVERSAL, "frustum": PAPER_FRUSTUM}
 DEFAULT_REPEAT = 5
 MAX_REPEAT = 1000
@@ -132,6 +141,7 @@ class Cell:
     embree: bool = True
     options: tuple = ()
     tags: tuple = ()
+    open3d: bool = False
 
     @property
     def preset(self) -> Recursion:
@@ -143,7 +153,9 @@ class Cell:
                 "frustum": self.frustum.per_kind(), "packet": self.packet,
                 "recursion": {"name": self.recursion, **self.preset.as_dict()},
                 "width": self.width, "height": self.height, "threads": self.threads,
-                "options": {name: dict(opts) for name, opts in self.options}, "embree": self.embree}
+                "options": {name: dict(opts) for name, opts in self.options}, "embree": self.embree,
+                # open3d only when on: cells measured without it keep their ids (--resume).
+                **({"open3d": True} if self.open3d else {})}
 
     @property
     def key(self) -> str:
@@ -179,6 +191,7 @@ class Matrix:
     embree: bool
     plots: tuple
     cells: list = field(default_factory=list)
+    open3d: bool = False
 
 
 # -- parsing ------------------------------------------------------------------------------
@@ -255,6 +268,8 @@ def _scene(source, where, value) -> SceneSpec:
     for key, val in table.items():
         default = entry.params[key]
         numeric = isinstance(default, (int, float)) and not isinstance(default, bool)
+        if default == "all" and isinstance(val, int) and not isinstance(val, bool):
+            continue  # a count where the default is "all" (the BART scenes' lights); the loader checks it
         if numeric and (isinstance(val, bool) or not isinstance(val, (int, float))) or \
                 not numeric and type(val) is not type(default):
             _fail(source, f"{where}.{key}", f"must be {_type_name(default)} like the default {default!r}, "
@@ -343,6 +358,9 @@ def parse_matrix(data: dict, source: str = "<matrix>", repeat: int | None = None
     embree = data.get("embree", True)
     if not isinstance(embree, bool):
         _fail(source, "embree", f"must be true or false, got {embree!r}")
+    open3d = data.get("open3d", embree)
+    if not isinstance(open3d, bool):
+        _fail(source, "open3d", f"must be true or false, got {open3d!r}")
     plots = data.get("plot", ["summary"])
     if not isinstance(plots, list) or not all(isinstance(p, str) for p in plots):
         _fail(source, "plot", f"must be a list of figure kinds ({', '.join(PLOTS)}), got {plots!r}")
@@ -381,7 +399,8 @@ def parse_matrix(data: dict, source: str = "<matrix>", repeat: int | None = None
             _fail(source, f"{where}{missing[0]}", f"missing axis (in [axes] or the group); every cell needs "
                                                   f"{', '.join(AXES)}")
         for scene, trav, frus, packet, rec, (w, h) in itertools.product(*(merged[a] for a in AXES)):
-            cell = Cell(scene, trav, frus, packet, rec, w, h, threads, embree, options, (tag,) if tag else ())
+            cell = Cell(scene, trav, frus, packet, rec, w, h, threads, embree, options, (tag,) if tag else (),
+                        open3d=open3d)
             _check_cell(source, where, cell)
             previous = cells.get(cell.key)
             if previous is not None:  # the same measurement asked twice: run it once, keep both tags
@@ -397,7 +416,7 @@ def parse_matrix(data: dict, source: str = "<matrix>", repeat: int | None = None
         first.setdefault(("recursion", cell.recursion), len(first))
     ordered = sorted(cells.values(), key=lambda c: (first["scene", c.scene.name, c.scene.params, c.scene.time],
                                                      first["recursion", c.recursion], c.width * c.height, c.packet))
-    return Matrix(name, description, source, repeat, threads, embree, tuple(plots), ordered)
+    return Matrix(name, description, source, repeat, threads, embree, tuple(plots), ordered, open3d)
 
 
 def _check_cell(source: str, where: str, cell: Cell) -> None:

@@ -9,19 +9,23 @@ One line (schema 1; ``K`` = a ray kind, summaries = {median, min, max, q1, q3, r
 
     {"schema", "id", "matrix", "tags", "labels": {scene, traversal, frustum, recursion, packet,
      resolution}, "cell": <the cell's identity: scene, plugins per kind, packet, recursion preset,
-     size, threads, options, embree>, "config": <engine.render.config.Config.to_dict()>,
+     size, threads, options, embree, open3d (only when on)>, "config": <engine.render.config.Config.to_dict()>,
      "scene": {name, triangles, lights}, "repeat", "threads",
      "seconds": {"bvh", "plugin_build": {plugin: s}, "frame": summary, "shade": summary,
                  "trace": {K: summary}            # inside the timed renders
                  "replay": {K: summary},          # our plugins on the recorded batches
-                 "embree": {K: summary} | null,   # Embree on the very same batches
+                 "embree": {K: summary} | null,   # Embree (the embree traversal) on the very same batches
+                 "open3d": {K: summary} | null,   # Open3D's RaycastingScene on them (engine.bench.open3d_yardstick)
                  "floor": {K: summary} | null},   # packet cells: the per-ray floor (engine.bench.floor)
      "rays": {K: n, "all": n}, "batches": {K: n}, "packets": {K: n}  # packets traced per frame
      "mrays_per_s": {K: x, "all": x}, "embree_mrays_per_s": {...} | null,
      "ratio_to_embree": {K: ours / Embree Mrays/s, "all": x} | null,
-     "checks": {"ours" | "embree": {K: {"checked", "ties", "mismatches"}}},  # answers of the
-               # timed replays against the ``single`` reference; a mismatching kind's rate is null
-     "fps": {"frame", "trace", "embree_trace"},
+     "open3d_mrays_per_s": {...} | null, "ratio_to_open3d": {K: ours / Open3D Mrays/s, "all": x} | null,
+     "checks": {"ours" | "embree" | "open3d": {K: {"checked", "ties", "mismatches"}}},  # answers of
+               # the timed replays against the ``single`` reference; a mismatching kind's rate is
+               # null -- except Open3D's, kept (and flagged by its mismatch count) up to
+               # engine.bench.open3d_yardstick.OPEN3D_MISMATCH_TOLERANCE of the kind's rays
+     "fps": {"frame", "trace", "embree_trace", "open3d_trace"},  # 1 / trace seconds of a frame
      "counters": {name: {K: n}}, "counters_by_depth": {name: {K: [n per BVH depth]}},
      "extra": {K: plugin statistics}, "machine": {...}, "started", "wall_seconds",
      "load": {"loadavg_at_start": [1, 5, 15 min], "cpu_share_replay": our CPU seconds / (wall x
@@ -122,9 +126,13 @@ def csv_row(r: dict) -> dict:
            "frame_s": _median(s["frame"]), "frame_min_s": s["frame"]["min"], "frame_max_s": s["frame"]["max"],
            "shade_s": _median(s["shade"]), "bvh_s": s["bvh"],
            "fps_frame": r["fps"]["frame"], "fps_trace": r["fps"]["trace"], "fps_embree_trace": r["fps"]["embree_trace"],
+           "fps_open3d_trace": r["fps"].get("open3d_trace"),
            "rays_all": r["rays"]["all"], "mrays_all": r["mrays_per_s"]["all"],
            "embree_mrays_all": (r["embree_mrays_per_s"] or {}).get("all"),
-           "ratio_all": (r["ratio_to_embree"] or {}).get("all")}
+           "ratio_all": (r["ratio_to_embree"] or {}).get("all"),
+           "open3d_mrays_all": (r.get("open3d_mrays_per_s") or {}).get("all"),
+           "ratio_open3d_all": (r.get("ratio_to_open3d") or {}).get("all")}
+    open3d_checks = r["checks"].get("open3d") or {}
     for k in RAY_KINDS:
         row[f"rays_{k}"] = r["rays"].get(k, 0)
         row[f"trace_s_{k}"] = _median(s["replay"].get(k))
@@ -133,6 +141,10 @@ def csv_row(r: dict) -> dict:
         row[f"embree_s_{k}"] = _median((s["embree"] or {}).get(k))
         row[f"embree_mrays_{k}"] = (r["embree_mrays_per_s"] or {}).get(k)
         row[f"ratio_{k}"] = (r["ratio_to_embree"] or {}).get(k)
+        row[f"open3d_s_{k}"] = _median((s.get("open3d") or {}).get(k))
+        row[f"open3d_mrays_{k}"] = (r.get("open3d_mrays_per_s") or {}).get(k)
+        row[f"ratio_open3d_{k}"] = (r.get("ratio_to_open3d") or {}).get(k)
+        row[f"open3d_mismatches_{k}"] = (open3d_checks.get(k) or {}).get("mismatches")
         for name in ("ray_aabb", "ray_tri"):
             row[f"{name}_{k}"] = r["counters"].get(name, {}).get(k)
     row["cpu_share_replay"] = r.get("load", {}).get("cpu_share_replay")

@@ -9,12 +9,15 @@ Each cell of the matrix (``engine.bench.matrix``) is measured in this process, o
    the render times them: frustum build + query + answer arrays), then, when every
    ray kind uses a packet traversal, ``repeat`` replays of the per-ray floor
    (``engine.bench.floor``: the same with the BVH walk taken out), then Embree (the ``embree``
-   traversal, same thread count) on exactly the same batches: the ratios to Embree compare the
+   traversal, same thread count) and Open3D's ``RaycastingScene`` (``engine.bench.open3d_yardstick``,
+   same thread count) on exactly the same batches: the ratios to either yardstick compare the
    same rays, the same work, minutes apart at most;
    Every timed variant keeps the answers of its last replay, and they are checked against the
    reference answers of the same batches (the ``single`` traversal, once per batch set) by the
    audit's tie-aware rules: a variant that disagrees on a ray kind is reported on stderr, its
-   rates for that kind are dropped (None) and ``checks`` in the record says how many rays;
+   rates for that kind are dropped (None) and ``checks`` in the record says how many rays
+   (Open3D, which promises no watertightness, keeps its rates below a small tolerance of
+   disagreeing rays and is flagged instead: ``engine.bench.open3d_yardstick.open3d_rates``);
 4. one counting render for the counters (ray-AABB and ray-triangle tests, per BVH depth) and
    the plugins' own statistics (e.g. the ray-space hierarchy's candidates per ray).
 
@@ -23,9 +26,10 @@ appended to ``DIR/results.jsonl`` at once (see ``engine.bench.results``); ``--re
 cells already there; Ctrl-C stops between two writes, rewrites the CSV, tables and plots for
 what is finished, and the same command with ``--resume`` carries on.
 
-Embree's time on a set of batches does not depend on our traversal, so within one run it is
-measured once per distinct batch set (same scene, recursion, size and packet order, checked by
-a digest of the rays) and shared by the cells that trace it (``EmbreeYardstick``).
+Embree's and Open3D's times on a set of batches do not depend on our traversal, so within one
+run each is measured once per distinct batch set (same scene, recursion, size and packet order,
+checked by a digest of the rays) and shared by the cells that trace it (``EmbreeYardstick``,
+``Open3DYardstick``).
 """
 from __future__ import annotations
 
@@ -46,6 +50,7 @@ import numpy as np
 from engine.bench import results as results_io
 from engine.bench.floor import floor_tracer, uses_packet_traversals
 from engine.bench.matrix import Cell, Matrix, load_matrix
+from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require_open3d
 from engine.core.types import RAY_KINDS
 from engine.render.plugins import make_traversal
 from engine.render.tracer import Tally
@@ -195,12 +200,18 @@ def _checked(rates: dict, check: dict) -> dict:
     return {k: (None if k in bad or (k == "all" and bad) else v) for k, v in rates.items()}
 
 
-def _report_mismatches(cell: Cell, checks: dict) -> None:
+def _report_mismatches(cell: Cell, checks: dict, kept: dict | None = None) -> None:
+    """One stderr line per variant whose answers disagree; ``kept``: {variant: rates} of a
+    variant whose rates survive a few mismatches (Open3D), to say which were kept."""
     for variant, check in checks.items():
         bad = {k: row["mismatches"] for k, row in check.items() if row["mismatches"]}
         if bad:
+            rates = (kept or {}).get(variant)
+            fate = ("those rates are dropped" if rates is None else
+                    f"rates kept (flagged) for {[k for k in bad if rates.get(k) is not None]}, dropped for "
+                    f"{[k for k in bad if rates.get(k) is None]}")
             print(f"packetrt bench: {cell.describe()}: {variant} answers disagree with the reference "
-                  f"(single) on {bad} rays; those rates are dropped", file=sys.stderr)
+                  f"(single) on {bad} rays; {fate}", file=sys.stderr)
 
 
 def _rates(rays: dict, seconds: dict) -> dict:
@@ -253,8 +264,8 @@ def machine_info() -> dict:
     return {"cpu": _cpu_model(), "cores": os.cpu_count(), "numba_threads": numba.config.NUMBA_NUM_THREADS,
             "threading_layer": numba.config.THREADING_LAYER, "platform": platform.platform(),
             "python": platform.python_version(), "numpy": np.__version__, "numba": numba.__version__,
-            "embreex": _version("embreex"), "embree": embree_version, "packetrt": _version("packetrt"),
-            "git": _git()}
+            "embreex": _version("embreex"), "embree": embree_version, "open3d": _version("open3d"),
+            "packetrt": _version("packetrt"), "git": _git()}
 
 
 # -- one cell --------------------------------------------------------------------------------
@@ -277,19 +288,31 @@ class SceneCache:
 
 
 def cell_scene(base, cell: Cell):
-    """The scene a cell renders: its recursion preset's material override, lights on or off."""
+    """The scene a cell renders: its recursion preset's material override and point lights (none,
+    all, or the first ``max_lights`` in the scene's order; a scene with fewer is a ConfigError)."""
+    from engine.core.errors import ConfigError
     from engine.core.scene import override_materials
 
-    scene = override_materials(base, cell.preset.override)
-    return scene if cell.preset.lights else replace(scene, lights=[])
+    preset = cell.preset
+    scene = override_materials(base, preset.override)
+    if not preset.lights:
+        return replace(scene, lights=[])
+    if preset.max_lights is None:
+        return scene
+    if preset.max_lights > len(scene.lights):
+        raise ConfigError(f"recursion preset {cell.recursion!r} keeps the first {preset.max_lights} point "
+                          f"light(s), but scene {cell.scene.label!r} has {len(scene.lights)}")
+    return replace(scene, lights=list(scene.lights[:preset.max_lights]))
 
 
 def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: EmbreeYardstick, machine: dict,
-             matrix_name: str, references: ReferenceAnswers | None = None) -> dict:
+             matrix_name: str, references: ReferenceAnswers | None = None,
+             open3d: Open3DYardstick | None = None) -> dict:
     """Measure one cell (see the module doc); returns its results.jsonl record."""
     from engine.render.whitted import WhittedRenderer
 
     references = references or ReferenceAnswers()
+    open3d = open3d or Open3DYardstick()
 
     wall = time.perf_counter()
     started = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
@@ -328,7 +351,13 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
             embree_seconds, embree_answers = yardstick.seconds(renderer, recorder, repeat)
             checks["embree"] = check_answers(recorder.batches, embree_answers, reference,
                                              yardstick.tracer(renderer), renderer.tris)
-    _report_mismatches(cell, checks)
+            embree_answers = None
+    open3d_seconds = None
+    if cell.open3d:
+        open3d_seconds, open3d_answers = open3d.seconds(renderer, recorder, repeat, timed_replays)
+        checks["open3d"] = check_answers(recorder.batches, open3d_answers, reference, open3d.tracer(renderer),
+                                         renderer.tris)
+        open3d_answers = None
 
     counted = renderer.with_counters(renderer.render())
 
@@ -348,6 +377,15 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
         ratio = {k: (mrays[k] / embree_mrays[k] if mrays[k] and embree_mrays[k] else None) for k in mrays}
         total = sum(embree_summary[k]["median"] for k in RAY_KINDS)
         embree_fps = 1.0 / total if total > 0 else None
+    open3d_summary = open3d_mrays = open3d_ratio = open3d_fps = None
+    if open3d_seconds is not None:
+        open3d_summary = {k: summarize([r[k] for r in open3d_seconds]) for k in RAY_KINDS}
+        open3d_mrays = open3d_rates(_rates(rays, {k: open3d_summary[k]["median"] for k in RAY_KINDS}),
+                                    checks["open3d"])
+        open3d_ratio = {k: (mrays[k] / open3d_mrays[k] if mrays[k] and open3d_mrays[k] else None) for k in mrays}
+        total = sum(open3d_summary[k]["median"] for k in RAY_KINDS)
+        open3d_fps = 1.0 / total if total > 0 else None
+    _report_mismatches(cell, checks, kept={"open3d": open3d_mrays} if open3d_mrays else None)
     frame = summarize([f.seconds["total"] for f in frames])
     trace_total = sum(replay_median.values())
     record = {
@@ -358,12 +396,14 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
         "seconds": {"bvh": warm.seconds["bvh"], "plugin_build": warm.seconds["plugin_build"], "frame": frame,
                     "shade": summarize([f.seconds["shade"] for f in frames]),
                     "trace": {k: summarize([f.seconds["trace"][k] for f in frames]) for k in RAY_KINDS},
-                    "replay": replay_summary, "embree": embree_summary,
+                    "replay": replay_summary, "embree": embree_summary, "open3d": open3d_summary,
                     "floor": None if floors is None else {k: summarize([f[k] for f in floors]) for k in RAY_KINDS}},
         "rays": rays, "batches": batches, "packets": packets, "mrays_per_s": mrays, "embree_mrays_per_s": embree_mrays,
-        "ratio_to_embree": ratio, "checks": checks,
+        "ratio_to_embree": ratio, "open3d_mrays_per_s": open3d_mrays, "ratio_to_open3d": open3d_ratio,
+        "checks": checks,
         "fps": {"frame": 1.0 / frame["median"] if frame["median"] > 0 else None,
-                "trace": 1.0 / trace_total if trace_total > 0 else None, "embree_trace": embree_fps},
+                "trace": 1.0 / trace_total if trace_total > 0 else None, "embree_trace": embree_fps,
+                "open3d_trace": open3d_fps},
         "counters": counted.counters, "counters_by_depth": counted.counters_by_depth, "extra": counted.extra,
         "machine": machine, "started": started,
         "load": {"loadavg_at_start": load_at_start, "cpu_share_replay": cpu_share},
@@ -450,22 +490,27 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
     ran, interrupted = 0, False
     try:
         if todo:
+            if any(c.open3d for c in todo):
+                require_open3d(matrix.source)
             scenes = preflight(todo)
             machine = machine_info()
             costs = [_cost(c, scenes[(c.scene.name, c.scene.params, c.scene.time)], matrix.repeat) for c in todo]
             scene_cache, yardstick, references = SceneCache(), EmbreeYardstick(), ReferenceAnswers()
+            open3d = Open3DYardstick()
             bar = tqdm(total=sum(costs), disable=not progress, file=sys.stderr, dynamic_ncols=True,
                        bar_format="{l_bar}{bar}| {postfix} [{elapsed}<{remaining}]")
             try:
                 for i, (cell, cost) in enumerate(zip(todo, costs)):
                     bar.set_postfix_str(f"cell {i + 1}/{len(todo)}: {cell.describe()}")
-                    record = run(cell, matrix.repeat, scene_cache, yardstick, machine, matrix.name, references)
+                    record = run(cell, matrix.repeat, scene_cache, yardstick, machine, matrix.name, references,
+                                 open3d=open3d)
                     results_io.append(path, record)
                     ran += 1
                     bar.update(cost)
             finally:
                 bar.close()
                 yardstick.close()
+                open3d.close()
     except (KeyboardInterrupt, SystemError) as exc:
         if not _is_interrupt(exc):
             raise
