@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from engine.core import embree_scene
-from engine.core.embree_scene import CHUNKS_PER_THREAD, MIN_CHUNK, EmbreeScene, chunk_bounds
+from engine.core.embree_scene import BALANCE_CHUNK, CHUNKS_PER_THREAD, MIN_CHUNK, EmbreeScene, chunk_bounds
 from engine.core.triangle import safe_inverse
 from engine.core.types import RayBatch, empty_hits
 from engine.render.plugins import make_traversal
@@ -53,7 +53,9 @@ def test_chunks_cover_the_batch_in_order():
             assert (chunks[-1][1] if chunks else 0) == n
             assert len(chunks) <= max(1, threads * CHUNKS_PER_THREAD)
             assert len(chunks) <= 1 or min(b - a for a, b in chunks) >= MIN_CHUNK
-    assert len(chunk_bounds(10 ** 6, 2)) == 2 * CHUNKS_PER_THREAD  # both workers get work, balanced
+    assert len(chunk_bounds(10 ** 6, 2)) == 2 * CHUNKS_PER_THREAD  # big batches: balanced by a queue
+    assert len(chunk_bounds(5 * MIN_CHUNK, 2)) == 2  # small ones: one call per worker
+    assert len(chunk_bounds(2 * BALANCE_CHUNK * 2, 2)) == 4
 
 
 @pytest.mark.parametrize("threads", [1, 2, 3])
@@ -61,8 +63,8 @@ def test_chunked_queries_equal_one_embreex_call(whitted, threads):
     """Many chunks over a thread pool give embreex's own answers, ray for ray."""
     tris = whitted.triangles
     scene = EmbreeScene(tris, threads=threads)
-    rays = random_batch(tris, 5 * MIN_CHUNK + 17, seed=threads)
-    assert len(chunk_bounds(rays.org.shape[0], threads)) > threads
+    rays = random_batch(tris, 2 * threads * BALANCE_CHUNK + 17, seed=threads)
+    assert len(chunk_bounds(rays.org.shape[0], threads)) == 2 * threads
     hits, occluded = scene.intersect(rays), scene.occluded(rays)
     t, prim, u, v, theirs = bare(scene, rays.org, rays.dir, np.full(rays.org.shape[0], 1e37))
     assert (prim >= 0).sum() > rays.org.shape[0] // 2  # plenty of hits

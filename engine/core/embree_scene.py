@@ -5,11 +5,14 @@ Shared by the ``embree`` traversal (a rendering backend and the benchmark's yard
 
 - No copies of the rays. ``EmbreeScene.run`` takes f32[n,3] views, strided or not, so each
   worker passes slices of the batch's own ``org`` and ``dir``; only the segment lengths
-  (``tfar``, f32[R]) are written, once per batch, by a compiled kernel.
+  (``tfar``, f32 per ray of its chunk) are written, by a compiled kernel.
 - embreex releases the GIL inside ``run``, so ``threads`` pool workers each answer chunks of
   the batch in parallel (the same thread count as the numba traversals). A batch is cut into
-  about ``CHUNKS_PER_THREAD`` chunks per worker (none under ``MIN_CHUNK`` rays), taken from a
-  shared queue, so a worker that drew cheap rays takes another chunk instead of idling.
+  one chunk per worker (none under ``MIN_CHUNK`` rays) and, when each keeps at least
+  ``BALANCE_CHUNK`` rays, into up to ``CHUNKS_PER_THREAD`` per worker, taken from a shared
+  queue, so a worker that drew cheap rays takes another chunk instead of idling. (Measured on
+  the kitchen's rays: more chunks help the big primary and shadow batches; on batches of a
+  few thousand rays each extra call costs more than the balance gains.)
 - Everything a worker does besides ``run`` -- segment lengths before, answers into the
   caller's arrays after -- is a ``nogil`` numba kernel over its own chunk, so no step of a
   query is serial except handing out the chunks.
@@ -36,8 +39,10 @@ from numba import njit
 from engine.core.types import Hits, RayBatch, Triangles
 
 EMBREE_TFAR_MAX = np.float32(1e37)  # embreex's own "no limit"
-#: A batch is cut into about this many chunks per worker (load balance against per-call cost).
+#: At most this many chunks per worker (load balance against per-call cost) ...
 CHUNKS_PER_THREAD = 4
+#: ... and more than one per worker only when each keeps at least this many rays.
+BALANCE_CHUNK = 16384
 #: No chunk is smaller than this many rays (a call costs some microseconds of Python).
 MIN_CHUNK = 2048
 
@@ -99,11 +104,14 @@ def occlusion_answers(tmin, tmax, answer, out):
 
 
 def chunk_bounds(n: int, threads: int) -> list:
-    """[(start, stop)] cutting n rays into about CHUNKS_PER_THREAD chunks per thread, none
-    under MIN_CHUNK rays (a single chunk when n is small)."""
+    """[(start, stop)] cutting n rays into equal chunks in order: one per thread (fewer when
+    that would leave one under MIN_CHUNK rays; a single chunk when n is small), up to
+    CHUNKS_PER_THREAD per thread when each keeps at least BALANCE_CHUNK rays."""
     if n == 0:
         return []
-    parts = max(1, min(threads * CHUNKS_PER_THREAD, n // MIN_CHUNK))
+    parts = min(threads, max(1, n // MIN_CHUNK))
+    if parts == threads:
+        parts = threads * max(1, min(CHUNKS_PER_THREAD, n // (threads * BALANCE_CHUNK)))
     edges = np.linspace(0, n, parts + 1).astype(np.int64)
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
