@@ -2,6 +2,8 @@
 
     packetrt render  [CONFIG] [selectors] [-o OUT.png] [--stats OUT.json] [--audit]
     packetrt audit   [CONFIG] [selectors] [--json OUT.json] [--report DIR]
+    packetrt animate [CONFIG] [selectors] -o DIR [--frames N | --fps F] [--start S] [--end E]
+                     [--accel rebuild|refit|auto] [--stats OUT.json] [--resume] [--audit]
     packetrt bench   MATRIX.toml [--out DIR] [--repeat N] [--resume]
     packetrt show    [CONFIG] [selectors] [--kind K] [--packet-index I] [-o OUT.png]
     packetrt view    [CONFIG] [selectors]
@@ -113,6 +115,17 @@ def cmd_render(args) -> int:
     if args.stats:
         _write_json(args.stats, stats_dict(scene, config, result, frames))
     return 0
+
+
+def cmd_animate(args) -> int:
+    from engine.animate.run import run_animation
+    from engine.render.config import validate
+
+    config = _config_from(args)
+    if args.accel is not None:
+        config = validate(replace(config, accel=replace(config.accel, update=args.accel)))
+    return run_animation(config, args.output, frames=args.frames, fps=args.fps, start=args.start, end=args.end,
+                         stats=args.stats, resume=args.resume, audit=args.audit)
 
 
 def _repeat_count(text: str) -> int:
@@ -261,6 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--oracle", choices=["embree", "open3d", "both"], default="embree",
                    help="ground truth: Embree (default), Open3D's RaycastingScene, or both")
     p.set_defaults(run=cmd_audit)
+    _add_animate_parser(sub)
     _add_bench_parser(sub)
     _add_show_parser(sub)
     _add_view_parser(sub)
@@ -271,6 +285,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.set_defaults(run=cmd_scenes)
     return parser
+
+
+def _add_animate_parser(sub) -> None:
+    p = sub.add_parser("animate", help="render a scene's animation path (BART) into a folder of frames")
+    _add_selectors(p)
+    p.add_argument("-o", "--output", default="out/animation", metavar="DIR",
+                   help="folder for frame_NNNNN.png, preview, path.png and frames.json")
+    p.add_argument("--frames", type=int, help="frame count over the range (default: the scene's own)")
+    p.add_argument("--fps", type=float, help="frames per second of scene time, instead of --frames")
+    p.add_argument("--start", type=float, help="first frame's time (default: the path's start)")
+    p.add_argument("--end", type=float, help="last frame's time (default: the path's end)")
+    p.add_argument("--accel", choices=["rebuild", "refit", "auto"],
+                   help="how the BVH follows the motion (default: the config's [accel] update)")
+    p.add_argument("--stats", help="write the path's frame statistics as JSON")
+    p.add_argument("--resume", action="store_true", help="carry on an interrupted run in the same folder")
+    p.add_argument("--audit", action="store_true", help="check every ray of every frame against Embree")
+    p.set_defaults(run=cmd_animate)
 
 
 def _add_bench_parser(sub) -> None:

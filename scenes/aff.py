@@ -1,7 +1,8 @@
 """BART ``.aff`` scenes (Lext, Assarsson, Möller, *A Benchmark for Animated Ray Tracing*, 2001).
 
 AFF is Eric Haines' NFF with meshes, textures, includes and keyframe animation. This loader
-reads a scene at one instant ``time`` (seconds of the animation) into a static ``Scene``.
+parses a scene and its scene graph; ``scenes.aff_animation`` places it at any instant ``time``
+(seconds of the animation) as a static ``Scene``, once per frame along the animation path.
 
 Directives (``#`` and ``%`` start a comment; tokens may wrap across lines)::
 
@@ -65,7 +66,6 @@ from __future__ import annotations
 
 import math
 import re
-import time as _time
 from dataclasses import dataclass, field
 from itertools import chain
 from pathlib import Path
@@ -74,9 +74,7 @@ from typing import Optional
 import numpy as np
 
 from engine.core.errors import ConfigError, SceneError
-from engine.core.scene import Camera, Material, PointLight, SceneBuilder
-
-from .catalog import scene_loader
+from engine.core.scene import Camera, Material, SceneBuilder
 
 _COMMENT = re.compile(r"[#%][^\n]*")
 
@@ -806,8 +804,9 @@ class Loader:
                 raise SceneError(f"{path}: cannot read texture: {exc}") from None
         return self.textures[path]
 
-    def world_matrices(self) -> list:
-        """f64[4,4] per transform node at ``time`` (parents come before children).
+    def world_matrices(self, time: Optional[float] = None) -> list:
+        """f64[4,4] per transform node at ``time`` (default: the loader's; parents come before
+        children).
 
         An ``x name`` without a ``k name`` block stays the identity (the BART Robots data has five
         such transforms); the names are kept in ``self.unkeyed``.
@@ -819,7 +818,7 @@ class Loader:
             if not isinstance(local, np.ndarray):
                 name = local[0]
                 if name in self.keyframes:
-                    local = self.keyframes[name].matrix(self.time)
+                    local = self.keyframes[name].matrix(self.time if time is None else time)
                 else:
                     self.unkeyed.add(name)
                     local = np.eye(4)
@@ -875,85 +874,6 @@ def _camera_from(view: Optional[dict], keyframes: dict, time: float, mode: str):
     return None, "auto-framed"
 
 
-def load_aff(path: Path, time: float = 0.0, tessellation: int = 3, camera: str = "auto",
-             lights: Optional[int] = None):
-    """Load the .aff scene rooted at ``path`` at ``time`` seconds, keeping the first ``lights``
-    point lights in file order (None: all of them)."""
-    started = _time.perf_counter()
-    path = Path(path)
-    if not path.is_file():
-        raise SceneError(f"{path}: .aff file not found")
-    loader = Loader(path, time, tessellation)
-    loader.walk(path)
-    if lights is not None and lights > len(loader.lights):
-        raise ConfigError(f"lights = {lights}, but {path.name} has {len(loader.lights)} point light(s); "
-                          f"give 0..{len(loader.lights)} or \"all\"")
-    world = loader.world_matrices()
-    animated = loader.animated_nodes()
-
-    corners, normals, uvs, materials = [], [], [], []
-    n_static = n_moving = 0
-    for node, geometry, material in loader.instances:
-        placed, placed_normals = _transform(world[node], geometry.corners, geometry.normals)
-        corners.append(placed)
-        normals.append(placed_normals)
-        uvs.append(geometry.uvs)
-        materials.append(np.full(len(placed), material, np.int32))
-        if animated[node]:
-            n_moving += len(placed)
-        else:
-            n_static += len(placed)
-    n_tpa = 0
-    for node, triangle, material in loader.animated_tris:
-        c, n = triangle.at(loader.time)
-        placed, placed_normals = _transform(world[node], c[None], n[None])
-        corners.append(placed)
-        normals.append(placed_normals)
-        uvs.append(None)
-        materials.append(np.full(1, material, np.int32))
-        n_tpa += 1
-    if not corners:
-        raise SceneError(f"{path}: the scene has no geometry")
-
-    corners_all = np.concatenate(corners)
-    has_normals = any(n is not None for n in normals)
-    has_uvs = any(u is not None for u in uvs)
-    normals_all = (np.concatenate([n if n is not None else _face_normals(c) for c, n in zip(corners, normals)])
-                   if has_normals else None)
-    uvs_all = (np.concatenate([u if u is not None else np.zeros((len(c), 3, 2)) for c, u in zip(corners, uvs)])
-               if has_uvs else None)
-    t = len(corners_all)
-    builder = loader.builder
-    builder.add_mesh(corners_all.reshape(-1, 3), np.arange(3 * t).reshape(t, 3), np.concatenate(materials),
-                     normals=normals_all, uvs=uvs_all, source=str(path))
-
-    placed_lights = [PointLight(_floats(world[node][:3, :3] @ position + world[node][:3, 3]), _floats(colour))
-                     for node, position, colour in loader.lights]
-    view = loader.settings["view"]
-    cam, camera_kind = _camera_from(view, loader.keyframes, loader.time, camera)
-    anim = loader.settings["animation"]
-    info = {
-        "triangles": t, "static_triangles": n_static, "animated_triangles": n_moving + n_tpa,
-        "tpa_triangles": n_tpa, "primitives": dict(loader.counts), "files": len(loader.parsed),
-        "materials": len(builder.materials), "textures": len(loader.textures),
-        "keyframes": sorted(loader.keyframes), "unkeyed_transforms": sorted(loader.unkeyed),
-        "camera": camera_kind, "tessellation": tessellation,
-        "animation": ({"start": anim[0], "end": anim[1], "frames": anim[2]} if anim else None),
-        "resolution": view.get("resolution") if view else None,
-        "hither": float(view["hither"][0]) if view and "hither" in view else None,
-        "file_lights": len(loader.lights),
-    }
-    is_animated = bool(animated.any() or n_tpa or camera_kind == "animated")
-    scene = builder.build(camera=cam, lights=placed_lights, background=loader.settings["background"],
-                          ambient_light=loader.settings["ambient"], animated=is_animated,
-                          time=loader.time, info=info)
-    if lights is not None:
-        # After build: with no light, build() would make one up; lights = 0 means none at all.
-        scene.lights = placed_lights[:lights]
-    info["load_seconds"] = round(_time.perf_counter() - started, 3)
-    return scene
-
-
 def check_params(params: dict) -> tuple:
     """(tessellation, camera, lights) from loader parameters, lights None for "all"; bad values
     raise ConfigError. Whether the file has that many lights is checked when it is read."""
@@ -971,18 +891,3 @@ def check_params(params: dict) -> tuple:
         raise ConfigError(f"lights must be \"all\" or an integer >= 0 (keep the first N point lights in "
                           f"file order), got {lights!r}")
     return tessellation, camera, lights
-
-
-@scene_loader("aff")
-def aff_scene(files, params, time):
-    """Catalog loader: the first file is the root .aff."""
-    if not files:
-        raise SceneError("the aff loader needs the root .aff file")
-    tessellation, camera, lights = check_params(params)
-    try:
-        time = float(time)
-    except (TypeError, ValueError):
-        raise ConfigError(f"scene time must be a number of seconds, got {time!r}") from None
-    if not math.isfinite(time):
-        raise ConfigError(f"scene time must be finite, got {time!r}")
-    return load_aff(Path(files[0]), time, tessellation, camera, lights)

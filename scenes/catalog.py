@@ -33,16 +33,27 @@ CATALOG_DIR = Path(__file__).with_name("catalog")
 SCENE_PATH_VARIABLE = "PACKETRT_SCENE_PATH"
 
 #: Modules whose import registers loaders.
-LOADER_MODULES = ["scenes.meshfile", "scenes.whitted", "scenes.aff", "scenes.spd_rings", "scenes.erw6",
+LOADER_MODULES = ["scenes.meshfile", "scenes.whitted", "scenes.aff_animation", "scenes.spd_rings", "scenes.erw6",
                   "scenes.cosine", "scenes.bunny_floor"]
 
 LOADERS: dict = {}
+ANIMATORS: dict = {}
 
 
 def scene_loader(name: str):
     """Register ``load(files, params, time) -> Scene`` under ``name``."""
     def decorate(function):
         LOADERS[name] = function
+        return function
+    return decorate
+
+
+def scene_animator(name: str):
+    """Register ``open(files, params) -> animation`` for loader ``name``: an object with
+    ``start``, ``end`` (seconds), ``frames`` (the file's own count), ``animated`` and
+    ``scene_at(time) -> Scene``, which parses once and places the scene per frame."""
+    def decorate(function):
+        ANIMATORS[name] = function
         return function
     return decorate
 
@@ -122,8 +133,9 @@ def missing_message(name: str, missing: list[str]) -> str:
             f"set {SCENE_PATH_VARIABLE} to the folder that holds them (e.g. ../shared/scenes)")
 
 
-def load_named(name: str, params: dict | None = None, time: float = 0.0) -> Scene:
-    """Load catalog scene ``name`` with ``params`` overriding the entry's defaults."""
+def _resolve(name: str, params: dict | None) -> tuple:
+    """(entry, merged parameters, files) of catalog scene ``name``; unknown names, parameters
+    and missing files raise."""
     _load_loader_modules()
     catalog = entries()
     if name not in catalog:
@@ -142,13 +154,23 @@ def load_named(name: str, params: dict | None = None, time: float = 0.0) -> Scen
     if entry.loader not in LOADERS:
         raise SceneError(f"{entry.catalog_file}: loader {entry.loader!r} is not registered; "
                          f"known loaders: {', '.join(sorted(LOADERS))}")
-    scene = LOADERS[entry.loader](files, merged, time)
-    scene = replace(scene, name=name)
+    return entry, merged, files
+
+
+def _as_entry(scene: Scene, entry: SceneEntry) -> Scene:
+    """The loaded ``scene`` named and adjusted as its catalog entry says (camera, materials)."""
+    scene = replace(scene, name=entry.name)
     if entry.camera:
         scene.camera = Camera(**{**scene.camera.__dict__, **{k: (tuple(v) if isinstance(v, list) else v) for k, v in entry.camera.items()}})
     if entry.materials.get("override", "none") != "none":
         scene = override_materials(scene, entry.materials["override"])
     return scene
+
+
+def load_named(name: str, params: dict | None = None, time: float = 0.0) -> Scene:
+    """Load catalog scene ``name`` with ``params`` overriding the entry's defaults."""
+    entry, merged, files = _resolve(name, params)
+    return _as_entry(LOADERS[entry.loader](files, merged, time), entry)
 
 
 def load_path(path: str, time: float = 0.0) -> Scene:
@@ -198,3 +220,49 @@ def scene_from_config(scene_config, override: str = "none") -> Scene:
     else:
         scene = load_named(scene_config.name, dict(scene_config.params), scene_config.time)
     return override_materials(scene, override)
+
+
+class ScenePath:
+    """A scene along its animation path: parsed once, then ``scene_at(time)`` per frame, equal
+    to loading the scene at that time (``scene_from_config`` with ``time``).
+
+    name: the scene's name; start, end: the path's range in seconds; frames: the scene's own
+    frame count over it; animated: whether anything moves.
+    """
+
+    def __init__(self, name: str, animation, entry: SceneEntry | None, override: str):
+        self.name, self.animation, self.entry, self.override = name, animation, entry, override
+        self.start, self.end = float(animation.start), float(animation.end)
+        self.frames, self.animated = int(animation.frames), bool(animation.animated)
+
+    def scene_at(self, time: float) -> Scene:
+        scene = self.animation.scene_at(time)
+        if self.entry is not None:
+            scene = _as_entry(scene, self.entry)
+        return override_materials(scene, self.override)
+
+
+def open_path(scene_config, override: str = "none") -> ScenePath:
+    """The animation path of a config's [scene] (a catalog scene, or a scene file by path).
+    A scene whose loader cannot animate, or that does not move, raises ConfigError saying so."""
+    _load_loader_modules()
+    if scene_config.path:
+        if scene_config.params:
+            raise ConfigError(f"[scene] parameters {sorted(dict(scene_config.params))} apply to catalog "
+                              f"scenes only, not to path = {scene_config.path!r}")
+        file = Path(scene_config.path).expanduser()
+        if not file.is_file():
+            raise SceneError(f"scene file {scene_config.path!r} does not exist")
+        loader, files, params, entry, name = ("aff" if file.suffix.lower() == ".aff" else "mesh"), [file], {}, None, str(file)
+    else:
+        entry, params, files = _resolve(scene_config.name, dict(scene_config.params))
+        loader, name = entry.loader, entry.name
+    animated = sorted(e.name for e in entries().values() if e.animated)
+    if loader not in ANIMATORS:
+        raise ConfigError(f"scene {name!r} is static: it has no animation path to render "
+                          f"(animated scenes: {', '.join(animated)})")
+    path = ScenePath(name, ANIMATORS[loader](files, params), entry, override)
+    if not path.animated:
+        raise ConfigError(f"scene {name!r} does not move: nothing in it is animated "
+                          f"(animated scenes: {', '.join(animated)})")
+    return path

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from engine.core.errors import ConfigError, SceneError
-from scenes.aff import Track, aff_scene, load_aff, sphere_triangles, cone_triangles
+from scenes.aff import Track, cone_triangles, sphere_triangles
+from scenes.aff_animation import aff_scene, load_aff
 
 TRIANGLE_MESH = """
 m

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from engine.core.bvh import build_bvh, node_depths, refit_bvh, sah_cost
+from engine.core.bvh import build_bvh, node_depths
+from engine.core.bvh_refit import refit_bvh, sah_cost
 from engine.core.errors import ConfigError
 from engine.core.scene import make_triangles
 from scenes.catalog import load_named

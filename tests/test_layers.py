@@ -8,7 +8,7 @@ lower rank (lazy imports inside functions count too: they are dependencies all t
     2  traversals, frusta, scenes                   plugins and scene loaders
     3  engine.render                                tracer, Whitted loop, plugin composition
     4  validation                                   audits against the oracles
-    5  engine.bench, engine.debug                   benchmark runner, debug pictures
+    5  engine.bench, engine.debug, engine.animate   benchmark runner, debug pictures, animation paths
     6  engine (its __init__), engine.api, engine.cli  the public faces
 
 Two packages of one rank do not import each other, no module imports a ``_private`` name from
@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCE_PACKAGES = ("engine", "traversals", "frusta", "scenes", "validation")
 RANKS = {
     "engine.core": 0, "engine.packet": 1, "engine.rayspace": 1, "traversals": 2, "frusta": 2, "scenes": 2,
-    "engine.render": 3, "validation": 4, "engine.bench": 5, "engine.debug": 5,
+    "engine.render": 3, "validation": 4, "engine.bench": 5, "engine.debug": 5, "engine.animate": 5,
     "engine": 6,  # engine/__init__.py, engine/api.py, engine/cli.py: one layer of public faces
 }
 

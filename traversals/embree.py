@@ -26,6 +26,8 @@ class EmbreeTraversal:
     """Intel Embree (embreex), robust mode, same thread count as numba."""
 
     OPTIONS = {"robust": True}
+    #: Embree builds its own scene (``prepare``); the engine's BVH is not read.
+    uses_bvh = False
 
     def __init__(self, robust=OPTIONS["robust"]):
         """``robust``: Embree's robust (watertight) mode; a bool, else ConfigError."""

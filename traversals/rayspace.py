@@ -248,6 +248,8 @@ class RaySpaceTraversal:
     """Ray-space cone-sphere hierarchy over the batch's rays (Roger et al. 2007); no scene hierarchy."""
 
     OPTIONS = {"pair_budget": 1 << 22}
+    #: The hierarchy is over the rays: a moving scene has no structure of ours to keep current.
+    uses_bvh = False
 
     def __init__(self, pair_budget=OPTIONS["pair_budget"]):
         """Options as in the module doc; a bad value is a ConfigError."""

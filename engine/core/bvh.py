@@ -3,7 +3,8 @@
 The builder works on primitive bounds and centroids only; it never sees a triangle,
 so any primitive with a box can be organised by it. Children of a node are adjacent
 (``first`` and ``first + 1``) and always stored after their parent, so a reverse sweep
-over the node array visits children before parents (that is how ``refit`` works).
+over the node array visits children before parents (``engine.core.bvh_refit`` refits a tree
+for moved triangles that way, and measures its SAH cost).
 """
 from __future__ import annotations
 
@@ -185,25 +186,6 @@ def _build(pmin, pmax, cent, n_bins, max_leaf, method):
             count[:n_nodes].copy(), prim, deepest)
 
 
-@njit(cache=True)
-def _refit(bmin, bmax, first, count, prim, pmin, pmax):
-    for node in range(bmin.shape[0] - 1, -1, -1):
-        if count[node] > 0:
-            for a in range(3):
-                lo = np.inf
-                hi = -np.inf
-                for i in range(first[node], first[node] + count[node]):
-                    lo = min(lo, pmin[prim[i], a])
-                    hi = max(hi, pmax[prim[i], a])
-                bmin[node, a] = lo
-                bmax[node, a] = hi
-        else:
-            left = first[node]
-            for a in range(3):
-                bmin[node, a] = min(bmin[left, a], bmin[left + 1, a])
-                bmax[node, a] = max(bmax[left, a], bmax[left + 1, a])
-
-
 def triangle_bounds(tris: Triangles):
     """(pmin, pmax, centroid): f32[T,3] each."""
     pmin = np.minimum(np.minimum(tris.v0, tris.v1), tris.v2)
@@ -238,25 +220,6 @@ def build_bvh(tris: Triangles, *, leaf_size: int = 4, bins: int = 16, split: str
     bmin, bmax, first, count, prim, depth = _build(pmin, pmax, cent, bins, leaf_size, methods[split])
     _pad_boxes(bmin, bmax, pmin, pmax)
     return BVH(bmin, bmax, first, count, prim, int(depth), time.perf_counter() - start)
-
-
-def refit_bvh(bvh: BVH, tris: Triangles) -> BVH:
-    """Same topology, boxes recomputed for moved vertices (animation)."""
-    start = time.perf_counter()
-    pmin, pmax, _ = triangle_bounds(tris)
-    bmin, bmax = bvh.bmin.copy(), bvh.bmax.copy()
-    _refit(bmin, bmax, bvh.first, bvh.count, bvh.prim, pmin, pmax)
-    _pad_boxes(bmin, bmax, pmin, pmax)
-    return bvh._replace(bmin=bmin, bmax=bmax, build_seconds=time.perf_counter() - start)
-
-
-def sah_cost(bvh: BVH) -> float:
-    """Expected SAH cost of the tree: sum of area-weighted node and triangle test costs."""
-    ext = np.maximum(bvh.bmax - bvh.bmin, 0).astype(np.float64)
-    area = ext[:, 0] * ext[:, 1] + ext[:, 1] * ext[:, 2] + ext[:, 2] * ext[:, 0]
-    root = area[0] if area[0] > 0 else 1.0
-    inner = bvh.count == 0
-    return float((area[inner].sum() * float(TRAVERSAL_COST) + (area[~inner] * bvh.count[~inner]).sum()) / root)
 
 
 def node_depths(bvh: BVH) -> np.ndarray:

@@ -11,6 +11,8 @@
     [frustum]    primary = "pinhole" shadow = "pointlight" reflection = "general"    refraction = "general"
     [materials]  override = "none"       # or "reflective" / "refractive"
     [plugins]    load_entry_points = false
+    [accel]      update = "rebuild"      # per animation frame: "rebuild" | "refit" | "auto"
+                 degrade = 1.2           # auto: rebuild past this SAH cost over the last build's
     [options.rayspace]  pair_budget = 4194304   # per-plugin options, checked by the plugin
 
 An unknown section, key or plugin name is a ConfigError that says what is allowed.
@@ -67,6 +69,14 @@ class RenderConfig:
     max_reflection_depth: int = MAX_DEPTH
 
 
+@dataclass(frozen=True)
+class AccelConfig:
+    """How ``packetrt animate`` keeps the BVH current (``engine.render.accel``)."""
+
+    update: str = "rebuild"
+    degrade: float = 1.2
+
+
 def _defaults(table: dict) -> dict:
     """The paper's choice where that plugin is registered, else the reference ``single``/``none``."""
     from engine.render.plugins import frustum_names, traversal_names
@@ -97,6 +107,7 @@ class Config:
     load_entry_points: bool = False
     options: tuple = ()  # ((plugin name, ((key, value), ...)), ...)
     source: str = "<defaults>"
+    accel: AccelConfig = field(default_factory=AccelConfig)
 
     def __post_init__(self):
         if self.traversal is None:
@@ -114,6 +125,7 @@ class Config:
             "materials": {"override": self.override},
             "plugins": {"load_entry_points": self.load_entry_points},
             "options": {name: dict(opts) for name, opts in self.options},
+            "accel": {f.name: getattr(self.accel, f.name) for f in fields(AccelConfig)},
         }
 
 
@@ -155,6 +167,10 @@ def validate(config: Config) -> Config:
         raise ConfigError(f"render.packet must be one of {', '.join(map(str, PACKET_SIZES))}, got {r.packet}")
     if not 0 <= r.threads <= 1024:
         raise ConfigError(f"render.threads must be in 0..1024 (0 = all cores), got {r.threads}")
+    if config.accel.update not in ("rebuild", "refit", "auto"):
+        raise ConfigError(f"accel.update must be 'rebuild', 'refit' or 'auto', got {config.accel.update!r}")
+    if not 1.0 < config.accel.degrade <= 100.0:
+        raise ConfigError(f"accel.degrade must be in (1, 100] (a SAH cost ratio), got {config.accel.degrade!r}")
     if config.override not in ("none", "reflective", "refractive"):
         raise ConfigError(f"materials.override must be 'none', 'reflective' or 'refractive', got {config.override!r}")
     from engine.render.plugins import configured, load_entry_points, make_traversal
@@ -170,7 +186,7 @@ def validate(config: Config) -> Config:
 
 def from_dict(data: dict, source: str = "<dict>") -> Config:
     """Config from a parsed TOML table; every key is checked."""
-    sections = {"scene", "render", "traversal", "frustum", "materials", "plugins", "options"}
+    sections = {"scene", "render", "traversal", "frustum", "materials", "plugins", "options", "accel"}
     unknown = set(data) - sections
     if unknown:
         raise ConfigError(f"{source}: unknown section(s) {sorted(unknown)}; allowed: {', '.join(sorted(sections))}")
@@ -212,7 +228,8 @@ def from_dict(data: dict, source: str = "<dict>") -> Config:
                     override=_check_type(f"{source} [materials]", "override", materials.get("override", "none"), str),
                     load_entry_points=_check_type(f"{source} [plugins]", "load_entry_points",
                                                   plugins.get("load_entry_points", False), bool),
-                    options=options, source=source)
+                    options=options, source=source,
+                    accel=_dataclass_from(AccelConfig, data.get("accel", {}), f"{source} [accel]"))
     try:
         return validate(config)
     except ConfigError as exc:

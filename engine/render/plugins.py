@@ -42,6 +42,15 @@ def describe() -> dict:
             "frusta": registry.describe_table(registry.FRUSTA)}
 
 
+def uses_bvh(config) -> bool:
+    """Whether any ray kind's traversal reads the engine's BVH (plugins that do not say
+    ``uses_bvh = False``: Embree and the ray-space hierarchy keep no scene tree of ours)."""
+    from engine.core.types import RAY_KINDS
+
+    classes = {registry.factory(registry.TRAVERSALS, config.traversal.get(k), "traversal") for k in RAY_KINDS}
+    return any(getattr(cls, "uses_bvh", True) for cls in classes)
+
+
 def configured(config) -> tuple[dict, dict]:
     """({ray kind: traversal}, {ray kind: frustum builder}) for ``config``: one new instance per
     distinct name, shared by the kinds that name it (an Embree scene is then built once)."""

@@ -91,27 +91,37 @@ def _summarise_stats(per_kind: dict) -> tuple[dict, dict, dict]:
 class WhittedRenderer:
     """Renders one scene with one config. Build once, ``render()`` as often as wanted."""
 
-    def __init__(self, scene: Scene, config: Config, *, observer=None, count: bool = False):
-        self.scene = scene
+    def __init__(self, scene: Scene, config: Config, *, observer=None, count: bool = False, bvh=None):
+        """``bvh``: a tree over ``scene.triangles`` to use (an animation keeps it current,
+        ``engine.render.accel``); None builds one."""
         self.config = config
         self.observer = observer
         self.count = count
         self.threads = config.render.threads or numba.config.NUMBA_NUM_THREADS
         numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
         self.traversal, self.frustum = configured(config)
-        self.materials = MaterialTable(scene.materials)
+        # Per-lane arrays reused from frame to frame (fresh pages cost more than the shading).
+        self.scratch = Scratch()
+        self.scene = None
+        self.set_scene(scene, bvh)
+
+    def set_scene(self, scene: Scene, bvh=None) -> None:
+        """Render ``scene`` from now on (an animation's next frame: moved triangles, camera and
+        lights) over ``bvh`` (None: build one), keeping the plugins and the scratch arrays.
+        Plugins with their own acceleration structure (Embree) build it now, outside the timed
+        trace; ``prepare_seconds`` says how long that took."""
+        if self.scene is None or [id(m) for m in scene.materials] != [id(m) for m in self.scene.materials]:
+            self.materials = MaterialTable(scene.materials)
+        self.scene = scene
         self.tris = scene.triangles
-        self.bvh = build_bvh(self.tris, leaf_size=config.render.leaf_size, bins=config.render.bins)
+        self.bvh = bvh if bvh is not None else build_bvh(self.tris, leaf_size=self.config.render.leaf_size,
+                                                         bins=self.config.render.bins)
         self.bounds = scene_bounds(self.bvh)
         self.corner_magnitude = triangle_magnitudes(self.tris)  # for secondary-ray offsets
         self.ambient_light = np.asarray(scene.ambient_light, np.float32)
         self.background = np.asarray(scene.background, np.float32)
         self.tracer = Tracer(self.bvh, self.tris, self.bounds, self.traversal, self.frustum)
-        # Plugins with their own acceleration structure (Embree) build it now, outside the
-        # timed trace, and report the build time.
         self.prepare_seconds = self.tracer.prepare()
-        # Per-lane arrays reused from frame to frame (fresh pages cost more than the shading).
-        self.scratch = Scratch()
 
     def _trace(self, kind, rays, packets, query, tally, slot):
         """Trace through the Tracer, answering into reused arrays under ``slot``."""

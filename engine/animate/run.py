@@ -1,0 +1,174 @@
+"""``packetrt animate``: render a scene's animation path into a folder, resumably.
+
+The folder gets, each written through a temporary file and a rename:
+
+- ``frame_00000.png`` ... one PNG per frame (5 digits: at most ``MAX_FRAMES`` frames);
+- ``frames.json``: the run's identity (config and frame times) and every finished frame's
+  record, rewritten after each frame, so an interrupted run leaves whole frames and the
+  records of exactly those; ``--resume`` renders only the frames missing from it;
+- ``preview.webp`` (``preview.gif`` where Pillow has no WebP): the path as one animation;
+- ``path.png``: frame time along the path, stacked by phase;
+- and, with ``--stats FILE``, BART's numbers: ``{"path": {"frames": [...], "mean_fps",
+  "slowest_seconds", "total_seconds", "phase_share", "policies"}, ...}``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from engine.animate.plot import plot_path
+from engine.animate.preview import keep_for_preview, preview_format, shrink, write_preview
+from engine.core.atomic import write_text
+from engine.core.errors import PacketrtError
+from engine.render.animation import AnimationRenderer, path_summary, plan_times
+from engine.render.image import save_png, to_srgb8
+
+FRAME_NAME = "frame_{:05d}.png"
+RECORDS = "frames.json"
+SCHEMA = 1
+
+
+def _prepare_folder(out: Path) -> None:
+    """Create ``out`` or fail with one line saying why it cannot hold the frames."""
+    if out.exists() and not out.is_dir():
+        raise PacketrtError(f"output folder {str(out)!r} is a file, not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PacketrtError(f"cannot create output folder {str(out)!r}: {exc.strerror or exc}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise PacketrtError(f"output folder {str(out)!r} is not writable")
+
+
+def _identity(config, times: list) -> dict:
+    """What must match for ``--resume`` to carry on a run: the config (less the scene time,
+    which the path sets) and the frame times."""
+    settings = config.to_dict()
+    settings["scene"].pop("time", None)
+    return {"config": settings, "times": times}
+
+
+def _load_records(out: Path, identity: dict, resume: bool) -> dict:
+    """{frame index: record} of an earlier run to carry on (``resume``), else {}; a folder that
+    holds another run, or a run without ``resume``, is an error naming it."""
+    file = out / RECORDS
+    if not file.exists():
+        return {}
+    if not resume:
+        raise PacketrtError(f"{out} already holds an animation ({RECORDS}); give --resume to carry it on, "
+                            f"or choose another folder")
+    try:
+        data = json.loads(file.read_text(encoding="utf-8"))
+        frames = {int(k): v for k, v in data["frames"].items()}
+        earlier = data["identity"]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise PacketrtError(f"{file}: not a packetrt animation record ({exc}); choose another folder") from None
+    if earlier != json.loads(json.dumps(identity)):
+        raise PacketrtError(f"{out} holds frames of a different animation (config or frame times differ); "
+                            f"choose another folder")
+    return {i: r for i, r in frames.items() if (out / FRAME_NAME.format(i)).is_file()}
+
+
+def _save_records(out: Path, identity: dict, records: dict) -> None:
+    document = {"schema": SCHEMA, "identity": identity, "frames": {str(i): records[i] for i in sorted(records)}}
+    write_text(out / RECORDS, json.dumps(document, indent=1) + "\n")
+
+
+def _frame_observer(audit: bool):
+    """observer_for(scene, bvh) auditing every ray of a frame against an Embree scene built
+    over that frame's triangles, or None."""
+    if not audit:
+        return None
+    from validation.audit import AuditObserver, make_oracle
+
+    def observer_for(scene, bvh):
+        return AuditObserver(scene, bvh, [make_oracle("embree", scene.triangles)])
+    return observer_for
+
+
+def run_animation(config, out: str, *, frames=None, fps=None, start=None, end=None, stats=None,
+                  resume: bool = False, audit: bool = False, progress=None) -> int:
+    """Render the animation path of ``config``'s scene into folder ``out`` (see the module
+    doc); returns the exit code (1 when an audited frame had a mismatch)."""
+    from scenes.catalog import open_path
+    from tqdm import tqdm
+
+    path = open_path(config.scene, config.override)
+    times = plan_times(path, frames, fps, start, end)
+    folder = Path(out)
+    _prepare_folder(folder)
+    identity = _identity(config, times)
+    records = _load_records(folder, identity, resume)
+    todo = [i for i in range(len(times)) if i not in records]
+    animator = AnimationRenderer(path, config, _frame_observer(audit))
+    compile_seconds = animator.warm_up(times[todo[0]] if todo else times[0]) if todo else 0.0
+    keep = keep_for_preview(len(times))
+    pictures = {}
+    audit_total = {"checked": 0, "mismatches": 0, "ties": 0}
+    bar = tqdm(total=len(times), initial=len(times) - len(todo), unit="frame", file=sys.stderr,
+               disable=progress is False or (progress is None and not sys.stderr.isatty()), dynamic_ncols=True)
+    previous = None
+    for i in todo:
+        if previous is not None and previous != i - 1:
+            animator.restart()                 # frames were skipped: the next tree is built afresh
+        frame = animator.frame(i, times[i])
+        previous = i
+        image8 = to_srgb8(frame.result.image)
+        save_png(frame.result.image, str(folder / FRAME_NAME.format(i)))
+        if audit:
+            report = animator.renderer.observer.report()
+            ties = sum(row["ties"] for row in report["by_kind"].values())
+            frame.record["audit"] = {"checked": report["rays_checked"], "mismatches": report["mismatch_count"],
+                                     "ties": ties}
+            for key in audit_total:
+                audit_total[key] += frame.record["audit"][key]
+        records[i] = frame.record
+        _save_records(folder, identity, records)
+        if i in keep:
+            pictures[i] = shrink(image8)
+        bar.set_postfix_str(f"t={times[i]:.2f}s {frame.record['seconds']['total'] * 1000:.0f} ms")
+        bar.update(1)
+    bar.close()
+    for i in sorted(keep - set(pictures)):          # frames an earlier run rendered
+        from PIL import Image
+
+        with Image.open(folder / FRAME_NAME.format(i)) as picture:
+            pictures[i] = shrink(np.asarray(picture.convert("RGB"), np.uint8))
+    ordered = [records[i] for i in sorted(records)]
+    summary = path_summary(ordered)
+    span = times[-1] - times[0]
+    # The preview plays in scene time: its kept frames spread over the path's span.
+    write_preview([pictures[i] for i in sorted(pictures)], folder / f"preview.{preview_format()}",
+                  span / (len(pictures) - 1) if len(pictures) > 1 and span > 0 else 0.1)
+    plot_path(ordered, folder / "path.png", f"{path.name}, {config.render.width}x{config.render.height}, "
+                                             f"accel {config.accel.update}")
+    if stats:
+        document = {
+            "scene": path.name, "width": config.render.width, "height": config.render.height,
+            "config": config.to_dict(), "frames_rendered": len(todo), "frames_resumed": len(times) - len(todo),
+            "seconds": {"compile": compile_seconds, "parse": getattr(path.animation, "parse_seconds", None)},
+            "path": summary,
+        }
+        if audit:
+            document["audit"] = audit_total
+        try:
+            write_text(stats, json.dumps(document, indent=2, default=float) + "\n")
+        except OSError as exc:
+            raise PacketrtError(f"cannot write {stats!r}: {exc.strerror or exc}") from None
+    share = summary["phase_share"]
+    policies = summary["policies"]
+    fps_text = f"{summary['mean_fps']:.2f}" if summary["mean_fps"] else "-"
+    print(f"{path.name}: {len(times)} frames over {times[0]:g}..{times[-1]:g} s, {config.render.width}x"
+          f"{config.render.height}, mean {fps_text} FPS, slowest {summary['slowest_seconds']:.3f} s; accel "
+          f"{config.accel.update} ({', '.join(f'{n} {p}' for p, n in policies.items() if n)}) "
+          f"{100 * share['accel']:.1f}% of the time, scene {100 * share['scene']:.1f}%; compile "
+          f"{compile_seconds:.1f} s apart -> {folder}/")
+    if audit:
+        print(f"audit against Embree, every frame: {audit_total['checked']:,} rays checked, "
+              f"{audit_total['ties']:,} ties, {audit_total['mismatches']:,} mismatches")
+        return 1 if audit_total["mismatches"] else 0
+    return 0

@@ -1,0 +1,286 @@
+"""Animation paths: the scene placed per frame equals a fresh load, the BVH kept current by
+rebuild / refit / auto, and ``packetrt animate`` (frames equal ``render --time``, audits,
+statistics, resume, and one-line errors)."""
+from __future__ import annotations
+
+import json
+import textwrap
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from engine.cli import main
+from engine.core.bvh import BOX_PAD_SCALE, build_bvh
+from engine.core.bvh_refit import refit_bvh, refit_levels, sah_cost
+from engine.render.accel import BVHKeeper
+from scenes.aff_animation import AffAnimation, load_aff
+
+# A floor, a box that slides and turns (x mover), a blended triangle (tpa) and a moving camera,
+# over an animation range of 0..2 s.
+SCENE = """
+    v from 0 3 8 at 0 0 0 up 0 1 0 angle 45
+    b 0.1 0.1 0.2
+    l 2 6 4
+    a 0 2 5
+    fm 0.1 0.1 0.1  0.6 0.6 0.6  0.3 0.3 0.3  20 0 1
+    p 4  -5 0 -5  -5 0 5  5 0 5  5 0 -5
+    fm 0.1 0 0  0.8 0.2 0.2  0.5 0.5 0.5  30 0 1
+    x mover
+    {
+      m
+       vertices 8
+         -1 0 -1   1 0 -1   1 2 -1   -1 2 -1
+         -1 0  1   1 0  1   1 2  1   -1 2  1
+       triangles 12
+         0 1 2  0 2 3  4 6 5  4 7 6  0 4 5  0 5 1
+         3 2 6  3 6 7  0 3 7  0 7 4  1 5 6  1 6 2
+    }
+    k mover
+    {
+      transl 3
+        0  -2 0 0  0 0 0
+        1   0 0 1  0 0 0
+        2   2 0 0  0 0 0
+      rot 2
+        0  0 1 0 0    0 0 0
+        2  0 1 0 120  0 0 0
+    }
+    tpa 2
+      0
+      2 0.5 -2  0 0 1
+      3 0.5 -2  0 0 1
+      2 1.5 -2  0 0 1
+      2
+      2 2.5 -2  0 0 1
+      3 2.5 -2  0 0 1
+      2 3.5 -2  0 0 1
+    k camera
+    {
+      transl 2
+        0  0 3 8  0 0 0
+        2  2 3 8  0 0 0
+    }
+"""
+
+
+@pytest.fixture
+def scene_file(tmp_path):
+    path = tmp_path / "moving.aff"
+    path.write_text(textwrap.dedent(SCENE))
+    return path
+
+
+def assert_same_scene(a, b):
+    for name, x, y in zip(a.triangles._fields, a.triangles, b.triangles):
+        assert np.array_equal(x, y), name
+    assert a.camera == b.camera
+    assert [light.position for light in a.lights] == [light.position for light in b.lights]
+
+
+# ------------------------------------------------------------------------------- the scene path
+
+def test_scene_at_equals_a_fresh_load_at_every_time(scene_file):
+    path = AffAnimation(scene_file)
+    assert (path.start, path.end, path.frames, path.animated) == (0.0, 2.0, 5, True)
+    for time in (0.0, 1.3, 2.0, 0.4, 5.0, 0.0):          # any order, outside the keys too
+        assert_same_scene(path.scene_at(time), load_aff(scene_file, time))
+    assert not np.array_equal(path.scene_at(0.0).triangles.v0, path.scene_at(1.0).triangles.v0)
+
+
+def test_frames_of_a_bart_path_equal_fresh_loads(shared_scenes):
+    from scenes.catalog import ANIMATORS, _resolve, load_named
+
+    for name, times in (("bart-museum", (-1.0, 2.5, 4.9)), ("bart-robots", (0.0, 31.7))):
+        entry, params, files = _resolve(name, {})
+        path = ANIMATORS["aff"](files, params)
+        for time in times:
+            assert_same_scene(path.scene_at(time), load_named(name, {}, time))
+
+
+# ----------------------------------------------------------------------------------- the BVH
+
+def reference_boxes(bvh, tris):
+    """Each node's box from scratch in numpy: leaves bound their triangles, inner nodes their
+    subtree's triangles, all widened by the builder's pad."""
+    corners = np.stack([tris.v0, tris.v1, tris.v2], axis=1)
+    pad = BOX_PAD_SCALE * np.float32(np.abs(corners).max())
+    lo, hi = np.empty_like(bvh.bmin), np.empty_like(bvh.bmax)
+    for node in range(len(bvh.first) - 1, -1, -1):
+        if bvh.count[node]:
+            c = corners[bvh.prim[bvh.first[node]:bvh.first[node] + bvh.count[node]]].reshape(-1, 3)
+            lo[node], hi[node] = c.min(0), c.max(0)
+        else:
+            left = bvh.first[node]
+            lo[node] = np.minimum(lo[left], lo[left + 1])
+            hi[node] = np.maximum(hi[left], hi[left + 1])
+    return lo - pad, hi + pad
+
+
+def test_refit_gives_every_node_the_box_of_its_moved_triangles(scene_file):
+    path = AffAnimation(scene_file)
+    first = path.scene_at(0.0).triangles
+    bvh = build_bvh(first, leaf_size=1)
+    for time in (0.7, 2.0):
+        moved = path.scene_at(time).triangles
+        refit = refit_bvh(bvh, moved)
+        lo, hi = reference_boxes(bvh, moved)
+        np.testing.assert_array_equal(refit.bmin, lo)
+        np.testing.assert_array_equal(refit.bmax, hi)
+        for name in ("first", "count", "prim"):
+            np.testing.assert_array_equal(getattr(refit, name), getattr(bvh, name))
+    # The same tree refitted to its own triangles is the tree the builder made.
+    again = refit_bvh(bvh, first, refit_levels(bvh.first, bvh.count))
+    np.testing.assert_array_equal(again.bmin, bvh.bmin)
+    np.testing.assert_array_equal(again.bmax, bvh.bmax)
+    with pytest.raises(ValueError, match="refit needs"):
+        refit_bvh(bvh, first._replace(v0=first.v0[:-1]))
+
+
+def test_keeper_policies(scene_file):
+    path = AffAnimation(scene_file)
+    frames = [path.scene_at(t).triangles for t in (0.0, 0.5, 1.0, 1.5, 2.0)]
+    ran = {}
+    for policy in ("rebuild", "refit"):
+        keeper = BVHKeeper(policy, leaf_size=1)
+        ran[policy] = [keeper.update(tris)[1]["policy"] for tris in frames]
+    assert ran["rebuild"] == ["rebuild"] * 5
+    assert ran["refit"] == ["rebuild"] + ["refit"] * 4
+    # auto: the box slides away from where the tree was built; a tight threshold rebuilds,
+    # and a rebuild resets the ratio to 1.
+    keeper = BVHKeeper("auto", leaf_size=1, degrade=1.0001)
+    records = [keeper.update(tris)[1] for tris in frames]
+    assert records[0]["policy"] == "rebuild"
+    assert any(r["policy"] == "rebuild" for r in records[1:])
+    assert all(r["sah_ratio"] == 1.0 for r in records if r["policy"] == "rebuild")
+    loose = BVHKeeper("auto", leaf_size=1, degrade=100.0)
+    assert [loose.update(tris)[1]["policy"] for tris in frames] == ["rebuild"] + ["refit"] * 4
+    refitted = refit_bvh(build_bvh(frames[0], leaf_size=1), frames[-1])
+    assert sah_cost(refitted) > sah_cost(build_bvh(frames[-1], leaf_size=1))
+
+
+# ---------------------------------------------------------------------------- packetrt animate
+
+def animate(tmp_path, scene_file, *extra, folder="frames"):
+    out = tmp_path / folder
+    code = main(["animate", "--scene", str(scene_file), "--size", "24x24", "--packet", "4", "-o", str(out),
+                 "--stats", str(tmp_path / f"{folder}.json"), *extra])
+    return code, out
+
+
+def test_rebuild_frames_equal_render_at_their_time_and_refit_frames_agree(tmp_path, scene_file):
+    code, out = animate(tmp_path, scene_file, "--frames", "3", "--accel", "rebuild")
+    assert code == 0
+    stats = json.loads((tmp_path / "frames.json").read_text())
+    frames = stats["path"]["frames"]
+    assert [f["time"] for f in frames] == [0.0, 1.0, 2.0]
+    for f in frames:
+        assert set(f["seconds"]) == {"scene", "accel", "trace", "shade", "total"}
+        assert f["accel"]["policy"] == "rebuild" and f["accel"]["sah_cost"] > 0
+        png = tmp_path / f"still{f['index']}.png"
+        assert main(["render", "--scene", str(scene_file), "--size", "24x24", "--packet", "4",
+                     "--time", str(f["time"]), "-o", str(png)]) == 0
+        assert png.read_bytes() == (out / f"frame_{f['index']:05d}.png").read_bytes()
+    summary = stats["path"]
+    assert summary["total_seconds"] == pytest.approx(sum(f["seconds"]["total"] for f in frames))
+    assert summary["mean_fps"] == pytest.approx(3 / summary["total_seconds"])
+    assert summary["slowest_seconds"] == max(f["seconds"]["total"] for f in frames)
+    for name in ("preview.webp", "path.png", "frames.json"):
+        assert (out / name).is_file() or name == "preview.webp" and (out / "preview.gif").is_file()
+    # A refitted tree finds the same hits (this scene has no ties), so the same images.
+    code, refit_out = animate(tmp_path, scene_file, "--frames", "3", "--accel", "refit", folder="refit")
+    assert code == 0
+    policies = [f["accel"]["policy"] for f in json.loads((tmp_path / "refit.json").read_text())["path"]["frames"]]
+    assert policies == ["rebuild", "refit", "refit"]
+    for i in range(3):
+        assert (refit_out / f"frame_{i:05d}.png").read_bytes() == (out / f"frame_{i:05d}.png").read_bytes()
+
+
+@pytest.mark.parametrize("policy", ["refit", "auto"])
+def test_every_frame_audits_clean_against_embree(tmp_path, scene_file, policy, capsys):
+    code, _ = animate(tmp_path, scene_file, "--frames", "4", "--accel", policy, "--audit")
+    assert code == 0
+    stats = json.loads((tmp_path / "frames.json").read_text())
+    assert stats["audit"]["mismatches"] == 0 and stats["audit"]["checked"] > 4 * 24 * 24
+    assert all(f["audit"]["mismatches"] == 0 for f in stats["path"]["frames"])
+    assert "0 mismatches" in capsys.readouterr().out
+
+
+def test_an_interrupted_animation_keeps_whole_frames_and_resumes(tmp_path, scene_file, monkeypatch):
+    from engine.render.animation import AnimationRenderer
+
+    code, full = animate(tmp_path, scene_file, "--frames", "4", folder="full")
+    real_frame = AnimationRenderer.frame
+
+    def interrupted(self, index, time):
+        if index == 2:
+            raise KeyboardInterrupt
+        return real_frame(self, index, time)
+
+    monkeypatch.setattr(AnimationRenderer, "frame", interrupted)
+    code, out = animate(tmp_path, scene_file, "--frames", "4")
+    assert code == 130
+    assert sorted(p.name for p in out.glob("frame_*.png")) == ["frame_00000.png", "frame_00001.png"]
+    assert not list(out.glob(".*tmp*"))
+    assert set(json.loads((out / "frames.json").read_text())["frames"]) == {"0", "1"}
+    monkeypatch.setattr(AnimationRenderer, "frame", real_frame)
+    code, out = animate(tmp_path, scene_file, "--frames", "4", "--resume")
+    assert code == 0
+    stats = json.loads((tmp_path / "frames.json").read_text())
+    assert (stats["frames_rendered"], stats["frames_resumed"]) == (2, 2)
+    assert len(stats["path"]["frames"]) == 4
+    for i in range(4):
+        assert (out / f"frame_{i:05d}.png").read_bytes() == (full / f"frame_{i:05d}.png").read_bytes()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--frames", "0"], "--frames must be in 1..100,000, got 0"),
+    (["--frames", "1000000000"], "--frames must be in 1..100,000"),
+    (["--start", "-1"], "--start -1 is outside the animation path"),
+    (["--end", "7"], "--end 7 is outside the animation path"),
+    (["--start", "1.5", "--end", "0.5"], "is before --start"),
+    (["--fps", "0"], "--fps must be a positive number"),
+    (["--frames", "3", "--fps", "2"], "not both"),
+])
+def test_bad_paths_are_one_line_errors(tmp_path, scene_file, capsys, args, message):
+    code, out = animate(tmp_path, scene_file, *args)
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and message in err, err
+    assert not list(out.glob("frame_*.png")) if out.exists() else True
+
+
+def test_static_scenes_unwritable_folders_and_reused_folders_are_one_line_errors(tmp_path, scene_file, capsys):
+    assert main(["animate", "--scene", "whitted", "-o", str(tmp_path / "w")]) == 2
+    assert "is static: it has no animation path" in capsys.readouterr().err
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert main(["animate", "--scene", str(scene_file), "-o", str(blocker)]) == 2
+    assert "is a file, not a folder" in capsys.readouterr().err
+    code, out = animate(tmp_path, scene_file, "--frames", "1")
+    assert code == 0
+    capsys.readouterr()
+    code, out = animate(tmp_path, scene_file, "--frames", "2")
+    err = capsys.readouterr().err
+    assert code == 2 and "already holds an animation" in err and err.count("\n") == 1
+    code, out = animate(tmp_path, scene_file, "--frames", "2", "--resume")
+    err = capsys.readouterr().err
+    assert code == 2 and "holds frames of a different animation" in err
+
+
+def test_fps_spaces_frames_in_scene_time(tmp_path, scene_file):
+    code, _ = animate(tmp_path, scene_file, "--fps", "2", "--start", "0.5")
+    assert code == 0
+    times = [f["time"] for f in json.loads((tmp_path / "frames.json").read_text())["path"]["frames"]]
+    assert times == [0.5, 1.0, 1.5, 2.0]
+    image = Image.open(tmp_path / "frames" / "frame_00000.png")
+    assert image.size == (24, 24)
+
+
+def test_traversals_without_a_scene_tree_build_none_per_frame(tmp_path, scene_file):
+    """Embree (its own scene, rebuilt per frame) and the ray-space hierarchy read no BVH of
+    ours: their frames record policy "none" and still audit clean."""
+    code, _ = animate(tmp_path, scene_file, "--frames", "2", "--traversal", "embree", "--frustum", "none", "--audit")
+    assert code == 0
+    frames = json.loads((tmp_path / "frames.json").read_text())["path"]["frames"]
+    assert [f["accel"]["policy"] for f in frames] == ["none", "none"]
+    assert all(f["audit"]["mismatches"] == 0 for f in frames)
