@@ -254,6 +254,12 @@ def test_bundled_matrices_parse():
         needs = [name for name, entry in entries().items() if f'"{name}"' in text and find_files(entry)[1]]
         if needs and path != SMOKE:
             continue
+        if 'kind = "dynamic"' in text:          # whole animation paths: engine.bench.dynamic
+            from engine.bench.dynamic import load_dynamic
+            from engine.render.config import read_toml
+
+            assert load_dynamic(read_toml(str(path), "matrix"), str(path))[1]
+            continue
         matrix = load_matrix(str(path))
         assert matrix.cells and matrix.plots
 

@@ -37,25 +37,22 @@ import datetime
 import gc
 import hashlib
 import os
-import platform
-import subprocess
 import sys
 import time
 from dataclasses import replace
-from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 
 from engine.bench import results as results_io
 from engine.bench.floor import floor_tracer, uses_packet_traversals
+from engine.bench.machine import machine_info
 from engine.bench.matrix import Cell, Matrix, load_matrix
 from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require_open3d
 from engine.core.types import RAY_KINDS
+from engine.render.config import read_toml
 from engine.render.plugins import make_traversal
 from engine.render.tracer import Tally
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 # -- measurements --------------------------------------------------------------------------
@@ -220,52 +217,6 @@ def _rates(rays: dict, seconds: dict) -> dict:
     total = sum(seconds[k] for k in RAY_KINDS if rays[k])
     rates["all"] = rays["all"] / total / 1e6 if total > 0 else None
     return rates
-
-
-# -- the machine ---------------------------------------------------------------------------
-
-def _version(package: str) -> str:
-    try:
-        return metadata.version(package)
-    except metadata.PackageNotFoundError:
-        return "absent"
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _git() -> dict:
-    def run(*args):
-        try:
-            return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return ""
-    commit = run("rev-parse", "HEAD") or "unknown"
-    return {"commit": commit, "dirty": bool(run("status", "--porcelain", "--untracked-files=no"))}
-
-
-def machine_info() -> dict:
-    """CPU, cores, numba threads, library versions and the project's git commit."""
-    import numba
-
-    from engine.core.embree_scene import library_version
-
-    try:
-        embree_version = library_version()
-    except Exception:  # no usable Embree: the cells that need it will say so
-        embree_version = "unavailable"
-    return {"cpu": _cpu_model(), "cores": os.cpu_count(), "numba_threads": numba.config.NUMBA_NUM_THREADS,
-            "threading_layer": numba.config.THREADING_LAYER, "platform": platform.platform(),
-            "python": platform.python_version(), "numpy": np.__version__, "numba": numba.__version__,
-            "embreex": _version("embreex"), "embree": embree_version, "open3d": _version("open3d"),
-            "packetrt": _version("packetrt"), "git": _git()}
 
 
 # -- one cell --------------------------------------------------------------------------------
@@ -525,6 +476,15 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
 
 def cmd_bench(args) -> int:
     """The CLI entry: validate the whole matrix, then run it."""
+    data = read_toml(args.matrix, "matrix")
+    if isinstance(data.get("kind"), str) and data["kind"] == "dynamic":   # whole animation paths
+        from engine.bench.dynamic import run_dynamic
+
+        out = Path(args.out) if args.out else Path("out") / f"bench-{data.get('name', Path(args.matrix).stem)}"
+        summary = run_dynamic(data, args.matrix, out, args.resume)
+        print(f"{data.get('name', Path(args.matrix).stem)}: ran {summary['ran']} cell(s), skipped "
+              f"{summary['skipped']}; wrote {', '.join(str(p) for p in summary['files'])}")
+        return 0
     matrix = load_matrix(args.matrix, repeat=args.repeat)
     out = Path(args.out) if args.out else Path("out") / f"bench-{matrix.name}"
     summary = run_matrix(matrix, out, resume=args.resume)

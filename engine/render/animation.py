@@ -112,17 +112,19 @@ class AnimationRenderer:
         """Render the frame at ``time_`` (``index``: its place on the path, for the record)."""
         started = time.perf_counter()
         scene = self.path.scene_at(time_)
-        placed = time.perf_counter()
         bvh, accel = self.keeper.update(scene.triangles)
         if self.renderer is None:
             self.renderer = WhittedRenderer(scene, self.config, bvh=bvh)
         else:
             self.renderer.set_scene(scene, bvh)
-        accel_seconds = time.perf_counter() - placed        # with plugins' own builds (Embree)
+        # accel: our tree's update and plugins' own builds (Embree's scene for the moved
+        # triangles); scene: the rest of getting the frame's scene ready.
+        accel_seconds = accel["seconds"] + sum(self.renderer.prepare_seconds.values())
+        scene_seconds = time.perf_counter() - started - accel_seconds
         self.renderer.observer = self.observer_for(scene, bvh) if self.observer_for else None
         result = self.renderer.render()
         trace = sum(result.seconds["trace"].values())
-        seconds = {"scene": placed - started, "accel": accel_seconds, "trace": trace,
+        seconds = {"scene": scene_seconds, "accel": accel_seconds, "trace": trace,
                    "shade": result.seconds["total"] - trace}
         seconds["total"] = seconds["scene"] + seconds["accel"] + result.seconds["total"]
         record = {"index": index, "time": time_, "seconds": seconds,

@@ -1,0 +1,226 @@
+"""Dynamic-scene matrices: whole BART animation paths, BVH update policies against the
+ray-space hierarchy (which has no scene structure to keep current).
+
+A matrix with ``kind = "dynamic"`` (``packetrt bench benchmarks/bart-dynamic.toml``)::
+
+    kind = "dynamic"
+    name = "bart-dynamic"
+    description = "..."
+    threads = 0                     # numba threads (0 = every core)
+    frames = 40                     # frames per path, evenly spaced over the whole path
+    resolution = 1024               # or [W, H]
+    packet = 16
+
+    [[scene]]                       # one table per scene
+    name = "bart-kitchen"           # a catalog scene, or path = "file.aff"
+    recursion = "kitchen-paper"     # a preset of engine.bench.matrix.RECURSION
+    params = {}                     # the scene's own parameters (lights = N is set by the preset)
+
+    [[variant]]                     # one table per way of keeping up with the motion
+    label = "bvh-auto"
+    traversal = "paper"             # "paper" or a registered traversal for every kind
+    frustum = "paper"               # "paper" or a registered frustum builder
+    accel = "auto"                  # rebuild | refit | auto
+    degrade = 1.2                   # auto's threshold (optional)
+
+Every (scene, variant) cell renders the path once in this process, warm (compile apart), and
+appends one record to ``results.jsonl`` (``--resume`` skips finished cells). ``dynamic.md`` is
+the table: mean FPS, the static FPS of the same frames (trace + shade of fresh trees: the frames
+rendered as still scenes), the share of each frame spent keeping structures current, and, for
+refit and auto, each frame's trace time over the fresh tree's trace time of the same frame.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from engine.bench import results
+from engine.bench.figures import fmt, save, pyplot
+from engine.bench.matrix import PAPER, RECURSION
+from engine.bench.machine import machine_info
+from engine.core.atomic import write_text
+from engine.core.errors import ConfigError
+from engine.core.types import RAY_KINDS
+from engine.render.animation import AnimationRenderer, path_summary, plan_times
+from engine.render.config import from_dict
+
+TOP_KEYS = {"kind", "name", "description", "threads", "frames", "resolution", "packet", "scene", "variant"}
+SCENE_KEYS = {"name", "path", "recursion", "params", "label"}
+VARIANT_KEYS = {"label", "traversal", "frustum", "accel", "degrade"}
+
+
+def _fail(source, where, message):
+    raise ConfigError(f"{source}: {where}: {message}")
+
+
+def _table_list(source, data, key, allowed) -> list:
+    tables = data.get(key)
+    if not isinstance(tables, list) or not tables or not all(isinstance(t, dict) for t in tables):
+        _fail(source, key, f"give one or more [[{key}]] tables")
+    for i, table in enumerate(tables):
+        unknown = set(table) - allowed
+        if unknown:
+            _fail(source, f"{key}[{i}]", f"unknown key(s) {sorted(unknown)}; allowed: {', '.join(sorted(allowed))}")
+    return tables
+
+
+def _scene_label(scene: dict) -> str:
+    return str(scene.get("label") or scene.get("name") or Path(str(scene.get("path", "?"))).stem)
+
+
+def _per_kind(value, section) -> dict:
+    if value == "paper":
+        return dict(PAPER[section])
+    return dict.fromkeys(RAY_KINDS, value)
+
+
+def cell_config(matrix: dict, scene: dict, variant: dict, source: str):
+    """The render Config of one (scene, variant) cell; mistakes name the matrix and key."""
+    preset_name = scene.get("recursion", "kitchen-paper")
+    if preset_name not in RECURSION:
+        _fail(source, f"scene {_scene_label(scene)!r} recursion", f"unknown preset {preset_name!r}; "
+              f"allowed: {', '.join(RECURSION)}")
+    preset = RECURSION[preset_name]
+    params = dict(scene.get("params", {}))
+    if not preset.lights:
+        params["lights"] = 0
+    elif preset.max_lights is not None:
+        params["lights"] = preset.max_lights
+    side = matrix.get("resolution", 1024)
+    width, height = (side, side) if isinstance(side, int) else tuple(side)
+    table = {
+        "scene": {"path": scene["path"]} if "path" in scene else {"name": scene["name"], **params},
+        "render": {"width": width, "height": height, "packet": matrix.get("packet", 16),
+                   "threads": matrix.get("threads", 0), "max_depth": preset.max_depth,
+                   "max_reflection_depth": preset.max_reflection_depth},
+        "traversal": _per_kind(variant.get("traversal", "paper"), "traversal"),
+        "frustum": _per_kind(variant.get("frustum", "paper"), "frustum"),
+        "materials": {"override": preset.override},
+        "accel": {"update": variant.get("accel", "rebuild"),
+                  **({"degrade": variant["degrade"]} if "degrade" in variant else {})},
+    }
+    try:
+        return from_dict(table, source=f"{source} scene {_scene_label(scene)!r} variant {variant.get('label')!r}")
+    except ConfigError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def load_dynamic(data: dict, source: str) -> tuple[dict, list]:
+    """(matrix table, [(cell id, scene table, variant table, Config)]) of a dynamic matrix,
+    every cell's config checked before any work."""
+    unknown = set(data) - TOP_KEYS
+    if unknown:
+        _fail(source, "top level", f"unknown key(s) {sorted(unknown)}; allowed: {', '.join(sorted(TOP_KEYS))}")
+    frames = data.get("frames", 40)
+    if isinstance(frames, bool) or not isinstance(frames, int) or not 1 <= frames <= 100_000:
+        _fail(source, "frames", f"must be an integer in 1..100000, got {frames!r}")
+    cells = []
+    for i, scene in enumerate(_table_list(source, data, "scene", SCENE_KEYS)):
+        if ("name" in scene) == ("path" in scene):
+            _fail(source, f"scene[{i}]", "give a catalog name or a path (one of them)")
+        for variant in _table_list(source, data, "variant", VARIANT_KEYS):
+            config = cell_config(data, scene, variant, source)
+            identity = json.dumps({"config": config.to_dict(), "frames": frames}, sort_keys=True, default=str)
+            cells.append((hashlib.sha1(identity.encode()).hexdigest()[:16], scene, variant, config))
+    return data, cells
+
+
+def run_cell(matrix: dict, scene: dict, variant: dict, config, cell_id: str, machine: dict) -> dict:
+    """Render one cell's path; its record (path summary and per-frame records)."""
+    from scenes.catalog import open_path
+
+    started = time.time()
+    path = open_path(config.scene, config.override)
+    times = plan_times(path, frames=matrix.get("frames", 40))
+    animator = AnimationRenderer(path, config)
+    compile_seconds = animator.warm_up(times[0])
+    records = [animator.frame(i, t).record for i, t in enumerate(times)]
+    summary = path_summary(records)
+    return {
+        "schema": 1, "kind": "dynamic", "id": cell_id, "matrix": matrix.get("name"),
+        "labels": {"scene": _scene_label(scene), "variant": variant.get("label", "")},
+        "config": config.to_dict(), "threads": config.render.threads, "frames": len(times),
+        "seconds": {"compile": compile_seconds, "wall": time.time() - started}, "path": summary,
+        "machine": machine,
+    }
+
+
+def _static_fps(record: dict) -> float:
+    """Frames per second of the same frames without any structure update: trace + shade."""
+    frames = record["path"]["frames"]
+    return len(frames) / sum(f["seconds"]["trace"] + f["seconds"]["shade"] for f in frames)
+
+
+def table(records: list) -> str:
+    """dynamic.md: one row per cell (see the module doc)."""
+    fresh = {}
+    for r in records:
+        cfg = r["config"]
+        if cfg["accel"]["update"] == "rebuild":
+            fresh[(r["labels"]["scene"], json.dumps(cfg["traversal"]), json.dumps(cfg["frustum"]))] = r
+    lines = ["| scene | variant | frames | mean FPS | static FPS | FPS / static | accel share | scene share | "
+             "accel ms (mean) | policies | trace / fresh tree (median, max) |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|"]
+    for r in records:
+        cfg, path = r["config"], r["path"]
+        key = (r["labels"]["scene"], json.dumps(cfg["traversal"]), json.dumps(cfg["frustum"]))
+        base = fresh.get(key)
+        static = _static_fps(base if base is not None else r)
+        accel_ms = 1000 * np.mean([f["seconds"]["accel"] for f in path["frames"]])
+        ratio = "–"
+        if base is not None and base is not r and len(base["path"]["frames"]) == len(path["frames"]):
+            ratios = [f["seconds"]["trace"] / b["seconds"]["trace"]
+                      for f, b in zip(path["frames"], base["path"]["frames"]) if b["seconds"]["trace"] > 0]
+            ratio = f"{np.median(ratios):.2f}, {max(ratios):.2f}"
+        policies = ", ".join(f"{n} {p}" for p, n in path["policies"].items() if n)
+        lines.append(f"| {r['labels']['scene']} | {r['labels']['variant']} | {r['frames']} | {fmt(path['mean_fps'])} | "
+                     f"{fmt(static)} | {fmt(path['mean_fps'] / static)} | {100 * path['phase_share']['accel']:.1f}% | "
+                     f"{100 * path['phase_share']['scene']:.1f}% | {accel_ms:.1f} | {policies} | {ratio} |")
+    m = records[0]["machine"] if records else {}
+    lines.append("")
+    lines.append(f"{m.get('cpu', '?')}, {records[0]['threads'] if records else '?'} threads (0 = all cores); "
+                 f"one run, warm cache, compile time apart; commit {m.get('git', {}).get('commit', '?')[:10]}.")
+    return "\n".join(lines) + "\n"
+
+
+def plot(records: list, path: Path) -> None:
+    """dynamic.png: per cell, mean milliseconds per frame stacked by phase."""
+    plt = pyplot()
+    phases = ("scene", "accel", "trace", "shade")
+    fig, ax = plt.subplots(figsize=(max(6, 0.9 * len(records)), 4))
+    labels = [f"{r['labels']['scene']}\n{r['labels']['variant']}" for r in records]
+    bottom = np.zeros(len(records))
+    for phase in phases:
+        ms = np.array([1000 * np.mean([f["seconds"][phase] for f in r["path"]["frames"]]) for r in records])
+        ax.bar(labels, ms, bottom=bottom, label=phase)
+        bottom += ms
+    ax.set_ylabel("ms per frame (mean over the path)")
+    ax.legend(fontsize=8)
+    ax.tick_params(axis="x", labelsize=7)
+    save(fig, path)
+
+
+def run_dynamic(data: dict, source: str, out: Path, resume: bool) -> dict:
+    """Run every cell not yet in ``out/results.jsonl`` (all of them unless ``resume``), then
+    write dynamic.md and dynamic.png; {"ran", "skipped", "files"}."""
+    matrix, cells = load_dynamic(data, source)
+    out.mkdir(parents=True, exist_ok=True)
+    file = out / results.RESULTS
+    done = {r["id"] for r in results.read_results(file)[0]} if resume and file.exists() else set()
+    if not resume and file.exists():
+        raise ConfigError(f"{out} already holds results; give --resume to carry them on, or another --out")
+    machine = machine_info()
+    ran = 0
+    for cell_id, scene, variant, config in cells:
+        if cell_id in done:
+            continue
+        results.append(file, run_cell(matrix, scene, variant, config, cell_id, machine))
+        ran += 1
+    records = [r for r in results.read_results(file)[0] if r.get("kind") == "dynamic"]
+    write_text(out / "dynamic.md", table(records))
+    plot(records, out / "dynamic.png")
+    return {"ran": ran, "skipped": len(cells) - ran, "files": [file, out / "dynamic.md", out / "dynamic.png"]}
