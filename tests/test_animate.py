@@ -155,6 +155,13 @@ def test_keeper_policies(scene_file):
     assert all(r["sah_ratio"] == 1.0 for r in records if r["policy"] == "rebuild")
     loose = BVHKeeper("auto", leaf_size=1, degrade=100.0)
     assert [loose.update(tris)[1]["policy"] for tris in frames] == ["rebuild"] + ["refit"] * 4
+    # auto's budget: while the last build took at most that share of the last frame, rebuild.
+    keeper = BVHKeeper("auto", leaf_size=1, degrade=100.0, budget=0.05)
+    first = keeper.update(frames[0])[1]
+    assert first["reason"] == "first"
+    cheap = keeper.update(frames[1], last_frame_seconds=keeper.build_seconds / 0.05 * 2)[1]
+    dear = keeper.update(frames[2], last_frame_seconds=keeper.build_seconds / 0.05 / 2)[1]
+    assert (cheap["policy"], cheap["reason"], dear["policy"], dear["reason"]) == ("rebuild", "cheap", "refit", None)
     refitted = refit_bvh(build_bvh(frames[0], leaf_size=1), frames[-1])
     assert sah_cost(refitted) > sah_cost(build_bvh(frames[-1], leaf_size=1))
 

@@ -21,7 +21,8 @@ A matrix with ``kind = "dynamic"`` (``packetrt bench benchmarks/bart-dynamic.tom
     traversal = "paper"             # "paper" or a registered traversal for every kind
     frustum = "paper"               # "paper" or a registered frustum builder
     accel = "auto"                  # rebuild | refit | auto
-    degrade = 1.2                   # auto's threshold (optional)
+    degrade = 1.2                   # auto's SAH threshold (optional)
+    budget = 0.05                   # auto rebuilds while a build is at most this share of a frame
 
 Every (scene, variant) cell renders the path once in this process, warm (compile apart), and
 appends one record to ``results.jsonl`` (``--resume`` skips finished cells). ``dynamic.md`` is
@@ -50,7 +51,7 @@ from engine.render.config import from_dict
 
 TOP_KEYS = {"kind", "name", "description", "threads", "frames", "resolution", "packet", "scene", "variant"}
 SCENE_KEYS = {"name", "path", "recursion", "params", "label"}
-VARIANT_KEYS = {"label", "traversal", "frustum", "accel", "degrade"}
+VARIANT_KEYS = {"label", "traversal", "frustum", "accel", "degrade", "budget"}
 
 
 def _fail(source, where, message):
@@ -101,7 +102,7 @@ def cell_config(matrix: dict, scene: dict, variant: dict, source: str):
         "frustum": _per_kind(variant.get("frustum", "paper"), "frustum"),
         "materials": {"override": preset.override},
         "accel": {"update": variant.get("accel", "rebuild"),
-                  **({"degrade": variant["degrade"]} if "degrade" in variant else {})},
+                  **{key: variant[key] for key in ("degrade", "budget") if key in variant}},
     }
     try:
         return from_dict(table, source=f"{source} scene {_scene_label(scene)!r} variant {variant.get('label')!r}")

@@ -87,10 +87,11 @@ class AnimationRenderer:
         self.path, self.config, self.observer_for = path, config, observer_for
         self.keeper = self._new_keeper()
         self.renderer = None
+        self.last_frame_seconds = None   # auto's rebuild budget is a share of it
 
     def _new_keeper(self) -> BVHKeeper:
         r, a = self.config.render, self.config.accel
-        return BVHKeeper(a.update, leaf_size=r.leaf_size, bins=r.bins, degrade=a.degrade,
+        return BVHKeeper(a.update, leaf_size=r.leaf_size, bins=r.bins, degrade=a.degrade, budget=a.budget,
                          needs_tree=uses_bvh(self.config))
 
     def warm_up(self, time_: float) -> float:
@@ -112,7 +113,7 @@ class AnimationRenderer:
         """Render the frame at ``time_`` (``index``: its place on the path, for the record)."""
         started = time.perf_counter()
         scene = self.path.scene_at(time_)
-        bvh, accel = self.keeper.update(scene.triangles)
+        bvh, accel = self.keeper.update(scene.triangles, self.last_frame_seconds)
         if self.renderer is None:
             self.renderer = WhittedRenderer(scene, self.config, bvh=bvh)
         else:
@@ -127,8 +128,9 @@ class AnimationRenderer:
         seconds = {"scene": scene_seconds, "accel": accel_seconds, "trace": trace,
                    "shade": result.seconds["total"] - trace}
         seconds["total"] = seconds["scene"] + seconds["accel"] + result.seconds["total"]
+        self.last_frame_seconds = seconds["total"]
         record = {"index": index, "time": time_, "seconds": seconds,
-                  "accel": {"policy": accel["policy"], "sah_cost": accel["sah_cost"],
+                  "accel": {"policy": accel["policy"], "reason": accel.get("reason"), "sah_cost": accel["sah_cost"],
                             "sah_ratio": accel["sah_ratio"]},
                   "rays": dict(result.rays)}
         return Frame(index, time_, result, record)
@@ -136,6 +138,7 @@ class AnimationRenderer:
     def restart(self) -> None:
         """Forget the kept tree (the next frame builds afresh), e.g. after frames were skipped."""
         self.keeper = self._new_keeper()
+        self.last_frame_seconds = None
 
 
 def path_summary(records: list) -> dict:

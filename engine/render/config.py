@@ -13,6 +13,7 @@
     [plugins]    load_entry_points = false
     [accel]      update = "rebuild"      # per animation frame: "rebuild" | "refit" | "auto"
                  degrade = 1.2           # auto: rebuild past this SAH cost over the last build's
+                 budget = 0.05           # auto: rebuild while a build takes <= this share of a frame
     [options.rayspace]  pair_budget = 4194304   # per-plugin options, checked by the plugin
 
 An unknown section, key or plugin name is a ConfigError that says what is allowed.
@@ -75,6 +76,7 @@ class AccelConfig:
 
     update: str = "rebuild"
     degrade: float = 1.2
+    budget: float = 0.05
 
 
 def _defaults(table: dict) -> dict:
@@ -171,6 +173,8 @@ def validate(config: Config) -> Config:
         raise ConfigError(f"accel.update must be 'rebuild', 'refit' or 'auto', got {config.accel.update!r}")
     if not 1.0 < config.accel.degrade <= 100.0:
         raise ConfigError(f"accel.degrade must be in (1, 100] (a SAH cost ratio), got {config.accel.degrade!r}")
+    if not 0.0 <= config.accel.budget <= 1.0:
+        raise ConfigError(f"accel.budget must be in 0..1 (a share of a frame), got {config.accel.budget!r}")
     if config.override not in ("none", "reflective", "refractive"):
         raise ConfigError(f"materials.override must be 'none', 'reflective' or 'refractive', got {config.override!r}")
     from engine.render.plugins import configured, load_entry_points, make_traversal
