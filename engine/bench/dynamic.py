@@ -23,6 +23,8 @@ A matrix with ``kind = "dynamic"`` (``packetrt bench benchmarks/bart-dynamic.tom
     accel = "auto"                  # rebuild | refit | auto
     degrade = 1.2                   # auto's SAH threshold (optional)
     budget = 0.05                   # auto rebuilds while a build is at most this share of a frame
+    frames = 4                      # optional: this variant's own frame count and resolution
+    resolution = 256                # (the ray-space hierarchy is slow on a CPU)
 
 Every (scene, variant) cell renders the path once in this process, warm (compile apart), and
 appends one record to ``results.jsonl`` (``--resume`` skips finished cells). ``dynamic.md`` is
@@ -51,7 +53,7 @@ from engine.render.config import from_dict
 
 TOP_KEYS = {"kind", "name", "description", "threads", "frames", "resolution", "packet", "scene", "variant"}
 SCENE_KEYS = {"name", "path", "recursion", "params", "label"}
-VARIANT_KEYS = {"label", "traversal", "frustum", "accel", "degrade", "budget"}
+VARIANT_KEYS = {"label", "traversal", "frustum", "accel", "degrade", "budget", "frames", "resolution"}
 
 
 def _fail(source, where, message):
@@ -91,7 +93,7 @@ def cell_config(matrix: dict, scene: dict, variant: dict, source: str):
         params["lights"] = 0
     elif preset.max_lights is not None:
         params["lights"] = preset.max_lights
-    side = matrix.get("resolution", 1024)
+    side = variant.get("resolution", matrix.get("resolution", 1024))
     width, height = (side, side) if isinstance(side, int) else tuple(side)
     table = {
         "scene": {"path": scene["path"]} if "path" in scene else {"name": scene["name"], **params},
@@ -116,15 +118,22 @@ def load_dynamic(data: dict, source: str) -> tuple[dict, list]:
     unknown = set(data) - TOP_KEYS
     if unknown:
         _fail(source, "top level", f"unknown key(s) {sorted(unknown)}; allowed: {', '.join(sorted(TOP_KEYS))}")
-    frames = data.get("frames", 40)
-    if isinstance(frames, bool) or not isinstance(frames, int) or not 1 <= frames <= 100_000:
-        _fail(source, "frames", f"must be an integer in 1..100000, got {frames!r}")
+    for where, table in [("top level", data)] + [(f"variant[{i}]", v) for i, v in enumerate(data.get("variant") or [])
+                                                 if isinstance(v, dict)]:
+        frames = table.get("frames", 40)
+        if isinstance(frames, bool) or not isinstance(frames, int) or not 1 <= frames <= 100_000:
+            _fail(source, f"{where} frames", f"must be an integer in 1..100000, got {frames!r}")
+        side = table.get("resolution", 1024)
+        sides = [side] if not isinstance(side, list) else side
+        if len(sides) not in (1, 2) or not all(isinstance(x, int) and not isinstance(x, bool) for x in sides):
+            _fail(source, f"{where} resolution", f"must be an integer or [width, height], got {side!r}")
     cells = []
     for i, scene in enumerate(_table_list(source, data, "scene", SCENE_KEYS)):
         if ("name" in scene) == ("path" in scene):
             _fail(source, f"scene[{i}]", "give a catalog name or a path (one of them)")
         for variant in _table_list(source, data, "variant", VARIANT_KEYS):
             config = cell_config(data, scene, variant, source)
+            frames = variant.get("frames", data.get("frames", 40))
             identity = json.dumps({"config": config.to_dict(), "frames": frames}, sort_keys=True, default=str)
             cells.append((hashlib.sha1(identity.encode()).hexdigest()[:16], scene, variant, config))
     return data, cells
@@ -136,7 +145,7 @@ def run_cell(matrix: dict, scene: dict, variant: dict, config, cell_id: str, mac
 
     started = time.time()
     path = open_path(config.scene, config.override)
-    times = plan_times(path, frames=matrix.get("frames", 40))
+    times = plan_times(path, frames=variant.get("frames", matrix.get("frames", 40)))
     animator = AnimationRenderer(path, config)
     compile_seconds = animator.warm_up(times[0])
     records = [animator.frame(i, t).record for i, t in enumerate(times)]
@@ -163,9 +172,9 @@ def table(records: list) -> str:
         cfg = r["config"]
         if cfg["accel"]["update"] == "rebuild":
             fresh[(r["labels"]["scene"], json.dumps(cfg["traversal"]), json.dumps(cfg["frustum"]))] = r
-    lines = ["| scene | variant | frames | mean FPS | static FPS | FPS / static | accel share | scene share | "
+    lines = ["| scene | variant | size | frames | mean FPS | static FPS | FPS / static | accel share | scene share | "
              "accel ms (mean) | policies | trace / fresh tree (median, max) |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|"]
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|"]
     for r in records:
         cfg, path = r["config"], r["path"]
         key = (r["labels"]["scene"], json.dumps(cfg["traversal"]), json.dumps(cfg["frustum"]))
@@ -178,7 +187,8 @@ def table(records: list) -> str:
                       for f, b in zip(path["frames"], base["path"]["frames"]) if b["seconds"]["trace"] > 0]
             ratio = f"{np.median(ratios):.2f}, {max(ratios):.2f}"
         policies = ", ".join(f"{n} {p}" for p, n in path["policies"].items() if n)
-        lines.append(f"| {r['labels']['scene']} | {r['labels']['variant']} | {r['frames']} | {fmt(path['mean_fps'])} | "
+        size = f"{cfg['render']['width']}x{cfg['render']['height']}"
+        lines.append(f"| {r['labels']['scene']} | {r['labels']['variant']} | {size} | {r['frames']} | {fmt(path['mean_fps'])} | "
                      f"{fmt(static)} | {fmt(path['mean_fps'] / static)} | {100 * path['phase_share']['accel']:.1f}% | "
                      f"{100 * path['phase_share']['scene']:.1f}% | {accel_ms:.1f} | {policies} | {ratio} |")
     m = records[0]["machine"] if records else {}
