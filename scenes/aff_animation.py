@@ -23,6 +23,7 @@ from engine.core.scene import PointLight, SceneBuilder, make_triangles
 from engine.core.types import Triangles
 
 from .aff import Loader, _camera_from, _face_normals, _floats, _transform, check_params
+from .aff_placement import MovingRows
 from .catalog import scene_animator, scene_loader
 
 
@@ -49,12 +50,14 @@ class AffAnimation:
         self.moving_nodes = loader.animated_nodes()
         if not loader.instances and not loader.animated_tris:
             raise SceneError(f"{self.path}: the scene has no geometry")
-        world = loader.world_matrices(0.0)
-        # Blocks under static transforms are placed once; None marks a block placed per frame.
-        self.static_parts = [None if self.moving_nodes[node] else _transform(world[node], g.corners, g.normals)
-                             for node, g, _ in loader.instances]
         self.has_normals = any(g.normals is not None for _, g, _ in loader.instances) or bool(loader.animated_tris)
         self.has_uvs = any(g.uvs is not None for _, g, _ in loader.instances)
+        world = loader.world_matrices(0.0)
+        # Blocks under static transforms are placed once (their rows complete: normals and uvs
+        # filled in); None marks a block placed per frame, with every other moving row.
+        self.static_parts = [None if self.moving_nodes[node] else self._complete(world[node], g, m)
+                             for node, g, m in loader.instances]
+        self.moving = MovingRows(loader, [p is None for p in self.static_parts], self.has_normals, self.has_uvs)
         anim = loader.settings["animation"]
         self.start, self.end, self.frames = (float(anim[0]), float(anim[1]), int(anim[2])) if anim else (0.0, 0.0, 1)
         _, camera_kind = _camera_from(loader.settings["view"], loader.keyframes, 0.0, camera)
@@ -65,45 +68,45 @@ class AffAnimation:
         self.parse_seconds = _time.perf_counter() - started
 
     # -- geometry ------------------------------------------------------------------------
-    def _parts(self, time: float, moving_only: bool):
-        """[(corners f64[t,3,3], normals f64[t,3,3] | None, uvs f64[t,3,2] | None, material
-        index)] of every part in scene order (or of the moving ones only), placed at ``time``."""
-        loader = self.loader
-        world = loader.world_matrices(time)
-        parts = []
-        for (node, geometry, material), static in zip(loader.instances, self.static_parts):
-            if static is None:
-                placed, normals = _transform(world[node], geometry.corners, geometry.normals)
-            elif moving_only:
-                continue
-            else:
-                placed, normals = static
-            parts.append((placed, normals, geometry.uvs, material))
-        for node, triangle, material in loader.animated_tris:
-            c, n = triangle.at(time)
-            placed, normals = _transform(world[node], c[None], n[None])
-            parts.append((placed, normals, None, material))
-        return parts
+    def _complete(self, matrix, geometry, material) -> tuple:
+        """(corners, normals | None, uvs | None, material i32[t]) of a block placed by
+        ``matrix``, normals (geometric where the block has none) and uvs (zero) filled in when
+        the scene carries them."""
+        placed, normals = _transform(matrix, geometry.corners, geometry.normals)
+        if self.has_normals and normals is None:
+            normals = _face_normals(placed)
+        uvs = (geometry.uvs if geometry.uvs is not None else np.zeros((len(placed), 3, 2))) if self.has_uvs else None
+        return placed, normals if self.has_normals else None, uvs, np.full(len(placed), material, np.int32)
 
-    def _triangles(self, parts) -> Triangles:
-        """One Triangles over ``parts`` (see ``_parts``), normals and uvs filled where a part
-        has none (geometric normals, zero uvs) when any part of the scene has them."""
-        corners = np.concatenate([p[0] for p in parts])
-        normals = (np.concatenate([n if n is not None else _face_normals(c) for c, n, _, _ in parts])
-                   if self.has_normals else None)
-        uvs = (np.concatenate([u if u is not None else np.zeros((len(c), 3, 2)) for c, _, u, _ in parts])
-               if self.has_uvs else None)
-        materials = np.concatenate([np.full(len(c), m, np.int32) for c, _, _, m in parts])
+    def _placed(self, time: float, world: list, moving_only: bool) -> tuple:
+        """(corners f64[T,3,3], normals f64[T,3,3] | None, uvs f64[T,3,2] | None, material
+        i32[T]) of every row in scene order, or of the moving rows only, at ``time`` (``world``:
+        the transform nodes' matrices then)."""
+        moved = self.moving.place(world, time)
+        if moving_only:
+            return moved
+        pieces, blocks = [], iter(self.moving.blocks)
+        for static in self.static_parts:
+            if static is None:
+                _, start, end = next(blocks)
+                static = tuple(None if a is None else a[start:end] for a in moved)
+            pieces.append(static)
+        tail = self.moving.n_block_rows
+        pieces.append(tuple(None if a is None else a[tail:] for a in moved))
+        return tuple(None if pieces[0][i] is None else np.concatenate([p[i] for p in pieces]) for i in range(4))
+
+    def _triangles(self, corners, normals, uvs, materials) -> Triangles:
+        """One Triangles from placed rows (see ``_placed``)."""
         t = len(corners)
         return make_triangles(corners.reshape(-1, 3), np.arange(3 * t).reshape(t, 3), materials,
                               normals=normals, uvs=uvs, source=str(self.path))
 
-    def _triangles_at(self, time: float) -> Triangles:
+    def _triangles_at(self, time: float, world: list) -> Triangles:
         """The scene's triangles at ``time``: the first call builds every row; later calls copy
         that build and rebuild the moving rows only (equal, row for row, to a full build). The
         caller copies what it keeps (the first call's arrays are the kept build)."""
         if self._base is None:
-            self._base = self._triangles(self._parts(time, moving_only=False))
+            self._base = self._triangles(*self._placed(time, world, moving_only=False))
             rows, start = [], 0
             for (_, geometry, _), static in zip(self.loader.instances, self.static_parts):
                 if static is None:
@@ -115,7 +118,7 @@ class AffAnimation:
         fresh = [a.copy() for a in self._base]
         rows = self._moving_rows
         if rows.size:
-            moved = self._triangles(self._parts(time, moving_only=True))
+            moved = self._triangles(*self._placed(time, world, moving_only=True))
             for array, new in zip(fresh, moved):
                 if array.shape[0]:            # normals / uvs may be absent: shape (0, ...)
                     array[rows] = new
@@ -128,8 +131,8 @@ class AffAnimation:
         started = _time.perf_counter()
         time = float(time)
         loader = self.loader
-        tris = self._triangles_at(time)
         world = loader.world_matrices(time)
+        tris = self._triangles_at(time, world)
         builder = SceneBuilder(self.path.stem, source=str(self.path))
         builder.materials = list(loader.builder.materials)
         builder.add_triangles(tris)                 # build() copies it
