@@ -275,3 +275,26 @@ def test_rayspace_picture_has_cone_and_survivors():
     names = [name for name, *_ in pic.lines]
     assert "cone" in names and "survivors" in names and "rays" in names
     assert 0 < pic.summary["survivors"] <= 3072
+
+
+def test_captured_batch_survives_the_renderer_reusing_its_arrays():
+    """The renderer reuses per-lane arrays: the third generation's reflections land in the
+    first one's. The batch ``show`` draws must still be the first, as it was traced."""
+    config = with_overrides(Config(), size=(32, 32), depth=4, packet=4)
+    config = config.__class__(**{**config.__dict__, "override": "reflective"})
+    renderer = WhittedRenderer(scene_from_config(config.scene, config.override), config)
+    first = []
+
+    def copy_first(kind, query, rays, packets, answer):
+        if kind == "reflection" and not first:
+            first.append((np.array(rays.org), np.array(rays.dir), np.array(answer.t)))
+
+    renderer.observer = copy_first
+    renderer.render()                       # renders are deterministic: capture_batch's is the same
+    renderer.observer = None
+    rays, packets, query, answer, n_batches = capture_batch(renderer, "reflection")
+    assert n_batches >= 3
+    org, direction, t = first[0]
+    np.testing.assert_array_equal(rays.org, org)
+    np.testing.assert_array_equal(rays.dir, direction)
+    np.testing.assert_array_equal(answer.t, t)
