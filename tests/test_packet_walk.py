@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from engine.render.plugins import make_frustum, make_traversal
-from engine.core.types import COUNTER_NODES, empty_hits, new_stats
+from engine.core.types import COUNTER_NODES, Frusta, empty_hits, new_stats
 from engine.debug.packet_trace import packet_alone
 from engine.packet.plugin import PacketTraversal, walk_batch
 from engine.packet.record import DEPTH, kept_visits, new_record
@@ -45,6 +45,11 @@ def walk_one(rs, strategy, rays, packets, frusta, any_hit, counters=None, record
     return answers
 
 
+def packet_frustum(frusta, k):
+    """Packet k's frustum as the Frusta of a batch of one packet."""
+    return Frusta(np.ascontiguousarray(frusta.planes[k:k + 1]), np.ascontiguousarray(frusta.valid[k:k + 1]))
+
+
 @pytest.mark.parametrize("name", sorted(STRATEGIES))
 @pytest.mark.parametrize("kind", sorted(FRUSTUM_FOR))
 def test_a_record_changes_nothing_and_holds_every_counted_visit(rayset, name, kind):
@@ -56,7 +61,7 @@ def test_a_record_changes_nothing_and_holds_every_counted_visit(rayset, name, ki
     n_packets = len(packets.offsets) - 1
     recorded_some = False
     for k in range(0, n_packets, max(1, n_packets // 5)):
-        alone = packet_alone(rays, packets, frusta, k)
+        alone = (*packet_alone(rays, packets, k), packet_frustum(frusta, k))
         plain_counters = new_stats(numba.get_num_threads()).counters
         plain = walk_one(rayset, STRATEGIES[name], *alone, any_hit, plain_counters)
         counters = new_stats(numba.get_num_threads()).counters
@@ -77,7 +82,7 @@ def test_a_record_is_kept_for_one_packet_with_room_for_its_visits(rayset):
     with pytest.raises(ValueError, match="one packet at a time"):
         walk_one(rayset, STRATEGIES["partition"], rays, packets, None, False, record=new_record(100))
     k = (len(packets.offsets) - 1) // 2
-    alone = packet_alone(rays, packets, None, k)
+    alone = (*packet_alone(rays, packets, k), None)
     record = new_record(1)
     walk_one(rayset, STRATEGIES["partition"], *alone, False, record=record)
     assert record.count[0] > 1
@@ -94,6 +99,7 @@ from scenes.whitted import whitted_scene
 from engine.render.plugins import make_frustum, make_traversal
 from engine.core.types import empty_hits, new_stats
 from engine.debug.packet_trace import trace_packet
+from engine.render.tracer import Tracer
 
 rs = scene_rays(whitted_scene([], {"subdivisions": 1}, 0.0), 16, 16)
 for kind, frustum in %r.items():
@@ -104,7 +110,8 @@ for kind, frustum in %r.items():
         for stats in (None, new_stats(numba.get_num_threads())):
             plugin.intersect(rs.bvh, rs.tris, rays, packets, frusta, empty_hits(rays.org.shape[0]), stats)
             plugin.occluded(rs.bvh, rs.tris, rays, packets, frusta, np.zeros(rays.org.shape[0], np.bool_), stats)
-        trace_packet(rs.bvh, rs.tris, rays, packets, frusta, 0, name, kind == "shadow")
+        tracer = Tracer(rs.bvh, rs.tris, rs.bounds, {kind: plugin}, {kind: make_frustum(frustum)})
+        trace_packet(tracer, kind, rays, packets, 0, kind == "shadow")
 """
 
 

@@ -17,7 +17,7 @@ from engine.debug.show import (FRUSTUM, RAY_HIT, build_picture, capture_batch, c
                          node_colours)
 from engine.render.plugins import make_traversal
 from engine.core.triangle import slab_test
-from engine.core.types import COUNTER_NODES, Frusta, Packets, RayBatch, empty_hits, new_stats
+from engine.core.types import COUNTER_NODES, RAY_KINDS, Frusta, Packets, RayBatch, empty_hits, new_stats
 from engine.render.whitted import WhittedRenderer
 from scenes.catalog import scene_from_config
 
@@ -72,11 +72,10 @@ def test_recorded_walk_gives_the_real_traversals_hits(walk, frustum):
     bvh = renderer.bvh
     leaf_of = leaf_of_triangle(bvh)
     for kind, query, rays, packets, answer in every_kind(seen):
-        frusta = renderer.frustum[kind].build(rays, packets, renderer.bounds)
         n_packets = len(packets.offsets) - 1
         for k in range(0, n_packets, max(1, n_packets // 6)):
             start, stop = packets.offsets[k], packets.offsets[k + 1]
-            trace = trace_packet(bvh, renderer.tris, rays, packets, frusta, k, walk, query == "occluded")
+            trace = trace_packet(renderer.tracer, kind, rays, packets, k, query == "occluded")
             if query == "intersect":
                 assert np.array_equal(trace.prim, answer.prim[start:stop]), (kind, k)
                 assert np.array_equal(trace.t, answer.t[start:stop]), (kind, k)
@@ -104,10 +103,10 @@ def test_recorded_walk_descends_the_tree():
     bvh = renderer.bvh
     parent = node_parents(bvh)
     for walk in PACKET_WALKS:
+        tracer = renderer.tracer.with_traversal({kind: make_traversal(walk) for kind in RAY_KINDS})
         for kind, query, rays, packets, answer in every_kind(seen):
-            frusta = renderer.frustum[kind].build(rays, packets, renderer.bounds)
             for k in range(0, len(packets.offsets) - 1, 3):
-                trace = trace_packet(bvh, renderer.tris, rays, packets, frusta, k, walk, query == "occluded")
+                trace = trace_packet(tracer, kind, rays, packets, k, query == "occluded")
                 if trace.outcome[0] != CULLED:
                     at_root = sum(rays.tmin[r] <= rays.tmax[r] and slab_test(
                         *rays.org[r], *rays.inv_dir[r], rays.tmin[r], rays.tmax[r], bvh.bmin, bvh.bmax, 0) < np.inf
@@ -146,7 +145,7 @@ def test_recorded_walk_pops_the_nodes_the_kernel_counts(walk):
         frusta = renderer.frustum[kind].build(rays, packets, renderer.bounds)
         n_packets = len(packets.offsets) - 1
         for k in range(0, n_packets, max(1, n_packets // 6)):
-            trace = trace_packet(renderer.bvh, renderer.tris, rays, packets, frusta, k, walk, query == "occluded")
+            trace = trace_packet(renderer.tracer, kind, rays, packets, k, query == "occluded")
             alone, alone_packets, alone_frusta = one_packet(rays, packets, frusta, k)
             stats = new_stats(numba.get_num_threads())
             if query == "intersect":
@@ -166,9 +165,8 @@ def test_partition_rays_only_thin_out_going_down():
     parent = node_parents(bvh)
     culled = 0
     for kind, query, rays, packets, answer in every_kind(seen):
-        frusta = renderer.frustum[kind].build(rays, packets, renderer.bounds)
         for k in range(len(packets.offsets) - 1):
-            trace = trace_packet(bvh, renderer.tris, rays, packets, frusta, k, "partition", query == "occluded")
+            trace = trace_packet(renderer.tracer, kind, rays, packets, k, query == "occluded")
             alive = dict(zip(trace.nodes.tolist(), trace.alive.tolist()))
             for node, count in alive.items():
                 if node:

@@ -4,10 +4,10 @@ hierarchy, the cone-sphere node of one packet's screen tile with the triangles t
 down to it.
 
 The packet traversals (``PACKET_WALKS``, the strategies of ``engine.packet.strategies``) are
-not walked again here: the packet is cut out of its batch and run through the one packet walk
-(``engine.packet.walk``, by ``engine.packet.plugin.walk_batch`` as the plugins run it) with a
-record (``engine.packet.record``), so the nodes, their order and the answers are the
-kernel's. Per traversal, a visit's ``alive`` counts the live lanes whose segment meets the
+not walked again here: the packet is cut out of its batch and traced by the renderer's
+``Tracer`` (``record_walk``: the tracer builds its frustum and calls the plugin, whose one packet
+walk, ``engine.packet.walk``, fills a record, ``engine.packet.record``), so the nodes, their
+order and the answers are the kernel's. Per traversal, a visit's ``alive`` counts the live lanes whose segment meets the
 node's box among
 
 - ``partition``: the SIMD rays listed for the node (those that hit its parent);
@@ -34,7 +34,6 @@ from numba import njit
 from engine.core.types import MAX_BVH_DEPTH, Frusta, Packets, RayBatch, empty_hits
 from engine.packet.frustum_cull import load_frustum
 from engine.packet.kernels import leaf_triangles
-from engine.packet.plugin import walk_batch
 from engine.packet.record import DEPTH, LANES, NODE, OUTCOME, kept_visits, new_record
 from engine.packet import strategies
 from traversals.single import walk_ray
@@ -137,28 +136,31 @@ class _Recorder:
                            answers.t, answers.prim, answers.u, answers.v, list(notes))
 
 
-def trace_packet(bvh, tris, rays, packets, frusta, k: int, walk: str, any_hit: bool) -> PacketTrace:
-    """Packet ``k`` of ``rays`` (in ``packets``) through ``bvh`` as traversal ``walk`` takes it
-    (one of PACKET_WALKS or RAY_WALKS), with its frustum from ``frusta`` (None = no culling)."""
+def trace_packet(tracer, kind: str, rays, packets, k: int, any_hit: bool) -> PacketTrace:
+    """Packet ``k`` of ``rays`` (in ``packets``, of ray kind ``kind``) as the tracer's traversal
+    for that kind takes it (one of PACKET_WALKS or RAY_WALKS) through the tracer's BVH, with the
+    frustum the tracer builds for it. Packet traversals record through ``Tracer.record_walk``."""
+    walk = getattr(tracer.traversal[kind], "name", None)
     if walk not in PACKET_WALKS + RAY_WALKS:
         raise ValueError(f"no packet walk for traversal {walk!r}; known: {', '.join(PACKET_WALKS + RAY_WALKS)}")
     offsets = np.asarray(packets.offsets)
     if not 0 <= k < len(offsets) - 1:
         raise ValueError(f"packet {k} out of range 0..{len(offsets) - 2}")
     start, n = int(offsets[k]), int(offsets[k + 1] - offsets[k])
+    bvh, tris = tracer.bvh, tracer.tris
     rec = _Recorder()
     if walk in RAY_WALKS:
         return _ray_walk(bvh, tris, rays, start, n, any_hit, rec, walk)
-    alone, alone_packets, alone_frusta = packet_alone(rays, packets, frusta, k)
-    answers = empty_hits(n)
+    alone, alone_packets = packet_alone(rays, packets, k)
     capacity = RECORD_CAPACITY
     while True:
         record = new_record(capacity)
-        walk_batch(strategies.STRATEGIES[walk], bvh, tris, alone, alone_packets, alone_frusta, any_hit,
-                   answers.t, answers.prim, answers.u, answers.v, record=record)
+        answers, alone_frusta = tracer.record_walk(kind, alone, alone_packets, any_hit, record)
         if record.count[0] <= capacity:
             break
         capacity = int(record.count[0])
+    if alone_frusta is None:                     # no culling: an all-invalid frustum lists every triangle
+        alone_frusta = Frusta(np.zeros((1, 4, 4), np.float32), np.zeros(1, np.bool_))
     for node, depth, outcome, lanes in kept_visits(record)[:, [NODE, DEPTH, OUTCOME, LANES]].tolist():
         rec.visit(node, depth, OUTCOME_NAMES[outcome], lanes)
     leaves = {node: _tested_triangles(bvh.first, bvh.count, bvh.prim, node, tris.v0, tris.v1, tris.v2,
@@ -168,18 +170,13 @@ def trace_packet(bvh, tris, rays, packets, frusta, k: int, walk: str, any_hit: b
     return rec.trace(walk, start, n, live, leaves, answers)
 
 
-def packet_alone(rays, packets, frusta, k: int):
-    """Packet k as a batch of its own: (RayBatch, Packets, Frusta), the frustum all-invalid
-    when ``frusta`` is None."""
+def packet_alone(rays, packets, k: int):
+    """Packet k as a batch of its own: (RayBatch, Packets). Frusta are built per packet from
+    its own rays, so the tracer builds this packet the frustum it had in its batch."""
     start, stop = int(packets.offsets[k]), int(packets.offsets[k + 1])
     alone = RayBatch(*(np.ascontiguousarray(getattr(rays, f)[start:stop]) for f in RayBatch._fields[:-1]),
                      rays.kind)
-    if frusta is None:
-        frustum = Frusta(np.zeros((1, 4, 4), np.float32), np.zeros(1, np.bool_))
-    else:
-        frustum = Frusta(np.ascontiguousarray(frusta.planes[k:k + 1], np.float32),
-                         np.ascontiguousarray(frusta.valid[k:k + 1], np.bool_))
-    return alone, Packets(np.array([0, stop - start], np.int32), packets.size, packets.width, packets.height), frustum
+    return alone, Packets(np.array([0, stop - start], np.int32), packets.size, packets.width, packets.height)
 
 
 def _ray_walk(bvh, tris, rays, start, n, any_hit, rec, walk) -> PacketTrace:

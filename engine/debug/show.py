@@ -294,6 +294,7 @@ def _view(p0, p1, up_hint):
 def build_picture(scene, config, kind: str, packet_index=None, renderer=None) -> Picture:
     """Everything ``packetrt show`` draws for one packet (see the module doc)."""
     from engine.debug.packet_trace import PACKET_WALKS, RAY_WALKS, rayspace_node, trace_packet
+    from engine.render.plugins import make_traversal
     from engine.render.whitted import WhittedRenderer
 
     if kind not in RAY_KINDS:
@@ -318,7 +319,7 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
     start, stop = int(packets.offsets[k]), int(packets.offsets[k + 1])
     traversal = config.traversal.get(kind)
     frustum_name = config.frustum.get(kind)
-    frusta = renderer.frustum[kind].build(rays, packets, renderer.bounds)
+    frusta = renderer.tracer.frusta_for(kind, rays, packets)
     any_hit = query == "occluded"
     tris, bvh = renderer.tris, renderer.bvh
     pic = Picture()
@@ -366,8 +367,10 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
         pic.summary = {"packet": k, "packets": n_packets, "traversal": "rayspace", "live": int(len(lanes)),
                        "survivors": int(node.survivors.size), "level": node.level}
     else:
-        walk = traversal if traversal in PACKET_WALKS + RAY_WALKS else "single"
-        trace = trace_packet(bvh, tris, rays, packets, frusta, k, walk, any_hit)
+        tracer = renderer.tracer
+        if traversal not in PACKET_WALKS + RAY_WALKS:   # a plugin we cannot follow: shown as `single`
+            tracer = tracer.with_traversal({**tracer.traversal, kind: make_traversal("single")})
+        trace = trace_packet(tracer, kind, rays, packets, k, any_hit)
         hit = trace.prim >= 0
         t_end = trace.t if not any_hit else np.where(hit, trace.t, rays.tmax[start:stop])
         p0, p1, lanes = ray_segments(rays, start, stop, t_end, renderer.bounds)
@@ -394,14 +397,14 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
         if corners is not None:
             pic.lines.append(("frustum", corners, frustum_segments(), np.tile(FRUSTUM, (12, 1)), 1.5))
         counts = {o: int((outcome == o).sum()) for o in ("entered", "missed", "culled")}
-        walk_note = "" if walk == traversal else f" (walked as {walk})"
+        walk_note = "" if trace.walk == traversal else f" (walked as {trace.walk})"
         pic.legend.append(f"traversal {traversal}{walk_note}, frustum {frustum_name}"
                           + ("" if fvalid else " (none built for this packet)"))
         pic.legend.append(f"{trace.live} live rays, {int(hit.sum())} {'occluded' if any_hit else 'hit'}; "
                           f"{len(trace.nodes)} nodes visited: {counts['entered']} entered, "
                           f"{counts['missed']} missed, {counts['culled']} culled")
         pic.legend += trace.notes
-        pic.scale = ("live rays at node" if walk != "single" else "rays through node", trace.live)
+        pic.scale = ("live rays at node" if trace.walk != "single" else "rays through node", trace.live)
         pic.keys = [(RAY_HIT, "ray to its hit" if not any_hit else "occluded ray"),
                     (RAY_MISS, "missing ray" if not any_hit else "unoccluded ray"),
                     (FRUSTUM, "frustum"), (HIT_TRIANGLE, "hit triangle"),
@@ -413,7 +416,7 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
         if leaves:
             focus_pts.append(bvh.bmin[leaves])
             focus_pts.append(bvh.bmax[leaves])
-        pic.summary = {"packet": k, "packets": n_packets, "traversal": traversal, "walk": walk,
+        pic.summary = {"packet": k, "packets": n_packets, "traversal": traversal, "walk": trace.walk,
                        "live": trace.live, "visited": len(trace.nodes), **counts,
                        "frustum_valid": fvalid, "hits": int(hit.sum())}
     if sampled:

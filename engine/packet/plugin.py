@@ -97,6 +97,12 @@ class PacketTraversal:
         self._run(bvh, tris, rays, packets, frusta, True, any_hit.t, any_hit.prim, any_hit.u, any_hit.v, stats)
         occluded[:] = any_hit.prim >= 0
 
+    def walk_recorded(self, bvh, tris, rays, packets, frusta, any_hit, hits, record):
+        """The walk of a batch of one packet, recorded into ``record`` (a PacketRecord) by the
+        same kernel: answers (closest, or first when ``any_hit``) into ``hits``."""
+        walk_batch(self.strategy, bvh, tris, rays, packets, frusta, any_hit, hits.t, hits.prim, hits.u, hits.v,
+                   record=record)
+
     def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats):
         walk_batch(self.strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
                    None if stats is None else stats.counters, kernel=type(self).kernel)

@@ -59,11 +59,11 @@ class Tracer:
         """Hits (query "intersect") or bool[R] occlusion flags (query "occluded") of ``rays``
         (R rays in ``packets``), in batch order. ``answer``: arrays of that shape to answer
         into (reset here to all misses), instead of new ones."""
-        traversal, frustum = self.traversal[kind], self.frustum[kind]
+        traversal = self.traversal[kind]
         stats = tally.stats_for(kind) if tally is not None else None
         n = rays.org.shape[0]
         start = time.perf_counter()
-        frusta = None if frustum is None else frustum.build(rays, packets, self.bounds)
+        frusta = self.frusta_for(kind, rays, packets)
         if query == "intersect":
             if answer is None:
                 answer = empty_hits(n)
@@ -82,6 +82,25 @@ class Tracer:
             tally.seconds[kind] += time.perf_counter() - start
             tally.rays[kind] += int(np.count_nonzero(rays.tmin <= rays.tmax))
         return answer
+
+    def frusta_for(self, kind: str, rays: RayBatch, packets):
+        """The kind's frusta of ``rays`` (one per packet), or None when its traversal takes none."""
+        frustum = self.frustum[kind]
+        return None if frustum is None else frustum.build(rays, packets, self.bounds)
+
+    def record_walk(self, kind: str, rays: RayBatch, packets, any_hit: bool, record):
+        """The walk of a batch of one packet through the kind's traversal, recorded node by node
+        into ``record`` (``engine.packet.record``) by the traversal's own kernel, for ``packetrt
+        show``: (Hits of the packet's rays -- the first hit found when ``any_hit`` -- and the
+        Frusta it was culled with). A traversal that cannot record (no ``walk_recorded``:
+        ``single``, Embree, the ray-space hierarchy) is a ValueError."""
+        traversal = self.traversal[kind]
+        if not hasattr(traversal, "walk_recorded"):
+            raise ValueError(f"traversal {getattr(traversal, 'name', traversal)!r} cannot record a packet walk")
+        frusta = self.frusta_for(kind, rays, packets)
+        answers = empty_hits(rays.org.shape[0])
+        traversal.walk_recorded(self.bvh, self.tris, rays, packets, frusta, any_hit, answers, record)
+        return answers, frusta
 
     def with_traversal(self, traversal: dict, frustum: dict | None = None) -> "Tracer":
         """The same BVH and triangles traced with other plugins."""
