@@ -46,7 +46,7 @@ class Parser(argparse.ArgumentParser):
 
 
 def _nearest_option(parser: argparse.ArgumentParser, argv: list, message: str) -> str:
-    """", did you mean --size?" for the first unrecognised option of ``message``, matched
+    """``"; did you mean --size?"`` for the first unrecognised option of ``message``, matched
     against the options of the subcommand named in ``argv`` (else the top level's)."""
     if "unrecognized arguments:" not in message:
         return ""
