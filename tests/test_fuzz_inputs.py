@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import io
 import os
+import resource
 import warnings
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
@@ -25,12 +26,13 @@ from hypothesis import strategies as st
 
 from engine.cli import main
 
-settings.register_profile("ci", max_examples=30, derandomize=True, deadline=None, database=None,
+settings.register_profile("ci", max_examples=50, derandomize=True, deadline=None, database=None,
                           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 settings.register_profile("long", max_examples=400, deadline=None,
                           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
+PEAK_KIB = 4 * 2**20  # 4 GiB
 EARLIER = b"an earlier render that must survive a failed run"
 SMALL = ["--size", "8x8", "--depth", "1"]
 
@@ -76,6 +78,9 @@ def assert_promise(code: int, err: str, out: Path) -> None:
         with Image.open(out) as image:  # a whole PNG
             image.verify()
     assert not [p.name for p in out.parent.iterdir() if ".tmp" in p.name]
+    # Memory stays bounded: the process's peak (numba, trimesh and all) never nears what an
+    # unchecked size would allocate.
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss < PEAK_KIB
 
 
 def render(scene: Path, tmp: Path, *extra) -> None:
