@@ -14,22 +14,53 @@ selectors: --scene S  --param KEY=VALUE  --time T  --traversal KIND=NAME|NAME
            --frustum KIND=NAME|NAME  --packet N  --size WxH  --depth D  --threads T
            --override none|reflective|refractive
 
-A user mistake prints one line ``packetrt: error: ...`` and exits with code 2; an audit
-that finds a mismatch exits with code 1.
+A user mistake -- a mistyped option included -- prints one line ``packetrt: error: ...`` and
+exits with code 2; an audit that finds a mismatch exits with code 1. A texture or material
+library a mesh names but that is missing is one ``packetrt: warning: ...`` line, and an error
+under ``--strict``.
 """
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
 import sys
+import warnings
 from dataclasses import replace
 
-from engine.core.atomic import write_text
-from engine.core.errors import ConfigError, PacketrtError
+from engine.core import atomic, checked
+from engine.core.errors import ConfigError, PacketrtError, SceneError
 from engine.render.report import frames_dict, stats_dict
 
 EXIT_USAGE = 2
 EXIT_MISMATCH = 1
+
+
+class UsageError(Exception):
+    """argparse's complaint about the command line, raised instead of printing the usage block."""
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose mistakes become ``UsageError`` (``main`` prints one line)."""
+
+    def error(self, message):
+        raise UsageError(message)
+
+
+def _nearest_option(parser: argparse.ArgumentParser, argv: list, message: str) -> str:
+    """``"; did you mean --size?"`` for the first unrecognised option of ``message``, matched
+    against the options of the subcommand named in ``argv`` (else the top level's)."""
+    if "unrecognized arguments:" not in message:
+        return ""
+    words = message.split("unrecognized arguments:", 1)[1].split()
+    unknown = next((w.split("=", 1)[0] for w in words if w.startswith("-")), None)
+    if unknown is None:
+        return ""
+    commands = parser.commands.choices  # set by build_parser
+    chosen = commands.get(next((a for a in argv if a in commands), None), parser)
+    options = [o for action in chosen._actions for o in action.option_strings]  # argparse has no public list
+    match = difflib.get_close_matches(unknown, options, n=1, cutoff=0.6)
+    return f"; did you mean {match[0]}?" if match else ""
 
 
 def _scene_param(text: str):
@@ -50,7 +81,7 @@ def _add_selectors(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", help="catalog scene name or a mesh/.aff file path")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="scene parameter, e.g. lod=3 (repeatable)")
-    p.add_argument("--time", type=float, help="animation time for animated scenes")
+    p.add_argument("--time", type=_seconds, help="animation time for animated scenes")
     p.add_argument("--traversal", action="append", default=[], metavar="KIND=NAME|NAME")
     p.add_argument("--frustum", action="append", default=[], metavar="KIND=NAME|NAME")
     p.add_argument("--packet", type=int, help="packet side n (n x n rays): 2, 4, 8, 16 or 32")
@@ -59,6 +90,18 @@ def _add_selectors(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, help="threads (0 = all cores)")
     p.add_argument("--override", choices=["none", "reflective", "refractive"],
                    help="make every material reflective or refractive (Overbeck et al. Sec. 5)")
+    p.add_argument("--strict", action="store_true",
+                   help="a missing texture or material library is an error, not a warning")
+
+
+def _seconds(text: str) -> float:
+    """--time: a finite number of seconds (NaN would end up in the --stats JSON)."""
+    from engine.render.config import MAX_TIME
+
+    try:
+        return checked.parse_float(text, "--time", -MAX_TIME, MAX_TIME)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--time ")) from None
 
 
 def _config_from(args):
@@ -72,21 +115,29 @@ def _config_from(args):
     if args.time is not None:
         config = replace(config, scene=replace(config.scene, time=args.time))
     if args.override is not None:
-        config = cfg.validate(replace(config, override=args.override))
-    return config
+        config = replace(config, override=args.override)
+    return cfg.validate(config) if args.time is not None or args.override is not None else config
 
 
-def _load_scene(config):
+def _load_scene(config, strict: bool = False):
+    """The config's scene; what its loader warns about (a missing texture) is one stderr line
+    each, or with ``strict`` the error."""
     from scenes.catalog import scene_from_config
 
-    return scene_from_config(config.scene, config.override)
+    with warnings.catch_warnings():
+        # Overflow while a reader (trimesh, numpy) parses a file is checked afterwards and, if
+        # it matters, reported as one error line; numpy's own warning lines would only add noise.
+        warnings.simplefilter("ignore", RuntimeWarning)
+        scene = scene_from_config(config.scene, config.override)
+    for warning in scene.info.get("warnings", []):
+        if strict:
+            raise SceneError(f"{warning} (--strict)")
+        print(f"packetrt: warning: {warning}", file=sys.stderr)
+    return scene
 
 
 def _write_json(path: str, data: dict) -> None:
-    try:
-        write_text(path, json.dumps(data, indent=2, default=float) + "\n")
-    except OSError as exc:
-        raise PacketrtError(f"cannot write {path!r}: {exc.strerror or exc}") from None
+    atomic.write_json(path, data)
 
 
 def cmd_render(args) -> int:
@@ -94,7 +145,7 @@ def cmd_render(args) -> int:
     from engine.render.whitted import WhittedRenderer
 
     config = _config_from(args)
-    scene = _load_scene(config)
+    scene = _load_scene(config, args.strict)
     if args.audit:
         return _run_audit(scene, config, args.output, None, None, args.stats)
     renderer = WhittedRenderer(scene, config)
@@ -146,7 +197,7 @@ def cmd_show(args) -> int:
     if not (64 <= size[0] <= 4096 and 64 <= size[1] <= 4096):
         raise ConfigError(f"--picture must be between 64x64 and 4096x4096, got {size[0]}x{size[1]}")
     config = _config_from(args)
-    scene = _load_scene(config)
+    scene = _load_scene(config, args.strict)
     summary = write_show(scene, config, args.kind, args.packet_index, args.output, size)
     detail = ", ".join(f"{k} {v}" for k, v in summary.items() if k not in ("packet", "packets"))
     print(f"{args.kind} packet {summary['packet']} of {summary['packets']} ({detail}) -> {args.output}")
@@ -163,7 +214,7 @@ def cmd_view(args) -> int:
     config = _config_from(args)
     if args.size is None:
         config = validate(replace(config, render=replace(config.render, width=VIEW_SIZE[0], height=VIEW_SIZE[1])))
-    run_viewer(_load_scene(config), config, status_file=getattr(args, "status_file", None),
+    run_viewer(_load_scene(config, args.strict), config, status_file=getattr(args, "status_file", None),
                exit_after=getattr(args, "exit_after", None))
     return 0
 
@@ -209,7 +260,7 @@ def _run_audit(scene, config, image_path, json_path, report_dir, stats_path, ora
 
 def cmd_audit(args) -> int:
     config = _config_from(args)
-    scene = _load_scene(config)
+    scene = _load_scene(config, args.strict)
     return _run_audit(scene, config, None, args.json, args.report, None, oracle=args.oracle)
 
 
@@ -256,9 +307,10 @@ def cmd_scenes(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="packetrt", description="Embree-validated Whitted ray tracer "
+    parser = Parser(prog="packetrt", description="Embree-validated Whitted ray tracer "
                                      "with plugin traversals (large ray packets, ray-space hierarchy).")
     sub = parser.add_subparsers(dest="command", required=True)
+    parser.commands = sub  # for the nearest-option hint of a mistyped option
     p = sub.add_parser("render", help="render an image")
     _add_selectors(p)
     p.add_argument("-o", "--output", default="out/render.png", help="PNG to write")
@@ -334,11 +386,25 @@ def _add_view_parser(sub) -> None:
 
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        args = parser.parse_args(argv)
+    except UsageError as exc:
+        # One line instead of argparse's usage block; SystemExit(2) as argparse itself would.
+        print(f"packetrt: error: {exc}{_nearest_option(parser, argv, str(exc))}", file=sys.stderr)
+        raise SystemExit(EXIT_USAGE) from None
     try:
         return args.run(args)
     except PacketrtError as exc:
         print(f"packetrt: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except MemoryError:
+        print("packetrt: error: out of memory (the machine has less free memory than this render, scene "
+              "or benchmark needs); render smaller or free memory", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as exc:  # a file that cannot be read: permissions, a folder given for a file ...
+        print(f"packetrt: error: {exc.filename or ''}{': ' if exc.filename else ''}{exc.strerror or exc}",
+              file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("packetrt: interrupted", file=sys.stderr)

@@ -74,6 +74,7 @@ from typing import Optional
 import numpy as np
 
 from engine.core.errors import ConfigError, SceneError
+from engine.core import checked
 from engine.core.scene import Camera, Material, SceneBuilder
 
 _COMMENT = re.compile(r"[#%][^\n]*")
@@ -143,7 +144,7 @@ class Tokens:
         """f64[n] from the next n words."""
         start, words = self._block(n, what, "number")
         try:
-            return np.array(words, dtype=np.float64)
+            values = np.array(words, dtype=np.float64)
         except ValueError:
             for k, w in enumerate(words):
                 try:
@@ -151,6 +152,8 @@ class Tokens:
                 except ValueError:
                     raise self.error(f"expected a number for {what}, got {w!r}", start + k) from None
             raise  # pragma: no cover - numpy and float() agree on what a number is
+        # NaN, infinities and numbers beyond float32's reach are rejected where they stand.
+        return checked.array(values, lambda k: f"{self.path}:{self.line(start + k)}: {what}", error=SceneError)
 
     def integers(self, n: int, what: str) -> np.ndarray:
         """i64[n] from the next n words (decimal integers only)."""

@@ -11,8 +11,14 @@ Each ``scenes/catalog/<name>.toml`` says::
     lod = 0                                  # a config's [scene] keys may override these
     [variants]                               # optional: a parameter that picks the file,
     lod = ["a.ply", "b.ply"]                 # files = variants[param][value] (value 0..n-1)
+    [limits]                                 # every parameter's allowed values:
+    lod = [0, 3]                             # [min, max] (a float bound allows floats),
+    camera = ["auto", "static"]              # words, or words and a range: ["all", 0, 99]
     [camera]                                 # optional override: eye, look_at, up, fov
     [materials]                              # optional: override = "reflective"
+
+Parameters are checked against ``[limits]`` before any loader runs (``check_params``), so a
+parameter can neither crash a loader nor make it allocate without bound.
 
 Loaders are functions ``load(files: list[Path], params: dict, time: float) -> Scene``
 registered with ``@scene_loader("name")``; procedural generators are loaders with no files.
@@ -26,8 +32,11 @@ from dataclasses import dataclass, field, replace
 from importlib import import_module
 from pathlib import Path
 
-from engine.core.errors import ConfigError, SceneError
-from engine.core.scene import Camera, Scene, override_materials
+import numpy as np
+
+from engine.core import checked
+from engine.core.errors import ConfigError, ConfigTypeError, SceneError
+from engine.core.scene import Camera, Scene, check_scene, checked_camera, override_materials
 
 CATALOG_DIR = Path(__file__).with_name("catalog")
 SCENE_PATH_VARIABLE = "PACKETRT_SCENE_PATH"
@@ -75,6 +84,7 @@ class SceneEntry:
     materials: dict = field(default_factory=dict)
     variants: dict = field(default_factory=dict)
     catalog_file: str = ""
+    limits: dict = field(default_factory=dict)
 
 
 def search_path() -> list[Path]:
@@ -88,20 +98,55 @@ def entries() -> dict:
     found = {}
     for file in sorted(CATALOG_DIR.glob("*.toml")):
         try:
-            data = tomllib.loads(file.read_text())
-        except tomllib.TOMLDecodeError as exc:
+            data = tomllib.loads(file.read_text(encoding="utf-8"))
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise SceneError(f"{file}: not valid TOML: {exc}") from None
         allowed = {"name", "description", "loader", "files", "params", "animated", "camera", "materials",
-                   "variants"}
+                   "variants", "limits"}
         unknown = set(data) - allowed
         if unknown:
             raise SceneError(f"{file}: unknown key(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
         entry = SceneEntry(data["name"], data.get("description", ""), data["loader"],
                            list(data.get("files", [])), dict(data.get("params", {})),
                            bool(data.get("animated", False)), dict(data.get("camera", {})),
-                           dict(data.get("materials", {})), dict(data.get("variants", {})), str(file))
+                           dict(data.get("materials", {})), dict(data.get("variants", {})), str(file),
+                           dict(data.get("limits", {})))
+        unlimited = set(entry.params) - set(entry.limits)
+        if unlimited:
+            raise SceneError(f"{file}: parameter(s) {sorted(unlimited)} have no [limits] entry")
         found[entry.name] = entry
     return found
+
+
+def check_param(scene: str, key: str, value, default, limit: list):
+    """``value`` of parameter ``key`` of ``scene`` if ``limit`` allows it, else a ConfigError
+    naming the scene, the key and what is allowed. ``limit``: allowed words and/or a [min, max]
+    range; the range is of integers when both bounds and the default are integers."""
+    where = f"scene {scene!r}: parameter {key}"
+    words = [w for w in limit if isinstance(w, str)]
+    bounds = [b for b in limit if not isinstance(b, str)]
+    if isinstance(value, str) or not bounds:
+        if value in words:
+            return value
+        allowed = " or ".join([repr(w) for w in words] + ([f"a number in {bounds[0]}..{bounds[1]}"] if bounds else []))
+        wrong_type = not words if isinstance(value, str) else not bounds  # e.g. a word where a number belongs
+        raise (ConfigTypeError if wrong_type else ConfigError)(f"{where} must be {allowed}, got {value!r}")
+    lo, hi = bounds
+    if all(isinstance(x, int) for x in (lo, hi, default)):
+        return checked.to_int(value, where, lo, hi)
+    checked.to_float(value, where, lo, hi)
+    return value
+
+
+def check_params(entry: SceneEntry, params: dict) -> dict:
+    """The entry's defaults updated with ``params``, every one checked against ``[limits]``."""
+    unknown = set(params) - set(entry.params)
+    if unknown:
+        raise ConfigError(f"scene {entry.name!r} has no parameter(s) {sorted(unknown)}; "
+                          f"allowed: {sorted(entry.params) or 'none'}")
+    merged = {**entry.params, **params}
+    return {key: check_param(entry.name, key, value, entry.params[key], entry.limits[key])
+            for key, value in merged.items()}
 
 
 def find_files(entry: SceneEntry, params: dict | None = None) -> tuple[list[Path], list[str]]:
@@ -142,12 +187,7 @@ def _resolve(name: str, params: dict | None) -> tuple:
         raise ConfigError(f"unknown scene {name!r}; catalog scenes: {', '.join(sorted(catalog))} "
                           f"(or give [scene] path = \"file.obj\")")
     entry = catalog[name]
-    params = dict(params or {})
-    unknown = set(params) - set(entry.params)
-    if unknown:
-        raise ConfigError(f"scene {name!r} has no parameter(s) {sorted(unknown)}; "
-                          f"allowed: {sorted(entry.params) or 'none'}")
-    merged = {**entry.params, **params}
+    merged = check_params(entry, dict(params or {}))
     files, missing = find_files(entry, merged)
     if missing:
         raise SceneError(missing_message(name, missing))
@@ -161,7 +201,14 @@ def _as_entry(scene: Scene, entry: SceneEntry) -> Scene:
     """The loaded ``scene`` named and adjusted as its catalog entry says (camera, materials)."""
     scene = replace(scene, name=entry.name)
     if entry.camera:
-        scene.camera = Camera(**{**scene.camera.__dict__, **{k: (tuple(v) if isinstance(v, list) else v) for k, v in entry.camera.items()}})
+        # The entry's camera is in the files' coordinates: move it with a re-centred scene.
+        given = {k: (tuple(v) if isinstance(v, list) else v) for k, v in entry.camera.items()}
+        camera = checked_camera(Camera(**{**scene.camera.__dict__, **given}), entry.catalog_file)
+        origin = np.asarray(scene.origin, np.float64)
+        if origin.any():
+            camera = replace(camera, eye=tuple(camera.eye - origin), look_at=tuple(camera.look_at - origin))
+        scene.camera = camera
+        check_scene(scene)
     if entry.materials.get("override", "none") != "none":
         scene = override_materials(scene, entry.materials["override"])
     return scene

@@ -24,16 +24,24 @@ from pathlib import Path
 
 import numpy as np
 
+from engine.core import checked
 from engine.core.errors import SceneError
-from engine.core.scene import Material, PointLight, SceneBuilder
+from engine.core.scene import MAX_COLOUR, Material, PointLight, SceneBuilder
 
 from .catalog import scene_loader
 
 MESH_SUFFIXES = {".obj", ".ply", ".stl", ".off", ".glb", ".gltf"}
 
 
-def parse_mtl(path: Path) -> dict:
-    """{material name: Material} from an MTL file; a bad number names file and line."""
+#: Each MTL number's allowed range (colours, exponent, index of refraction, dissolve, model).
+MTL_RANGES = {"Ka": (0.0, MAX_COLOUR), "Kd": (0.0, MAX_COLOUR), "Ks": (0.0, MAX_COLOUR), "Ns": (0.0, MAX_COLOUR),
+              "Ni": (0.0, 1000.0), "d": (0.0, 1.0), "Tr": (0.0, 1.0)}
+ILLUM_MODELS = (0, 10)
+
+
+def parse_mtl(path: Path, warnings: list) -> dict:
+    """{material name: Material} from an MTL file; a bad number names file, line and range.
+    A texture that does not exist is a line added to ``warnings`` (the material is untextured)."""
     materials: dict = {}
     current = None
     props: dict = {}
@@ -47,21 +55,39 @@ def parse_mtl(path: Path) -> dict:
         if not words:
             continue
         key, args = words[0], words[1:]
+        where = f"{path}:{number}: {key!r}"
         if key == "newmtl":
             finish()
             current, props = (args[0] if args else f"material{len(materials)}"), {}
             continue
-        if key in ("Ka", "Kd", "Ks", "Ns", "Ni", "d", "Tr", "illum"):
-            try:
-                props[key] = [float(a) for a in args]
-            except ValueError:
-                raise SceneError(f"{path}:{number}: expected numbers after {key!r}, got {raw.strip()!r}") from None
-            if not props[key]:
+        if key in MTL_RANGES or key == "illum":
+            if not args:
                 raise SceneError(f"{path}:{number}: {key!r} needs a value")
+            if key == "illum":
+                props[key] = [checked.parse_int(args[0], where, *ILLUM_MODELS, error=SceneError)]
+            else:
+                props[key] = [checked.parse_float(a, where, *MTL_RANGES[key], error=SceneError) for a in args[:3]]
         elif key == "map_Kd" and args:
-            props["map_Kd"] = path.parent / args[-1]
+            texture = path.parent / args[-1]
+            if texture.is_file():
+                props["map_Kd"] = (texture, f"{path}:{number}")
+            else:
+                warnings.append(f"{path}:{number}: texture {args[-1]!r} not found (looked for {texture}); "
+                                f"the material is drawn untextured")
     finish()
     return materials
+
+
+def read_texture(path: Path, where: str) -> np.ndarray:
+    """f32[H,W,3] linear RGB of an image file; a file Pillow cannot read is a SceneError
+    naming the file and the MTL line that named it."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            return np.asarray(image.convert("RGB"), np.float32) / 255.0
+    except Exception as exc:  # Pillow raises many types (OSError, SyntaxError, DecompressionBombError ...)
+        raise SceneError(f"{where}: cannot read texture {str(path)!r}: {exc}") from None
 
 
 def material_from_mtl(name: str, p: dict) -> Material:
@@ -75,15 +101,13 @@ def material_from_mtl(name: str, p: dict) -> Material:
     if illum in (4, 6, 7):
         transmission = max(transmission, 0.9)
         reflectance = (0.1, 0.1, 0.1)
-    texture = None
-    if "map_Kd" in p and Path(p["map_Kd"]).is_file():
-        from PIL import Image
-        texture = np.asarray(Image.open(p["map_Kd"]).convert("RGB"), np.float32) / 255.0
+    texture = read_texture(*p["map_Kd"]) if "map_Kd" in p else None
+    ior = float(p.get("Ni", [1.5 if transmission > 0 else 1.0])[0])
     return Material(name=name, ambient=rgb("Ka", (0.1, 0.1, 0.1)), diffuse=rgb("Kd", (0.7, 0.7, 0.7)),
                     specular=ks, shininess=float(p.get("Ns", [16.0])[0]), reflectance=reflectance,
                     transmission=float(min(max(transmission, 0.0), 1.0)),
-                    ior=float(p.get("Ni", [1.5 if transmission > 0 else 1.0])[0]), texture=texture,
-                    texture_name=str(p.get("map_Kd", "")))
+                    ior=ior if ior > 0 else 1.0,  # "Ni 0" in exported files means "not set"
+                    texture=texture, texture_name=str(p["map_Kd"][0]) if "map_Kd" in p else "")
 
 
 def checked_obj_text(path: Path) -> str:
@@ -102,14 +126,14 @@ def checked_obj_text(path: Path) -> str:
             continue
         key = words[0]
         if key == "v":
-            try:
-                values = [float(w) for w in words[1:4]]
-            except ValueError:
-                raise SceneError(f"{path}:{number}: bad vertex {raw.strip()!r}: expected 3 numbers") from None
-            if len(values) < 3:
+            if len(words) < 4:
                 raise SceneError(f"{path}:{number}: vertex {raw.strip()!r} has fewer than 3 coordinates")
-            if not np.isfinite(values).all():
-                raise SceneError(f"{path}:{number}: vertex {raw.strip()!r} is not finite")
+            for w in words[1:4]:
+                try:
+                    float(w)
+                except ValueError:
+                    raise SceneError(f"{path}:{number}: bad vertex {raw.strip()!r}: expected 3 numbers") from None
+                checked.parse_float(w, f"{path}:{number}: vertex {raw.strip()!r}", error=SceneError)
         if key in counts:
             counts[key] += 1
         elif key == "f":
@@ -138,6 +162,25 @@ def _absolute_corner(path: Path, number: int, raw: str, word: str, counts: dict)
     return "/".join(parts)
 
 
+def read_mtllibs(path: Path, warnings: list) -> dict:
+    """{material name: Material} from every ``mtllib`` of OBJ ``path``; an MTL file that does
+    not exist is a line added to ``warnings``, an ``mtllib`` without a file name a SceneError."""
+    mtl = {}
+    for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        words = line.split("#", 1)[0].split(None, 1)
+        if not words or words[0] != "mtllib":
+            continue
+        if len(words) < 2:
+            raise SceneError(f"{path}:{number}: 'mtllib' needs a file name")
+        lib = path.parent / words[1].strip()
+        if lib.is_file():
+            mtl.update(parse_mtl(lib, warnings))
+        else:
+            warnings.append(f"{path}:{number}: material library {words[1].strip()!r} not found (looked for "
+                            f"{lib}); its materials are drawn in the default grey")
+    return mtl
+
+
 @scene_loader("mesh")
 def load_mesh_scene(files, params, time):
     """Load the first of ``files`` as a mesh scene."""
@@ -148,14 +191,10 @@ def load_mesh_scene(files, params, time):
     if suffix not in MESH_SUFFIXES:
         raise SceneError(f"{path}: unsupported mesh format {suffix!r}; "
                          f"supported: {', '.join(sorted(MESH_SUFFIXES))} and .aff")
-    mtl = {}
+    mtl, warnings = {}, []
     if suffix == ".obj":
         obj_text = checked_obj_text(path)
-        for line in path.read_text(errors="replace").splitlines():
-            if line.strip().startswith("mtllib"):
-                lib = path.parent / line.split(None, 1)[1].strip()
-                if lib.is_file():
-                    mtl.update(parse_mtl(lib))
+        mtl = read_mtllibs(path, warnings)
     try:
         if suffix == ".obj":
             loaded = trimesh.load(io.StringIO(obj_text), file_type="obj", process=False, maintain_order=True,
@@ -190,7 +229,7 @@ def load_mesh_scene(files, params, time):
             lights.append((centre, material))
         probe = builder.build()
         scene_size = float(np.linalg.norm(probe.bounds()[1] - probe.bounds()[0]))
-        centre_all = probe.bounds().mean(axis=0)
+        centre_all = probe.bounds().mean(axis=0) + np.asarray(probe.origin)  # in the file's coordinates
         placed = []
         for centre, material in lights:
             # Just inside the room from the emitter, towards the scene centre.
@@ -198,4 +237,6 @@ def load_mesh_scene(files, params, time):
             towards /= max(np.linalg.norm(towards), 1e-9)
             placed.append(PointLight(tuple(centre + towards * 0.02 * scene_size), (1.0, 1.0, 1.0)))
         lights = placed
-    return builder.build(lights=lights)
+    scene = builder.build(lights=lights)
+    scene.info["warnings"] = warnings
+    return scene

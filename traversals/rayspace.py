@@ -236,6 +236,25 @@ def _descend(h, first, last, centre, radius, abs_tol, budget, record, seconds):
     return nodes, tris, None, peak
 
 
+def _budget_needed(h, first, last, centre, radius, abs_tol, chunk: int = 4096) -> int:
+    """The smallest pair budget under which every triangle first .. last-1 passes alone: the
+    most (node, triangle) pairs any one of them makes at any level, counted through every level
+    (an overflow's own count stops at the level that overflowed, and deeper levels usually need
+    more). Triangles go ``chunk`` at a time, so the count needs no more memory than a trace.
+    Answers MAX_PAIR_BUDGET when even that is not enough."""
+    most = 1
+    for start in range(first, last, chunk):
+        stop = min(last, start + chunk)
+        nodes, tris = root_stream(start, stop)
+        for level in range(h.levels, 0, -1):
+            nodes, tris, step = expand(h, level, nodes, tris, centre, radius, abs_tol, MAX_PAIR_BUDGET)
+            if nodes is None:
+                return MAX_PAIR_BUDGET
+            if tris.size:
+                most = max(most, int(np.bincount(tris - start).max()))
+    return most
+
+
 def _batch_size(budget: int, triangles: int, pairs: int) -> int:
     """Triangles per batch that would fill BATCH_FILL of the budget, had ``triangles``
     triangles needed ``pairs`` pairs at their fullest level (neighbouring triangles in a mesh
@@ -305,10 +324,12 @@ class RaySpaceTraversal:
             if overflow is not None:
                 level, needed = overflow
                 if last - first == 1:
+                    enough = _budget_needed(h, first, n_tris, centre, radius, abs_tol)
                     raise ConfigError(
                         f"options.rayspace: pair_budget = {budget} is too small: triangle {first} alone "
                         f"needs {needed} (node, triangle) pairs at level {level} of the ray hierarchy "
-                        f"({record['rays']} rays); set pair_budget to at least {needed}")
+                        f"({record['rays']} rays); set pair_budget to at least {enough} (the most any "
+                        f"triangle left needs at any level for these rays)")
                 record["retries"] += 1
                 # ``needed`` counts only down to the overflowing level; deeper levels usually
                 # need more, and a retry wastes far more than a batch too small costs.

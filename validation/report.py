@@ -6,13 +6,12 @@ object or on one ray kind's paths.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from engine.core.errors import PacketrtError
-from engine.core.atomic import write_text
+from engine.core.atomic import json_text, write_text
 from engine.render.image import save_png
 
 
@@ -20,7 +19,7 @@ def write_report(folder: str, report: dict, image: np.ndarray, bad_pixels, width
     target = Path(folder)
     try:
         target.mkdir(parents=True, exist_ok=True)
-        write_text(target / "audit.json", json.dumps(report, indent=2, default=float) + "\n")
+        write_text(target / "audit.json", json_text(report))
     except OSError as exc:
         raise PacketrtError(f"cannot write report folder {folder!r}: {exc.strerror or exc}") from None
     save_png(image, str(target / "render.png"))

@@ -22,7 +22,7 @@ import numpy as np
 
 from engine.animate.plot import plot_path
 from engine.animate.preview import keep_for_preview, preview_format, shrink, write_preview
-from engine.core.atomic import write_text
+from engine.core.atomic import write_json
 from engine.core.errors import PacketrtError
 from engine.render.animation import AnimationRenderer, path_summary, plan_times
 from engine.render.image import save_png, to_srgb8
@@ -75,7 +75,7 @@ def _load_records(out: Path, identity: dict, resume: bool) -> dict:
 
 def _save_records(out: Path, identity: dict, records: dict) -> None:
     document = {"schema": SCHEMA, "identity": identity, "frames": {str(i): records[i] for i in sorted(records)}}
-    write_text(out / RECORDS, json.dumps(document, indent=1) + "\n")
+    write_json(out / RECORDS, document, "frame records")
 
 
 def _frame_observer(audit: bool):
@@ -155,10 +155,7 @@ def run_animation(config, out: str, *, frames=None, fps=None, start=None, end=No
         }
         if audit:
             document["audit"] = audit_total
-        try:
-            write_text(stats, json.dumps(document, indent=2, default=float) + "\n")
-        except OSError as exc:
-            raise PacketrtError(f"cannot write {stats!r}: {exc.strerror or exc}") from None
+        write_json(stats, document, "stats")
     share = summary["phase_share"]
     policies = summary["policies"]
     fps_text = f"{summary['mean_fps']:.2f}" if summary["mean_fps"] else "-"

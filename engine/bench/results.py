@@ -35,13 +35,10 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import signal
 import threading
 from contextlib import contextmanager
 from pathlib import Path
-
-import numpy as np
 
 from engine.core import atomic
 from engine.core.types import RAY_KINDS
@@ -49,15 +46,6 @@ from engine.core.types import RAY_KINDS
 RESULTS = "results.jsonl"
 CSV = "results.csv"
 SCHEMA = 1
-
-
-def _plain(value):
-    """json ``default``: numpy scalars and arrays as Python numbers and lists."""
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 def read_results(path: Path) -> tuple[list, int]:
@@ -84,8 +72,7 @@ def repair(path: Path) -> None:
     if path.is_file():
         _, complete = read_results(path)
         if complete != path.stat().st_size:
-            with open(path, "r+b") as f:
-                f.truncate(complete)
+            atomic.truncate(path, complete)
 
 
 @contextmanager
@@ -103,12 +90,10 @@ def _sigint_held():
 
 def append(path: Path, record: dict) -> None:
     """Append one record as one complete line, flushed to disk."""
-    line = json.dumps(record, default=_plain, separators=(",", ":")) + "\n"
+    # Strict JSON: a NaN timing becomes null, not a token other readers reject.
+    line = json.dumps(atomic.plain_json(record), separators=(",", ":"), allow_nan=False) + "\n"
     with _sigint_held():
-        with open(path, "a", encoding="utf-8") as f:
-            f.write(line)
-            f.flush()
-            os.fsync(f.fileno())
+        atomic.append_line(path, line)
 
 
 def _median(summary):

@@ -1,24 +1,46 @@
-"""Outputs written whole or not at all: a temporary file beside the target, renamed over it.
+"""The one output writer: every image, JSON, CSV, table and plot is written whole or not at all.
 
-A reader (or a crash, or Ctrl-C) never sees half an image, JSON, CSV or table; on failure the
-temporary file is removed and the old target, if any, stays as it was.
+``replacing(target)`` hands out a temporary file beside the target; when the block ends the
+temporary is flushed to disk and renamed over the target. A reader (or a crash, a full disk,
+Ctrl-C) never sees half a file: on failure the temporary is removed and the old target, if any,
+stays as it was. ``tests/test_hardening_outputs.py`` scans the sources: no other code opens an
+output for writing except on a path ``replacing`` handed out. The one file that grows in place,
+a benchmark's ``results.jsonl``, is appended to here too (``append_line``), one whole line at a
+time.
 """
 from __future__ import annotations
 
+import json
+import math
 import os
 from contextlib import contextmanager
 from pathlib import Path
 
+from engine.core.errors import PacketrtError
+
+
+def _sync(path: Path) -> None:
+    """Flush ``path``'s data to disk (so a rename never publishes an empty file after a crash)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
 
 @contextmanager
 def replacing(path) -> Path:
-    """``with replacing(target) as tmp: write tmp`` -- then tmp is renamed over ``target``
-    (folders created). The temporary name keeps the suffix, so format sniffing still works."""
+    """``with replacing(target) as tmp: write tmp`` -- then tmp is synced and renamed over
+    ``target`` (folders created). The temporary name keeps the suffix, so format sniffing
+    still works. A target that is a folder is an error, not a rename into it."""
     target = Path(path)
+    if target.is_dir():
+        raise PacketrtError(f"cannot write {str(target)!r}: it is a folder, not a file")
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = target.with_name(f".{target.stem}.{os.getpid()}.tmp{target.suffix}")
     try:
         yield tmp
+        _sync(tmp)
         os.replace(tmp, target)
     finally:
         if tmp.exists():
@@ -29,3 +51,45 @@ def write_text(path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` through a temporary file and a rename."""
     with replacing(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
+
+
+def plain_json(value):
+    """``value`` with every non-finite float made ``None`` (strict JSON has no NaN or Infinity)
+    and numpy scalars and arrays made Python numbers and lists."""
+    if isinstance(value, dict):
+        return {k: plain_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain_json(v) for v in value]
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
+        return plain_json(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def json_text(data) -> str:
+    """Strict JSON text (NaN and infinities as null), indented, with a final newline."""
+    return json.dumps(plain_json(data), indent=2, allow_nan=False) + "\n"
+
+
+def write_json(path, data, what: str = "") -> None:
+    """Write ``data`` as strict JSON; an OSError becomes one PacketrtError naming the path."""
+    try:
+        write_text(path, json_text(data))
+    except OSError as exc:
+        raise PacketrtError(f"cannot write {what + ' ' if what else ''}{str(path)!r}: "
+                            f"{exc.strerror or exc}") from None
+
+
+def append_line(path, line: str) -> None:
+    """Append one whole ``line`` (it ends with a newline) to ``path``, flushed and synced."""
+    with open(path, "a", encoding="utf-8") as f:
+        f.write(line)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def truncate(path, size: int) -> None:
+    """Cut ``path`` to its first ``size`` bytes (a torn last line of an appended record)."""
+    with open(path, "r+b") as f:
+        f.truncate(size)

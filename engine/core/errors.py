@@ -3,10 +3,14 @@
 Anything a user can cause (a bad file, key, name, size or budget) raises
 ``PacketrtError`` with one line that names the cause; the CLI prints it and exits
 with code 2, never with a traceback.
+
+Python callers catch them the way they expect: every ``PacketrtError`` is a ``ValueError``
+(a value the user gave is not allowed), and a value of the wrong *type* raises
+``ConfigTypeError``, which is also a ``TypeError``. ``except PacketrtError`` still catches all.
 """
 
 
-class PacketrtError(Exception):
+class PacketrtError(ValueError):
     """A user mistake, reported as one line and exit code 2."""
 
 
@@ -16,3 +20,7 @@ class SceneError(PacketrtError):
 
 class ConfigError(PacketrtError):
     """A config key, value or plugin name is not allowed; the message lists what is."""
+
+
+class ConfigTypeError(ConfigError, TypeError):
+    """A config or parameter value has the wrong type (a string where a number belongs)."""

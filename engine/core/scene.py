@@ -17,6 +17,8 @@ from typing import Optional
 
 import numpy as np
 
+from engine.core import checked
+from engine.core.checked import COORDINATE_LIMIT
 from engine.core.errors import SceneError
 from engine.core.types import Triangles
 
@@ -83,6 +85,9 @@ class Scene:
     animated: bool = False
     time: float = 0.0
     info: dict = field(default_factory=dict)
+    #: Where the scene's coordinate origin lies in its files' coordinates: a scene far from the
+    #: origin is re-centred (``SceneBuilder.build``) and everything in it is relative to this.
+    origin: tuple = (0.0, 0.0, 0.0)
 
     @property
     def n_triangles(self) -> int:
@@ -96,6 +101,28 @@ class Scene:
         return np.stack([lo, hi]).astype(np.float32)
 
 
+def checked_vertices(vertices, faces: np.ndarray, source: str) -> np.ndarray:
+    """f64[V,3] ``vertices`` if they are finite, within float32's reach (+-COORDINATE_LIMIT)
+    and every index of ``faces`` (i64[T,3]) names one of them; else a SceneError naming ``source``."""
+    vertices = np.asarray(vertices, np.float64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise SceneError(f"{source}: vertices must have shape (V, 3), got {vertices.shape}")
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        i = int(np.nonzero(bad)[0][0])
+        raise SceneError(f"{source}: vertex {i} is not finite ({vertices[i].tolist()}); "
+                         f"{int(bad.sum())} non-finite vertices in all")
+    far = np.abs(vertices).max(axis=1) > COORDINATE_LIMIT if len(vertices) else np.zeros(0, bool)
+    if far.any():
+        i = int(np.nonzero(far)[0][0])
+        raise SceneError(f"{source}: vertex {i} ({vertices[i].tolist()}) is beyond the supported "
+                         f"+-{COORDINATE_LIMIT:.0e} (float32 cannot hold it)")
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise SceneError(f"{source}: a face refers to vertex {int(faces.max())} but there are "
+                         f"only {len(vertices)} vertices")
+    return vertices
+
+
 def make_triangles(vertices, faces, material, normals=None, uvs=None, *, source="scene") -> Triangles:
     """Triangles from indexed geometry.
 
@@ -104,18 +131,8 @@ def make_triangles(vertices, faces, material, normals=None, uvs=None, *, source=
     Non-finite vertices or out-of-range indices raise SceneError naming ``source``.
     Degenerate (zero-area) triangles are kept: they never report a hit.
     """
-    vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    if vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise SceneError(f"{source}: vertices must have shape (V, 3), got {vertices.shape}")
-    bad = ~np.isfinite(vertices).all(axis=1)
-    if bad.any():
-        i = int(np.nonzero(bad)[0][0])
-        raise SceneError(f"{source}: vertex {i} is not finite ({vertices[i].tolist()}); "
-                         f"{int(bad.sum())} non-finite vertices in all")
-    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
-        raise SceneError(f"{source}: a face refers to vertex {int(faces.max())} but there are "
-                         f"only {len(vertices)} vertices")
+    vertices = checked_vertices(vertices, faces, source)
     v = vertices.astype(np.float32)
     v0, v1, v2 = (np.ascontiguousarray(v[faces[:, k]]) for k in range(3))
     e1 = (v1 - v0).astype(np.float32)
@@ -162,6 +179,17 @@ def concat_triangles(parts: list) -> Triangles:
                      else np.zeros((0, 3, 2), np.float32))
 
 
+#: A scene whose centre is farther from the origin than this many times its size is re-centred:
+#: float32 coordinates keep about 7 digits, so at 1e3 sizes away a triangle still has ~1e-4 of
+#: its size in resolution; nearer scenes (every catalog scene) are left exactly as they are.
+RECENTRE_RATIO = 1e3
+#: After re-centring, every camera point and light must lie within this distance of the origin
+#: on each axis, and the geometry within a tenth of it (so an auto-framed camera, ~3 scene radii
+#: away, still fits): float32 rays, frusta and squared distances stay well inside their range.
+MAX_CENTRED = 1e12
+MAX_GEOMETRY = MAX_CENTRED / 10
+
+
 class SceneBuilder:
     """Accumulates meshes and materials, then builds a Scene.
 
@@ -169,6 +197,10 @@ class SceneBuilder:
     >>> m = b.add_material(Material(name="red", diffuse=(1, 0, 0)))
     >>> b.add_mesh(vertices, faces, m)
     >>> scene = b.build(camera=..., lights=[...])
+
+    Meshes are kept in float64 until ``build``, so a scene far from the origin can be re-centred
+    before anything becomes float32 (the camera and lights move with it; ``Scene.origin`` says
+    by how much).
     """
 
     def __init__(self, name: str, source: str = "procedural"):
@@ -176,7 +208,7 @@ class SceneBuilder:
         self.source = source
         self.materials: list = []
         self._material_index: dict = {}
-        self._parts: list = []
+        self._parts: list = []  # ("mesh", (vertices f64, faces, material, normals, uvs, source)) | ("tris", Triangles)
 
     def add_material(self, material: Material, key=None) -> int:
         """Index of ``material``; a repeated ``key`` returns the first index."""
@@ -192,32 +224,111 @@ class SceneBuilder:
         faces = np.asarray(faces, np.int64).reshape(-1, 3)
         if len(faces) == 0:
             return
-        self._parts.append(make_triangles(vertices, faces, material, normals, uvs,
-                                          source=source or self.source))
+        source = source or self.source
+        vertices = checked_vertices(vertices, faces, source)
+        self._parts.append(("mesh", (vertices, faces, material, normals, uvs, source)))
 
     def add_triangles(self, tris: Triangles) -> None:
-        self._parts.append(tris)
+        """Finished float32 triangles (kept where they are: a scene with any is never re-centred)."""
+        self._parts.append(("tris", tris))
 
     @property
     def n_triangles(self) -> int:
-        return sum(p.v0.shape[0] for p in self._parts)
+        return sum(len(p[1]) if kind == "mesh" else p.v0.shape[0] for kind, p in self._parts)
+
+    def _offset(self) -> Optional[np.ndarray]:
+        """The re-centring shift (f64[3]) of the meshes, or None to leave them where they are."""
+        if any(kind == "tris" for kind, _ in self._parts):
+            return None
+        lo = np.min([p[0].min(axis=0) for _, p in self._parts], axis=0)
+        hi = np.max([p[0].max(axis=0) for _, p in self._parts], axis=0)
+        centre, size = (lo + hi) / 2, float((hi - lo).max())
+        far = np.abs(centre).max() > RECENTRE_RATIO * size or max(np.abs(lo).max(), np.abs(hi).max()) > MAX_GEOMETRY
+        return centre if far else None
 
     def build(self, *, camera: Optional[Camera] = None, lights=None, background=(0.0, 0.0, 0.0),
               ambient_light=(1.0, 1.0, 1.0), **extra) -> Scene:
-        """The Scene; a missing camera is framed automatically, missing lights get one."""
+        """The Scene; a missing camera is framed automatically, missing lights get one. Every
+        number is checked (``check_scene``); a scene far from the origin is re-centred."""
         if not self._parts:
             raise SceneError(f"{self.source}: the scene has no triangles")
         if not self.materials:
             self.add_material(Material())
-        tris = concat_triangles(self._parts)
-        scene = Scene(self.name, tris, list(self.materials), list(lights or []),
+        offset = self._offset()
+        shift = (lambda p: p) if offset is None else (lambda p: tuple(np.asarray(p, np.float64) - offset))
+        parts = [p if kind == "tris" else
+                 make_triangles(p[0] if offset is None else p[0] - offset, *p[1:5], source=p[5])
+                 for kind, p in self._parts]
+        tris = concat_triangles(parts)
+        if camera is not None:
+            checked_camera(camera, self.source)
+            camera = replace(camera, eye=shift(camera.eye), look_at=shift(camera.look_at))
+        lights = [replace(checked_light(light, self.source), position=shift(light.position))
+                  for light in (lights or [])]
+        scene = Scene(self.name, tris, list(self.materials), lights,
                       camera or Camera((0, 0, 1), (0, 0, 0)), tuple(background), tuple(ambient_light),
                       source=self.source, **extra)
+        if offset is not None:
+            scene.origin = tuple(float(x) for x in offset)
         if camera is None:
             scene.camera = auto_camera(scene.bounds())
         if not scene.lights:
             scene.lights = [default_light(scene.bounds(), scene.camera)]
-        return scene
+        return check_scene(scene)
+
+
+def checked_camera(camera: Camera, source: str) -> Camera:
+    """``camera`` if its points are finite numbers within float32's reach and its field of view
+    is in (0, 180) degrees; else a SceneError naming ``source``."""
+    for name in ("eye", "look_at", "up"):
+        checked.vector(getattr(camera, name), f"{source}: camera {name}", error=SceneError)
+    checked.to_float(camera.fov, f"{source}: camera fov (degrees)", 0.001, 179.9, error=SceneError)
+    return camera
+
+
+def checked_light(light: PointLight, source: str) -> PointLight:
+    """``light`` if its position and colour are finite (colour within 0..1e6)."""
+    checked.vector(light.position, f"{source}: light position", error=SceneError)
+    checked.vector(light.color, f"{source}: light colour", lo=0.0, hi=MAX_COLOUR, error=SceneError)
+    return light
+
+
+#: Colours, reflectances and light intensities: finite and within [0, MAX_COLOUR].
+MAX_COLOUR = 1e6
+
+
+def check_scene(scene: Scene) -> Scene:
+    """``scene`` if every number in it makes sense -- materials (colours >= 0 and finite,
+    shininess, transmission in [0, 1], ior > 0), lights, camera, background -- and its
+    geometry, camera and lights lie within +-MAX_CENTRED of its (re-centred) origin; else one
+    SceneError naming the scene's source and what is allowed."""
+    where = scene.source
+    for m in scene.materials:
+        named = f"{where}: material {m.name!r}"
+        for key in ("ambient", "diffuse", "specular", "reflectance"):
+            checked.vector(getattr(m, key), f"{named} {key}", lo=0.0, hi=MAX_COLOUR, error=SceneError)
+        checked.to_float(m.shininess, f"{named} shininess", 0.0, MAX_COLOUR, error=SceneError)
+        checked.to_float(m.transmission, f"{named} transmission", 0.0, 1.0, error=SceneError)
+        checked.to_float(m.ior, f"{named} ior", 1e-3, 1e3, error=SceneError)
+    for light in scene.lights:
+        checked_light(light, where)
+    checked_camera(scene.camera, where)
+    checked.vector(scene.background, f"{where}: background", lo=0.0, hi=MAX_COLOUR, error=SceneError)
+    checked.vector(scene.ambient_light, f"{where}: ambient light", lo=0.0, hi=MAX_COLOUR, error=SceneError)
+    reach = float(np.abs(np.asarray(scene.bounds(), np.float64)).max())
+    if reach > MAX_GEOMETRY:
+        raise SceneError(f"{where}: the geometry reaches {reach:.3g} from the scene's centre; packetrt supports "
+                         f"geometry within +-{MAX_GEOMETRY:.0e} of it and cameras and lights within "
+                         f"+-{MAX_CENTRED:.0e} (float32 rays; a scene merely far from the origin is re-centred)")
+    points = {"camera eye": scene.camera.eye, "camera look_at": scene.camera.look_at,
+              **{f"light {k + 1}": light.position for k, light in enumerate(scene.lights)}}
+    for what, point in points.items():
+        reach = float(np.abs(np.asarray(point, np.float64)).max())
+        if reach > MAX_CENTRED:
+            raise SceneError(f"{where}: the {what} lies {reach:.3g} from the scene's centre; packetrt supports "
+                             f"cameras and lights within +-{MAX_CENTRED:.0e} of it and geometry within "
+                             f"+-{MAX_GEOMETRY:.0e} (float32 rays; a scene merely far from the origin is re-centred)")
+    return scene
 
 
 def auto_camera(bounds: np.ndarray, fov: float = 40.0) -> Camera:

@@ -25,6 +25,7 @@ import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
+from engine.core import checked
 from engine.core.errors import ConfigError
 from engine.packet.layout import PACKET_SIZES
 from engine.core.types import RAY_KINDS
@@ -34,16 +35,33 @@ PAPER_TRAVERSAL = {"primary": "ranged", "shadow": "partition", "reflection": "pa
 PAPER_FRUSTUM = {"primary": "pinhole", "shadow": "pointlight", "reflection": "general", "refraction": "general"}
 MAX_IMAGE_SIDE = 16384
 MAX_DEPTH = 64
+#: Animation times in seconds: any finite time within a day either way.
+MAX_TIME = 86400.0
+#: The allowed range of each integer of [render] (threads 0 = all cores; leaf_size and bins
+#: as the BVH builder takes them).
+RENDER_RANGES = {"width": (1, MAX_IMAGE_SIDE), "height": (1, MAX_IMAGE_SIDE), "max_depth": (0, MAX_DEPTH),
+                 "max_reflection_depth": (0, MAX_DEPTH), "threads": (0, 1024), "leaf_size": (1, 255),
+                 "bins": (2, 256)}
 #: Peak working memory per pixel of one wavefront (ray batch, hits, shading temporaries).
 BYTES_PER_PIXEL = 600
 
 
 def available_memory() -> int:
-    """Physical memory in bytes (a generous 64 GiB guess where the OS will not say)."""
+    """Bytes of memory a new allocation can get now: Linux's MemAvailable (free memory plus
+    what the page cache would give back), not the machine's total -- a render that fits the
+    total but not what is free would die with a MemoryError. Elsewhere the free pages, and a
+    generous 64 GiB guess where the OS will not say."""
     import os
 
     try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        with open("/proc/meminfo", encoding="ascii") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
     except (ValueError, OSError, AttributeError):
         return 64 * 2**30
 
@@ -153,28 +171,22 @@ def _dataclass_from(cls, table: dict, where: str):
 def validate(config: Config) -> Config:
     """Range and name checks shared by files and command-line overrides."""
     r = config.render
-    for side in ("width", "height"):
-        value = getattr(r, side)
-        if not 1 <= value <= MAX_IMAGE_SIDE:
-            raise ConfigError(f"render.{side} must be in 1..{MAX_IMAGE_SIDE}, got {value}")
+    for key, (lo, hi) in RENDER_RANGES.items():
+        checked.to_int(getattr(r, key), f"render.{key}", lo, hi)
     needed = r.width * r.height * BYTES_PER_PIXEL
-    if needed > available_memory():
+    free = available_memory()
+    if needed > free:
         raise ConfigError(f"render size {r.width}x{r.height} needs about {needed / 2**30:.1f} GiB for its ray "
-                          f"batches, more than this machine's {available_memory() / 2**30:.1f} GiB; render smaller")
-    if not 0 <= r.max_depth <= MAX_DEPTH:
-        raise ConfigError(f"render.max_depth must be in 0..{MAX_DEPTH}, got {r.max_depth}")
-    if not 0 <= r.max_reflection_depth <= MAX_DEPTH:
-        raise ConfigError(f"render.max_reflection_depth must be in 0..{MAX_DEPTH}, got {r.max_reflection_depth}")
+                          f"batches, more than this machine's {free / 2**30:.1f} GiB of memory available now; render smaller")
+    checked.to_float(config.scene.time, "scene.time", -MAX_TIME, MAX_TIME)
     if r.packet not in PACKET_SIZES:
         raise ConfigError(f"render.packet must be one of {', '.join(map(str, PACKET_SIZES))}, got {r.packet}")
-    if not 0 <= r.threads <= 1024:
-        raise ConfigError(f"render.threads must be in 0..1024 (0 = all cores), got {r.threads}")
     if config.accel.update not in ("rebuild", "refit", "auto"):
         raise ConfigError(f"accel.update must be 'rebuild', 'refit' or 'auto', got {config.accel.update!r}")
-    if not 1.0 < config.accel.degrade <= 100.0:
-        raise ConfigError(f"accel.degrade must be in (1, 100] (a SAH cost ratio), got {config.accel.degrade!r}")
-    if not 0.0 <= config.accel.budget <= 1.0:
-        raise ConfigError(f"accel.budget must be in 0..1 (a share of a frame), got {config.accel.budget!r}")
+    checked.to_float(config.accel.degrade, "accel.degrade", 1.0, 100.0)
+    if config.accel.degrade <= 1.0:
+        raise ConfigError(f"accel.degrade must be above 1 (a SAH cost ratio), got {config.accel.degrade!r}")
+    checked.to_float(config.accel.budget, "accel.budget", 0.0, 1.0)
     if config.override not in ("none", "reflective", "refractive"):
         raise ConfigError(f"materials.override must be 'none', 'reflective' or 'refractive', got {config.override!r}")
     from engine.render.plugins import configured, load_entry_points, make_traversal
@@ -227,6 +239,10 @@ def from_dict(data: dict, source: str = "<dict>") -> Config:
     if set(plugins) - {"load_entry_points"}:
         raise ConfigError(f"{source} [plugins]: unknown key(s) {sorted(set(plugins) - {'load_entry_points'})}; "
                           f"allowed: load_entry_points")
+    for name, table in data.get("options", {}).items():
+        if not isinstance(table, dict):
+            raise ConfigError(f"{source} [options]: {name} must be a table [options.{name}] of that plugin's "
+                              f"options, got {table!r}")
     options = tuple((name, tuple(sorted(table.items()))) for name, table in sorted(data.get("options", {}).items()))
     config = Config(scene=scene, render=render, traversal=per_kind["traversal"], frustum=per_kind["frustum"],
                     override=_check_type(f"{source} [materials]", "override", materials.get("override", "none"), str),
@@ -247,7 +263,11 @@ def read_toml(path: str, what: str) -> dict:
     if not file.is_file():
         raise ConfigError(f"{what} file {path!r} does not exist")
     try:
-        return tomllib.loads(file.read_text())
+        return tomllib.loads(file.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}); TOML files must be UTF-8") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
 

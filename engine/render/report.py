@@ -13,6 +13,15 @@ def frames_dict(seconds: list) -> dict:
             "fps": 1.0 / median if median > 0 else None}
 
 
+def extra_dict(scene, result) -> dict:
+    """The ``extra`` field: what a run knows beyond the counters -- plugin statistics per ray
+    kind (filled by a counting pass: ``rayspace`` pair streams, ``embree`` version; {} for
+    plugins that keep none), the scene's re-centring shift (``origin``, [0, 0, 0] unless the
+    scene lay far from the origin) and the loader's warnings (a missing texture)."""
+    return {"plugins": result.extra, "scene_origin": list(scene.origin),
+            "scene_warnings": list(scene.info.get("warnings", []))}
+
+
 def stats_dict(scene, config, result, frames: list | None = None) -> dict:
     """The --stats document (see the README for its fields) of ``result`` (a RenderResult of
     ``scene`` rendered with ``config``); ``frames``: every timed frame's seconds (default: the
@@ -28,6 +37,6 @@ def stats_dict(scene, config, result, frames: list | None = None) -> dict:
                      for name in ("ray_aabb", "ray_tri")},
         "counters_by_depth": result.counters_by_depth,
         "counters_from": "a separate counting pass over the same rays (timings exclude counting)",
-        "extra": result.extra,
+        "extra": extra_dict(scene, result),
         "frames": frames_dict(frames or [result.seconds["total"]]),
     }
