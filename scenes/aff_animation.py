@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import math
 import time as _time
+from dataclasses import replace
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
 from engine.core.errors import ConfigError, SceneError
-from engine.core.scene import PointLight, SceneBuilder, make_triangles
+from engine.core.scene import PointLight, SceneBuilder, make_triangles, recentring
 from engine.core.types import Triangles
 
 from .aff import Loader, _camera_from, _face_normals, _floats, _transform, check_params
@@ -65,6 +66,7 @@ class AffAnimation:
         # Rows of the triangle arrays each moving part fills, and the arrays of the last full build.
         self._moving_rows: Optional[np.ndarray] = None
         self._base: Optional[Triangles] = None
+        self.origin: Optional[np.ndarray] = None   # re-centring shift, set by the first build
         self.parse_seconds = _time.perf_counter() - started
 
     # -- geometry ------------------------------------------------------------------------
@@ -96,7 +98,9 @@ class AffAnimation:
         return tuple(None if pieces[0][i] is None else np.concatenate([p[i] for p in pieces]) for i in range(4))
 
     def _triangles(self, corners, normals, uvs, materials) -> Triangles:
-        """One Triangles from placed rows (see ``_placed``)."""
+        """One Triangles from placed rows (see ``_placed``), re-centred by ``origin``."""
+        if self.origin is not None:
+            corners = corners - self.origin
         t = len(corners)
         return make_triangles(corners.reshape(-1, 3), np.arange(3 * t).reshape(t, 3), materials,
                               normals=normals, uvs=uvs, source=str(self.path))
@@ -106,7 +110,11 @@ class AffAnimation:
         that build and rebuild the moving rows only (equal, row for row, to a full build). The
         caller copies what it keeps (the first call's arrays are the kept build)."""
         if self._base is None:
-            self._base = self._triangles(*self._placed(time, world, moving_only=False))
+            placed = self._placed(time, world, moving_only=False)
+            # A scene far from the origin is re-centred, as SceneBuilder does for meshes, with
+            # the first frame's shift kept for the whole path.
+            self.origin = recentring(placed[0].reshape(-1, 3).min(axis=0), placed[0].reshape(-1, 3).max(axis=0))
+            self._base = self._triangles(*placed)
             rows, start = [], 0
             for (_, geometry, _), static in zip(self.loader.instances, self.static_parts):
                 if static is None:
@@ -136,10 +144,13 @@ class AffAnimation:
         builder = SceneBuilder(self.path.stem, source=str(self.path))
         builder.materials = list(loader.builder.materials)
         builder.add_triangles(tris)                 # build() copies it
-        placed_lights = [PointLight(_floats(world[node][:3, :3] @ position + world[node][:3, 3]), _floats(colour))
+        shift = np.zeros(3) if self.origin is None else self.origin
+        placed_lights = [PointLight(_floats(world[node][:3, :3] @ position + world[node][:3, 3] - shift), _floats(colour))
                          for node, position, colour in loader.lights]
         view = loader.settings["view"]
         cam, camera_kind = _camera_from(view, loader.keyframes, time, self.camera_mode)
+        if cam is not None and self.origin is not None:
+            cam = replace(cam, eye=_floats(np.asarray(cam.eye) - shift), look_at=_floats(np.asarray(cam.look_at) - shift))
         anim = loader.settings["animation"]
         n_tpa = len(loader.animated_tris)
         n_moving = sum(len(g.corners) for (_, g, _), s in zip(loader.instances, self.static_parts) if s is None)
@@ -158,6 +169,8 @@ class AffAnimation:
         scene = builder.build(camera=cam, lights=placed_lights, background=loader.settings["background"],
                               ambient_light=loader.settings["ambient"], animated=self.animated,
                               time=time, info=info)
+        if self.origin is not None:
+            scene.origin = _floats(self.origin)
         if self.keep_lights is not None:
             # After build: with no light, build() would make one up; lights = 0 means none at all.
             scene.lights = placed_lights[:self.keep_lights]

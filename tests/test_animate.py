@@ -331,3 +331,29 @@ def test_dynamic_matrix_runs_every_policy_and_tables_the_path(tmp_path, scene_fi
     assert main(["bench", str(matrix), "--out", str(out), "--resume"]) == 0
     assert len((out / "results.jsonl").read_text().splitlines()) == 3
     assert main(["bench", str(matrix), "--out", str(out)]) == 2
+
+
+def test_a_path_far_from_the_origin_is_re_centred_and_renders_like_one_at_it(tmp_path):
+    """The .aff path keeps its first frame's re-centring shift: frames of a scene moved 1e14
+    away equal those of the scene at the origin (camera, lights and keys move with it)."""
+    shifted = textwrap.dedent(SCENE)
+    far = tmp_path / "far.aff"
+    # Everything under one static transform that moves it 1e14 along x.
+    # The view is not under any transform: it moves by hand.
+    far.write_text("xs 1 1 1  0 1 0 0  100000000000000 0 0\n{\n" + shifted.replace("k camera", "k nocamera")
+                   .replace("v from 0 3 8 at 0 0 0", "v from 100000000000000 3 8 at 100000000000000 0 0") + "}\n")
+    near = tmp_path / "near.aff"
+    near.write_text(shifted.replace("k camera", "k nocamera"))
+    path = AffAnimation(far)
+    scene = path.scene_at(1.0)
+    assert scene.origin[0] == pytest.approx(1e14, rel=1e-6)
+    images = {}
+    for name, file in (("near", near), ("far", far)):
+        assert main(["animate", "--scene", str(file), "--size", "24x24", "--frames", "2", "-o",
+                     str(tmp_path / name)]) == 0
+        images[name] = [np.asarray(Image.open(tmp_path / name / f"frame_{i:05d}.png")) for i in range(2)]
+    # At rest (t = 0) the far geometry is exact in float64 and the frames are equal; once the box
+    # turns, float64 at 1e14 holds positions to 1/64 of a unit, so edges may move by a pixel.
+    np.testing.assert_array_equal(images["far"][0], images["near"][0])
+    differing = np.any(images["far"][1] != images["near"][1], axis=-1).mean()
+    assert images["far"][1].any() and differing < 0.05, differing

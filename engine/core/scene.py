@@ -190,6 +190,14 @@ MAX_CENTRED = 1e12
 MAX_GEOMETRY = MAX_CENTRED / 10
 
 
+def recentring(lo: np.ndarray, hi: np.ndarray) -> Optional[np.ndarray]:
+    """The shift (f64[3], subtracted from every point) that re-centres geometry spanning the box
+    lo..hi (f64[3] each) when it lies too far from the origin for float32, else None."""
+    centre, size = (lo + hi) / 2, float((hi - lo).max())
+    far = np.abs(centre).max() > RECENTRE_RATIO * size or max(np.abs(lo).max(), np.abs(hi).max()) > MAX_GEOMETRY
+    return centre if far else None
+
+
 class SceneBuilder:
     """Accumulates meshes and materials, then builds a Scene.
 
@@ -242,9 +250,7 @@ class SceneBuilder:
             return None
         lo = np.min([p[0].min(axis=0) for _, p in self._parts], axis=0)
         hi = np.max([p[0].max(axis=0) for _, p in self._parts], axis=0)
-        centre, size = (lo + hi) / 2, float((hi - lo).max())
-        far = np.abs(centre).max() > RECENTRE_RATIO * size or max(np.abs(lo).max(), np.abs(hi).max()) > MAX_GEOMETRY
-        return centre if far else None
+        return recentring(lo, hi)
 
     def build(self, *, camera: Optional[Camera] = None, lights=None, background=(0.0, 0.0, 0.0),
               ambient_light=(1.0, 1.0, 1.0), **extra) -> Scene:
