@@ -262,7 +262,7 @@ def test_static_scenes_unwritable_folders_and_reused_folders_are_one_line_errors
     blocker = tmp_path / "file"
     blocker.write_text("x")
     assert main(["animate", "--scene", str(scene_file), "-o", str(blocker)]) == 2
-    assert "is a file, not a folder" in capsys.readouterr().err
+    assert "is a file; give a folder" in capsys.readouterr().err
     code, out = animate(tmp_path, scene_file, "--frames", "1")
     assert code == 0
     capsys.readouterr()

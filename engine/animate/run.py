@@ -14,7 +14,6 @@ The folder gets, each written through a temporary file and a rename:
 from __future__ import annotations
 
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -22,7 +21,7 @@ import numpy as np
 
 from engine.animate.plot import plot_path
 from engine.animate.preview import keep_for_preview, preview_format, shrink, write_preview
-from engine.core.atomic import write_json
+from engine.core.atomic import output_folder, write_json
 from engine.core.errors import PacketrtError
 from engine.render.animation import AnimationRenderer, path_summary, plan_times
 from engine.render.image import save_png, to_srgb8
@@ -30,18 +29,6 @@ from engine.render.image import save_png, to_srgb8
 FRAME_NAME = "frame_{:05d}.png"
 RECORDS = "frames.json"
 SCHEMA = 1
-
-
-def _prepare_folder(out: Path) -> None:
-    """Create ``out`` or fail with one line saying why it cannot hold the frames."""
-    if out.exists() and not out.is_dir():
-        raise PacketrtError(f"output folder {str(out)!r} is a file, not a folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise PacketrtError(f"cannot create output folder {str(out)!r}: {exc.strerror or exc}") from None
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise PacketrtError(f"output folder {str(out)!r} is not writable")
 
 
 def _identity(config, times: list) -> dict:
@@ -100,7 +87,7 @@ def run_animation(config, out: str, *, frames=None, fps=None, start=None, end=No
     path = open_path(config.scene, config.override)
     times = plan_times(path, frames, fps, start, end)
     folder = Path(out)
-    _prepare_folder(folder)
+    output_folder(folder, "output")
     identity = _identity(config, times)
     records = _load_records(folder, identity, resume)
     todo = [i for i in range(len(times)) if i not in records]

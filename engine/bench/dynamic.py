@@ -45,7 +45,7 @@ from engine.bench import results
 from engine.bench.figures import fmt, save, pyplot
 from engine.bench.matrix import PAPER, RECURSION
 from engine.bench.machine import machine_info
-from engine.core.atomic import write_text
+from engine.core.atomic import output_folder, write_text
 from engine.core.errors import ConfigError
 from engine.core.types import RAY_KINDS
 from engine.render.animation import AnimationRenderer, path_summary, plan_times
@@ -219,7 +219,7 @@ def run_dynamic(data: dict, source: str, out: Path, resume: bool) -> dict:
     """Run every cell not yet in ``out/results.jsonl`` (all of them unless ``resume``), then
     write dynamic.md and dynamic.png; {"ran", "skipped", "files"}."""
     matrix, cells = load_dynamic(data, source)
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder(out, "--out")
     file = out / results.RESULTS
     done = {r["id"] for r in results.read_results(file)[0]} if resume and file.exists() else set()
     if not resume and file.exists():

@@ -49,6 +49,7 @@ from engine.bench.floor import floor_tracer, uses_packet_traversals
 from engine.bench.machine import machine_info
 from engine.bench.matrix import Cell, Matrix, load_matrix
 from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require_open3d
+from engine.core.atomic import output_folder
 from engine.core.errors import PacketrtError
 from engine.core.types import RAY_KINDS
 from engine.render.config import read_toml
@@ -415,18 +416,6 @@ def _is_interrupt(exc: BaseException) -> bool:
     return False
 
 
-def output_folder(out: Path) -> Path:
-    """``out``, created if need be; a path that is a file (or cannot be made a folder) is one
-    PacketrtError line, not a traceback."""
-    if out.exists() and not out.is_dir():
-        raise PacketrtError(f"--out {str(out)!r} is a file; give a folder for the benchmark's results")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise PacketrtError(f"cannot make the output folder {str(out)!r}: {exc.strerror or exc}") from None
-    return out
-
-
 def free_backup_name(path: Path) -> Path:
     """``results.jsonl.prev``, else ``.prev2``, ``.prev3``, ...: the first name not yet taken, so
     starting afresh again never overwrites an earlier run's backup."""
@@ -448,7 +437,7 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
 
     run = run or run_cell
 
-    output_folder(out)
+    output_folder(out, "--out")
     path = out / results_io.RESULTS
     if resume:
         results_io.repair(path)

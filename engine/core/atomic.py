@@ -93,3 +93,19 @@ def truncate(path, size: int) -> None:
     """Cut ``path`` to its first ``size`` bytes (a torn last line of an appended record)."""
     with open(path, "r+b") as f:
         f.truncate(size)
+
+
+def output_folder(path, what: str) -> Path:
+    """``path`` as a folder to write outputs into, created if need be. A file in its place, or
+    a folder that cannot be made or written, is one PacketrtError naming ``what`` (e.g.
+    "--out") and the path."""
+    folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        raise PacketrtError(f"{what} {str(folder)!r} is a file; give a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PacketrtError(f"cannot make the {what} folder {str(folder)!r}: {exc.strerror or exc}") from None
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise PacketrtError(f"{what} folder {str(folder)!r} is not writable")
+    return folder
