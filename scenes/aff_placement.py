@@ -3,14 +3,15 @@
 BART Robots has 1,410 blocks under animated transforms and BART Museum 1,024 animated
 triangles; placed one by one (a matrix product, an inverse and a renormalisation each) they took
 85 ms and 29 ms a frame. Here every moving row is gathered once, up front, into flat arrays
-with the transform node it hangs from, and a frame is a handful of batched numpy operations:
-one matrix per node, gathered per row; ``tpa`` triangles with the same key times blended
-together. Rows come out in scene order: the moving blocks in the walk's order, then the
+with the transform node it hangs from, and a frame is one parallel numba pass over them (each
+row by its node's matrix and inverse transpose); ``tpa`` triangles with the same key times are
+blended together first. Rows come out in scene order: the moving blocks in the walk's order, then the
 ``tpa`` triangles.
 """
 from __future__ import annotations
 
 import numpy as np
+from numba import njit, prange
 
 from .aff import _face_normals
 
@@ -22,22 +23,26 @@ def _inverse(a: np.ndarray) -> np.ndarray:
         return np.linalg.pinv(a)
 
 
-def _apply(vectors: np.ndarray, m: np.ndarray, transpose: bool) -> np.ndarray:
-    """vectors f64[R,3,3] (three per row) times each row's own matrix m f64[R,3,3]: ``v @ m.T``,
-    or ``v @ m`` when ``transpose`` is False. Nine multiply-adds over whole columns (a gathered
-    einsum or a stacked matmul of 3x3 matrices is several times slower)."""
-    out = np.zeros_like(vectors)
-    for i in range(3):
-        for j in range(3):
-            coefficient = m[:, i, j] if transpose else m[:, j, i]
-            out[:, :, i] += vectors[:, :, j] * coefficient[:, None]
-    return out
-
-
-def _unit_rows(n: np.ndarray) -> np.ndarray:
-    """Each vector of f64[..., 3] made unit length (zero stays zero)."""
-    length = np.linalg.norm(n, axis=-1, keepdims=True)
-    return np.where(length > 0, n / np.where(length > 0, length, 1), 0.0)
+@njit(cache=True, parallel=True)
+def _place_rows(corners, normals, node, a, b, inverse, with_normals, out_corners, out_normals):
+    """Row r's three corners (f64[R,3,3]) by its node's matrix: a[n] @ c + b[n]; its normals by
+    the inverse transpose, unit length (zero stays zero) when ``with_normals``."""
+    for r in prange(corners.shape[0]):
+        n = node[r]
+        for c in range(3):
+            for i in range(3):
+                out_corners[r, c, i] = (a[n, i, 0] * corners[r, c, 0] + a[n, i, 1] * corners[r, c, 1]
+                                        + a[n, i, 2] * corners[r, c, 2] + b[n, i])
+            if with_normals:
+                length2 = 0.0
+                for k in range(3):
+                    v = (normals[r, c, 0] * inverse[n, 0, k] + normals[r, c, 1] * inverse[n, 1, k]
+                         + normals[r, c, 2] * inverse[n, 2, k])
+                    out_normals[r, c, k] = v
+                    length2 += v * v
+                length = np.sqrt(length2)
+                for k in range(3):
+                    out_normals[r, c, k] = out_normals[r, c, k] / length if length > 0 else 0.0
 
 
 class MovingRows:
@@ -114,10 +119,12 @@ class MovingRows:
         corners = np.concatenate([self.corners, tpa_corners])
         node = np.concatenate([self.node, self.tpa_node])
         # corner @ A^T + b and normal @ A^-1, row by row with the row's own node.
-        placed = _apply(corners, a[node], transpose=True) + b[node][:, None, :]
-        normals = None
-        if self.has_normals:
-            normals = _unit_rows(_apply(np.concatenate([self.normals, tpa_normals]), inverse[node], transpose=False))
+        placed, normals = np.empty_like(corners), np.empty_like(corners)
+        _place_rows(corners, np.concatenate([self.normals, tpa_normals]), node, np.ascontiguousarray(a),
+                    np.ascontiguousarray(b), inverse, self.has_normals, placed, normals)
+        if not self.has_normals:
+            normals = None
+        else:
             given = np.concatenate([self.given_normals, np.ones(len(self.tpa_node), bool)])
             if not given.all():
                 normals[~given] = _face_normals(placed[~given])
