@@ -1,0 +1,14 @@
+"""Mesh queries with trimesh's semantics: the machinery under ``engine.RayMeshIntersector``.
+
+- ``frame``: the mesh re-expressed about its own centre and scale (float32 for the kernels,
+  float64 kept for answers), and rays moved into that frame with bad rays marked.
+- ``order``: incoherent rays sorted in numba by direction octant and a Morton code of the origin.
+- ``walk``: the one per-ray BVH walk (closest, any, or every hit).
+- ``hits``: parallel kernels over sorted rays: first hit, any hit, all hits (count, then fill).
+- ``locations``: float64 hit points from the triangle's plane (or barycentrics).
+- ``contains``: inside/outside by counting crossings along rays, no hit lists materialised.
+- ``intersector``: ``RayMeshIntersector``, trimesh's ``mesh.ray`` interface over the above.
+- ``errors``: the user-mistake exceptions (ValueError / TypeError subclasses).
+
+Imports ``engine.core`` only (rank 1 in tests/test_layers.py).
+"""
