@@ -149,6 +149,7 @@ class RayMeshIntersector:
         tris = make_triangles(local, faces, 0, source="mesh")
         if old is not None and old.faces_key == faces_key and np.array_equal(old.faces, faces):
             bvh = refit_bvh(old.bvh, tris)  # vertices moved, same triangles: same tree, new boxes
+            faces = old.faces
         else:
             bvh = build_bvh(tris, leaf_size=self._leaf_size, bins=self._bins)
         self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, tris.v0, tris.v1, tris.v2)
