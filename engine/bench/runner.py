@@ -525,6 +525,13 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
 
 def cmd_bench(args) -> int:
     """The CLI entry: validate the whole matrix, then run it."""
+    from engine.render.config import read_toml
+
+    data = read_toml(args.matrix, "matrix")
+    if data.get("kind") == "trimesh":  # mesh queries, not renders: their own small runner
+        from engine.bench.trimesh_queries import cmd_trimesh_bench
+
+        return cmd_trimesh_bench(args, data)
     matrix = load_matrix(args.matrix, repeat=args.repeat)
     out = Path(args.out) if args.out else Path("out") / f"bench-{matrix.name}"
     summary = run_matrix(matrix, out, resume=args.resume)

@@ -39,15 +39,17 @@ def mesh_frame(vertices: np.ndarray, faces: np.ndarray) -> tuple[MeshFrame, np.n
 
 
 @njit(cache=True, parallel=True)
-def local_rays_kernel(origins, directions, center, scale, org, dirs, inv, unit, valid):
-    """Rays into the local frame.
+def local_rays_kernel(origins, directions, order, center, scale, org, dirs, inv, valid):
+    """Rays into the local frame, gathered into walk order (row k is input ray order[k]), so
+    the walk reads its rays front to back.
 
     origins, directions: f64[n,3] world rays (any direction length). center: f64[3].
-    Writes org, dirs, inv: f32[n,3] (local origin, unit direction, safe 1/dir), unit: f64[n,3]
-    (unit world direction), valid: bool[n] (False for a NaN/inf component, a zero direction,
-    or an origin too far out for float32). Returns nothing; invalid rows are left as misses.
+    Writes org, dirs, inv: f32[n,3] (local origin, unit direction, safe 1/dir) and valid: bool[n]
+    (False for a NaN/inf component, a zero direction, or an origin too far out for float32;
+    such rows are answered as misses).
     """
-    for i in prange(origins.shape[0]):
+    for k in prange(origins.shape[0]):
+        i = order[k]
         ok = True
         norm = 0.0
         for a in range(3):
@@ -61,32 +63,28 @@ def local_rays_kernel(origins, directions, center, scale, org, dirs, inv, unit, 
             o = (origins[i, a] - center[a]) / scale if ok else 0.0
             if abs(o) > 1e30:
                 ok = False
-        valid[i] = ok
+        valid[k] = ok
         for a in range(3):
             if ok:
-                d = directions[i, a] / norm
-                unit[i, a] = d
-                org[i, a] = np.float32((origins[i, a] - center[a]) / scale)
-                df = np.float32(d)
-                dirs[i, a] = df
+                org[k, a] = np.float32((origins[i, a] - center[a]) / scale)
+                df = np.float32(directions[i, a] / norm)
+                dirs[k, a] = df
                 if df == 0:
-                    inv[i, a] = np.float32(HUGE_INV) if not np.signbit(df) else -np.float32(HUGE_INV)
+                    inv[k, a] = np.float32(HUGE_INV) if not np.signbit(df) else -np.float32(HUGE_INV)
                 else:
-                    inv[i, a] = np.float32(1.0) / df
+                    inv[k, a] = np.float32(1.0) / df
             else:
-                unit[i, a] = 0.0
-                org[i, a] = 0
-                dirs[i, a] = 1 if a == 2 else 0
-                inv[i, a] = HUGE_INV if a != 2 else 1
+                org[k, a] = 0
+                dirs[k, a] = 1 if a == 2 else 0
+                inv[k, a] = HUGE_INV if a != 2 else 1
 
 
-def local_rays(frame: MeshFrame, origins: np.ndarray, directions: np.ndarray):
-    """(org f32[n,3], dirs f32[n,3], inv f32[n,3], unit f64[n,3], valid bool[n]) for f64 rays."""
+def local_rays(frame: MeshFrame, origins: np.ndarray, directions: np.ndarray, order: np.ndarray):
+    """(org, dirs, inv f32[n,3], valid bool[n]) for f64 world rays, row k = input ray order[k]."""
     n = origins.shape[0]
     org = np.empty((n, 3), np.float32)
     dirs = np.empty((n, 3), np.float32)
     inv = np.empty((n, 3), np.float32)
-    unit = np.empty((n, 3), np.float64)
     valid = np.empty(n, np.bool_)
-    local_rays_kernel(origins, directions, frame.center, float(frame.scale), org, dirs, inv, unit, valid)
-    return org, dirs, inv, unit, valid
+    local_rays_kernel(origins, directions, order, frame.center, float(frame.scale), org, dirs, inv, valid)
+    return org, dirs, inv, valid

@@ -1,8 +1,9 @@
 """Parallel query kernels over rays in walk order (``order.ray_order``).
 
-Every kernel takes the BVH's arrays, the local float32 corners v0, v1, v2 (f32[T,3]) and local
-rays org, dirs, inv (f32[n,3]) with ``valid`` (bool[n]; invalid rays are misses), and
-``order`` (i64[n]); threads take chunks of ``order`` so neighbouring rays share a thread.
+Every kernel takes the BVH's arrays, the local float32 corners v0, v1, v2 (f32[P,3], in prim
+order) and local rays org, dirs, inv (f32[n,3]) with ``valid`` (bool[n]; invalid rays are
+misses), gathered in walk order (row k is input ray order[k]); threads take contiguous chunks
+of rows, so neighbouring rays share a thread.
 
 - ``first_hit_kernel``: closest (or any) hit per ray.
 - ``count_hits_kernel`` then ``fill_hits_kernel``: every hit per ray, counted, then written into
@@ -22,7 +23,8 @@ CHUNK = 256  # rays per prange task: one stack allocation per chunk
 def first_hit_kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, valid, order, any_hit,
                      out_tri, out_t, out_u, out_v):
     """out_tri (i64[n], -1 = miss), out_t (f32[n], local distance), out_u, out_v (f32[n]) of the
-    closest hit (any_hit False) or of some hit (any_hit True) of every ray on [0, inf)."""
+    closest hit (any_hit False) or of some hit (any_hit True) of every ray on [0, inf), written
+    at the input ray's index order[k]."""
     n = order.shape[0]
     empty_t = np.empty(0, np.float32)
     empty_i = np.empty(0, np.int32)
@@ -35,9 +37,9 @@ def first_hit_kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv,
             out_t[r] = np.inf
             out_u[r] = 0
             out_v[r] = 0
-            if not valid[r]:
+            if not valid[k]:
                 continue
-            hit, t, tri, u, v = walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, r,
+            hit, t, tri, u, v = walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, k,
                                      np.float32(0.0), np.float32(np.inf), mode, stack,
                                      empty_t, empty_i, empty_t, empty_t, 0)
             if hit:
@@ -48,54 +50,54 @@ def first_hit_kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv,
 
 
 @njit(cache=True, parallel=True)
-def count_hits_kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, valid, order, counts):
-    """counts (i64[n]): how many triangles each ray hits on [0, inf), before merging."""
-    n = order.shape[0]
+def count_hits_kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, valid, counts):
+    """counts (i64[n]): how many triangles the ray of each row hits on [0, inf), before merging."""
+    n = org.shape[0]
     empty_t = np.empty(0, np.float32)
     empty_i = np.empty(0, np.int32)
     for c in prange((n + CHUNK - 1) // CHUNK):
         stack = np.empty(STACK_SIZE, np.int32)
         for k in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
-            r = order[k]
-            counts[r] = 0
-            if valid[r]:
-                counts[r], _, _, _, _ = walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, r,
+            counts[k] = 0
+            if valid[k]:
+                counts[k], _, _, _, _ = walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, k,
                                              np.float32(0.0), np.float32(np.inf), COLLECT, stack,
                                              empty_t, empty_i, empty_t, empty_t, 0)
 
 
 @njit(cache=True, parallel=True)
-def fill_hits_kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, valid, order, offsets,
+def fill_hits_kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, offsets,
                      gap, max_hits, buf_t, buf_tri, buf_u, buf_v, kept):
-    """Ray r's hits go to slice offsets[r] : offsets[r + 1] of buf_t, buf_tri, buf_u, buf_v
+    """Row k's hits go to slice offsets[k] : offsets[k + 1] of buf_t, buf_tri, buf_u, buf_v
     (sized by ``count_hits_kernel``), sorted by (t, triangle), merged within ``gap`` (local
     units) and cut to max_hits; kept (i64[n]) is how many of them are real."""
-    n = order.shape[0]
+    n = org.shape[0]
     for c in prange((n + CHUNK - 1) // CHUNK):
         stack = np.empty(STACK_SIZE, np.int32)
         for k in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
-            r = order[k]
-            kept[r] = 0
-            lo, hi = offsets[r], offsets[r + 1]
+            kept[k] = 0
+            lo, hi = offsets[k], offsets[k + 1]
             if hi == lo:
                 continue
             st, stri, su, sv = buf_t[lo:hi], buf_tri[lo:hi], buf_u[lo:hi], buf_v[lo:hi]
-            found, _, _, _, _ = walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, r,
+            found, _, _, _, _ = walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, k,
                                      np.float32(0.0), np.float32(np.inf), COLLECT, stack, st, stri, su, sv, hi - lo)
             found = min(found, hi - lo)
             sort_hits(st, stri, su, sv, found)
-            kept[r] = min(merge_crossings(st, stri, su, sv, found, gap), max_hits)
+            kept[k] = min(merge_crossings(st, stri, su, sv, found, gap), max_hits)
 
 
 @njit(cache=True, parallel=True)
-def compact_hits_kernel(offsets, kept, out_offsets, buf_t, buf_tri, buf_u, buf_v,
+def compact_hits_kernel(offsets, kept, rank, out_offsets, buf_t, buf_tri, buf_u, buf_v,
                         index_ray, index_tri, t, u, v):
-    """Copy ray r's kept hits (buf_*[offsets[r] : offsets[r] + kept[r]]) to the flat answers at
-    out_offsets[r] (exclusive prefix sum of kept): index_ray, index_tri (i64[m]), t, u, v (f32[m])."""
-    for r in prange(kept.shape[0]):
-        src = offsets[r]
+    """Copy input ray r's kept hits (row k = rank[r]: buf_*[offsets[k] : offsets[k] + kept[k]])
+    to the flat answers at out_offsets[r] (exclusive prefix sum over input rays of kept[rank[r]]):
+    index_ray, index_tri (i64[m]), t, u, v (f32[m]), so the answers come in input ray order."""
+    for r in prange(rank.shape[0]):
+        k = rank[r]
+        src = offsets[k]
         dst = out_offsets[r]
-        for j in range(kept[r]):
+        for j in range(kept[k]):
             index_ray[dst + j] = r
             index_tri[dst + j] = buf_tri[src + j]
             t[dst + j] = buf_t[src + j]

@@ -59,19 +59,20 @@ class _Structure(NamedTuple):
     faces: np.ndarray      # i64[T,3]
     frame: MeshFrame
     bvh: BVH
-    v0: np.ndarray         # f32[T,3] local corners
+    v0: np.ndarray         # f32[P,3] local corners in the BVH's prim order (leaves contiguous)
     v1: np.ndarray
     v2: np.ndarray
 
 
 class _Rays(NamedTuple):
-    origins: np.ndarray    # f64[n,3] world
-    unit: np.ndarray       # f64[n,3] unit world directions
-    org: np.ndarray        # f32[n,3] local
+    origins: np.ndarray    # f64[n,3] world, input order
+    directions: np.ndarray  # f64[n,3] world, input order
+    org: np.ndarray        # f32[n,3] local, unit direction, 1/dir: row k is input ray order[k]
     dirs: np.ndarray
     inv: np.ndarray
-    valid: np.ndarray      # bool[n]
-    order: np.ndarray      # i64[n] walk order
+    valid: np.ndarray      # bool[n], by row
+    order: np.ndarray      # i64[n] input ray of each row
+    rank: np.ndarray       # i64[n] row of each input ray
 
 
 def _content_key(array):
@@ -152,7 +153,8 @@ class RayMeshIntersector:
             faces = old.faces
         else:
             bvh = build_bvh(tris, leaf_size=self._leaf_size, bins=self._bins)
-        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, tris.v0, tris.v1, tris.v2)
+        corners = (np.ascontiguousarray(c[bvh.prim]) for c in (tris.v0, tris.v1, tris.v2))
+        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, *corners)
         return self._structure_cache
 
     def __getstate__(self):
@@ -176,12 +178,15 @@ class RayMeshIntersector:
         if origins.shape != directions.shape:
             raise QueryInputError(f"ray_directions has shape {directions.shape} but ray_origins has "
                                   f"{origins.shape}; give one direction per origin")
-        org, dirs, inv, unit, valid = local_rays(s.frame, origins, directions)
+        order = ray_order(origins, directions, s.frame.center, s.frame.scale)
+        org, dirs, inv, valid = local_rays(s.frame, origins, directions, order)
         bad = len(valid) - int(np.count_nonzero(valid))
         if bad:
             warnings.warn(f"{bad} of {len(valid)} rays have a NaN/inf component or a zero direction; "
                           f"answered as misses", BadRayWarning, stacklevel=3)
-        return _Rays(origins, unit, org, dirs, inv, valid, ray_order(org, dirs, valid))
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        return _Rays(origins, directions, org, dirs, inv, valid, order, rank)
 
     @staticmethod
     def _tree(s: _Structure):
@@ -202,21 +207,21 @@ class RayMeshIntersector:
         tree = self._tree(s)
         n = rays.org.shape[0]
         counts = np.empty(n, np.int64)
-        count_hits_kernel(*tree, rays.org, rays.dirs, rays.inv, rays.valid, rays.order, counts)
+        count_hits_kernel(*tree, rays.org, rays.dirs, rays.inv, rays.valid, counts)
         offsets = np.zeros(n + 1, np.int64)
         np.cumsum(counts, out=offsets[1:])
         total = int(offsets[-1])
         bt, bu, bv = (np.empty(total, np.float32) for _ in range(3))
         btri = np.empty(total, np.int32)
         kept = np.empty(n, np.int64)
-        fill_hits_kernel(*tree, rays.org, rays.dirs, rays.inv, rays.valid, rays.order, offsets,
-                         np.float32(MERGE_GAP), max_hits, bt, btri, bu, bv, kept)
+        fill_hits_kernel(*tree, rays.org, rays.dirs, rays.inv, offsets, np.float32(MERGE_GAP), max_hits,
+                         bt, btri, bu, bv, kept)
         out_offsets = np.zeros(n + 1, np.int64)
-        np.cumsum(kept, out=out_offsets[1:])
+        np.cumsum(kept[rays.rank], out=out_offsets[1:])
         m = int(out_offsets[-1])
         index_ray, index_tri = np.empty(m, np.int64), np.empty(m, np.int64)
         t, u, v = (np.empty(m, np.float32) for _ in range(3))
-        compact_hits_kernel(offsets, kept, out_offsets, bt, btri, bu, bv, index_ray, index_tri, t, u, v)
+        compact_hits_kernel(offsets, kept, rays.rank, out_offsets, bt, btri, bu, bv, index_ray, index_tri, t, u, v)
         return index_ray, index_tri, u, v
 
     # -- trimesh's interface -------------------------------------------------------------
@@ -242,7 +247,7 @@ class RayMeshIntersector:
         if not return_locations:
             return index_tri, index_ray
         locations = np.empty((len(index_ray), 3), np.float64)
-        locations_kernel(s.frame.corners, rays.origins, rays.unit, index_ray, index_tri, u, v, locations)
+        locations_kernel(s.frame.corners, rays.origins, rays.directions, index_ray, index_tri, u, v, locations)
         return index_tri, index_ray, locations
 
     def intersects_location(self, ray_origins, ray_directions, multiple_hits: bool = True,

@@ -1,10 +1,12 @@
 """Incoherent rays put in an order the walk likes: neighbours start near each other and point
 the same way, so consecutive rays on a thread touch the same BVH nodes (cache-warm).
 
-The key (u64): direction octant (3 bits) above a 30-bit Morton code of the local origin (10 bits
-per axis over [-2, 2]^3, clamped) interleaved with 3 x 4 bits of the unit direction. Keys are
-computed and sorted in numba, in parallel: each thread sorts a run, then runs are merged pairwise
-(each round's merges in parallel).
+The key (u64): direction octant (3 bits) above a 30-bit Morton code of the origin in the mesh's
+local frame (10 bits per axis over [-2, 2]^3, clamped) interleaved with 3 x 4 bits of the unit
+direction; a bad ray (NaN, inf, zero direction) sorts last. Keys are computed from the float64
+world rays and sorted in numba, in parallel: each thread sorts a run, then runs are merged
+pairwise (each round's merges in parallel). ``frame.local_rays`` then gathers the rays in this
+order, so each thread walks a contiguous run of similar rays.
 """
 import numpy as np
 from numba import get_num_threads, njit, prange
@@ -22,24 +24,30 @@ def _spread3(q, bits):
 
 
 @njit(cache=True, parallel=True)
-def ray_keys_kernel(org, dirs, valid, keys):
-    """keys[i] (u64) for local rays org, dirs: f32[n,3] (unit dirs); invalid rays sort last."""
+def ray_keys_kernel(origins, directions, center, scale, keys):
+    """keys[i] (u64) for world rays origins, directions: f64[n,3]; center f64[3], scale: the
+    mesh's frame."""
     top_o = (1 << ORIGIN_BITS) - 1
     top_d = (1 << DIRECTION_BITS) - 1
-    for i in prange(org.shape[0]):
-        if not valid[i]:
+    for i in prange(origins.shape[0]):
+        norm = np.sqrt(directions[i, 0] ** 2 + directions[i, 1] ** 2 + directions[i, 2] ** 2)
+        ok = norm > 0.0 and np.isfinite(norm)
+        for a in range(3):
+            ok = ok and np.isfinite(origins[i, a])
+        if not ok:
             keys[i] = np.uint64(0xFFFFFFFFFFFFFFFF)
             continue
         code = np.uint64(0)
         octant = np.uint64(0)
         for a in range(3):
-            x = (np.float64(org[i, a]) + 2.0) * 0.25
-            qo = min(max(int(x * top_o + 0.5), 0), top_o)
-            y = (np.float64(dirs[i, a]) + 1.0) * 0.5
+            x = ((origins[i, a] - center[a]) / scale + 2.0) * 0.25
+            x = min(max(x, 0.0), 1.0)  # far origins clamp to the box's faces
+            qo = int(x * top_o + 0.5)
+            y = (directions[i, a] / norm + 1.0) * 0.5
             qd = min(max(int(y * top_d + 0.5), 0), top_d)
             code |= _spread3(np.uint64(qo), ORIGIN_BITS) << np.uint64(3 * DIRECTION_BITS + 2 - a)
             code |= _spread3(np.uint64(qd), DIRECTION_BITS) << np.uint64(2 - a)
-            if np.signbit(dirs[i, a]):
+            if np.signbit(directions[i, a]):
                 octant |= np.uint64(1) << np.uint64(2 - a)
         keys[i] = code | (octant << np.uint64(3 * (ORIGIN_BITS + DIRECTION_BITS)))
 
@@ -90,9 +98,10 @@ def parallel_argsort(keys, runs):
     return a
 
 
-def ray_order(org, dirs, valid) -> np.ndarray:
-    """i64[n]: the order to walk local rays in (valid rays first, grouped by octant and Morton key)."""
-    keys = np.empty(org.shape[0], np.uint64)
-    ray_keys_kernel(org, dirs, valid, keys)
-    runs = max(1, min(get_num_threads(), org.shape[0] // 4096))
+def ray_order(origins, directions, center, scale) -> np.ndarray:
+    """i64[n]: the order to walk world rays (f64[n,3] each) in: grouped by octant and Morton key
+    in the frame (center f64[3], scale), bad rays last."""
+    keys = np.empty(origins.shape[0], np.uint64)
+    ray_keys_kernel(origins, directions, center, float(scale), keys)
+    runs = max(1, min(get_num_threads(), origins.shape[0] // 4096))
     return parallel_argsort(keys, runs)

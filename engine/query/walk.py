@@ -8,7 +8,8 @@ Modes (integer constants, so one compiled helper serves every kernel and reaches
 - ``COLLECT``: every hit on [t_lo, t_hi]; the first ``cap`` are written to the scratch buffers
   (unsorted) and the total is returned, so a caller can count (cap 0) and then fill.
 
-Triangles are the watertight test's float32 corners in the mesh's local frame.
+Triangles are the watertight test's float32 corners in the mesh's local frame, stored in the
+BVH's ``prim`` order (row i is triangle prim[i]), so a leaf's corners are contiguous in memory.
 """
 import numpy as np
 from numba import njit
@@ -27,7 +28,8 @@ def walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, r, t_lo, t_
          buf_t, buf_tri, buf_u, buf_v, cap):
     """Walk ray r (row of org, dirs, inv: f32[R,3]) over [t_lo, t_hi].
 
-    Returns (n, t, tri, u, v): for CLOSEST / ANY, n is 1 on a hit and (t, tri, u, v) the hit;
+    v0, v1, v2: f32[P,3] corners in prim order. Returns (n, t, tri, u, v): tri is a mesh face
+    index (prim[i]). For CLOSEST / ANY, n is 1 on a hit and (t, tri, u, v) the hit;
     for COLLECT, n is the number of hits (all of them, even past ``cap``); the first min(n, cap)
     are in buf_t, buf_tri, buf_u, buf_v (f32/i32/f32/f32[cap]) in the order found.
     stack: i32[STACK_SIZE] scratch.
@@ -50,10 +52,10 @@ def walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, r, t_lo, t_
         node = stack[top]
         if count[node] > 0:
             for i in range(first[node], first[node] + count[node]):
-                tri = prim[i]
-                t, u, v = intersect_triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi, v0, v1, v2, tri)
+                t, u, v = intersect_triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi, v0, v1, v2, i)
                 if t == F32_INF:
                     continue
+                tri = prim[i]
                 if mode == COLLECT:
                     if n < cap:
                         buf_t[n] = t
