@@ -66,11 +66,11 @@ def bunny():
 
 
 # -- first and any hit -----------------------------------------------------------------------
-@pytest.mark.parametrize("which", ["sphere", "bunny"])
-def test_first_and_any_hit_equal_trimesh_default_backend(which, request):
+@pytest.mark.parametrize("which,order", [("sphere", "input"), ("bunny", "input"), ("bunny", "morton")])
+def test_first_and_any_hit_equal_trimesh_default_backend(which, order, request):
     mesh = request.getfixturevalue(which)
     origins, directions = rays_at(mesh, 20000, seed=1)
-    ours, theirs = RayMeshIntersector(mesh), EmbreeIntersector(mesh)
+    ours, theirs = RayMeshIntersector(mesh, order=order), EmbreeIntersector(mesh)
     first = ours.intersects_first(origins, directions)
     assert_same_first_hits(mesh, first, theirs.intersects_first(origins, directions), origins, directions)
     assert (first >= 0).sum() > 5000
@@ -83,11 +83,12 @@ def test_first_and_any_hit_equal_trimesh_default_backend(which, request):
 
 
 # -- every hit -------------------------------------------------------------------------------
-@pytest.mark.parametrize("which", ["box", "sphere", "bunny"])
-def test_every_hit_in_distance_order_equals_trimesh(which, request):
+@pytest.mark.parametrize("which,order", [("box", "input"), ("sphere", "morton"), ("bunny", "input"),
+                                         ("bunny", "morton")])
+def test_every_hit_in_distance_order_equals_trimesh(which, order, request):
     mesh = request.getfixturevalue(which)
     origins, directions = rays_at(mesh, 5000, seed=2)
-    ours = RayMeshIntersector(mesh)
+    ours = RayMeshIntersector(mesh, order=order)
     locations, index_ray, index_tri = ours.intersects_location(origins, directions)  # default: every hit
     assert locations.dtype == np.float64 and locations.shape == (len(index_ray), 3)
     assert index_ray.dtype == index_tri.dtype == np.int64
@@ -277,6 +278,8 @@ def test_bad_rays_are_misses_beside_good_rays(sphere):
     expected = ours.intersects_first(origins, directions)
     with pytest.warns(BadRayWarning, match="4 of 1000 rays"):
         first = ours.intersects_first(bad_o, bad_d)
+    with pytest.warns(BadRayWarning, match="4 of 1000 rays"):  # sorted, bad rays go last: same answers
+        assert np.array_equal(RayMeshIntersector(sphere, order="morton").intersects_first(bad_o, bad_d), first)
     assert np.all(first[bad] == -1) and np.array_equal(first[good], expected[good])
     assert (expected[good] >= 0).sum() > 300
     with pytest.warns(BadRayWarning):
@@ -300,6 +303,7 @@ def test_bad_rays_are_misses_beside_good_rays(sphere):
     (lambda r: r.contains_points(np.zeros((3, 4))), QueryInputError, ["points", "(3, 4)"]),
     (lambda r: r.contains_points([[object(), 1, 2]]), QueryTypeError, ["points"]),
     (lambda r: RayMeshIntersector("mesh"), QueryTypeError, ["vertices", "faces"]),
+    (lambda r: RayMeshIntersector(r.mesh, order="random"), QueryInputError, ["order", "morton"]),
 ])
 def test_malformed_arrays_raise_one_line_naming_the_argument(sphere, call, error, words):
     with pytest.raises(error) as info:
@@ -317,3 +321,28 @@ def test_empty_batches_answer_empty(sphere):
     loc, ray, tri = ours.intersects_location([], [])
     assert loc.shape == (0, 3) and ray.shape == tri.shape == (0,)
     assert ours.contains_points(np.zeros((0, 3))).shape == (0,)
+
+
+def test_rays_with_many_hits_take_the_exact_path_and_keep_distance_order():
+    """More hits per ray than the one-walk kernel's slot (engine.query.intersector.SLOT): a stack of
+    boxes crossed by every ray; the same hits as trimesh, the nearest ones under max_hits."""
+    boxes = [trimesh.creation.box(extents=(1, 1, 0.5)).apply_translation([0, 0, z]) for z in range(12)]
+    stack = trimesh.util.concatenate(boxes)
+    rng = np.random.default_rng(13)
+    origins = np.column_stack([rng.uniform(-0.4, 0.4, (300, 2)), np.full(300, -3.0)])
+    directions = np.column_stack([rng.uniform(-0.01, 0.01, (300, 2)), np.ones(300)])
+    origins[::3, 2] = 20.0  # every third ray from above, some mixed in with few hits
+    directions[::3, 2] = -1.0
+    directions[1::3] = [1, 0, 0]  # sideways: misses or crosses one box
+    ours = RayMeshIntersector(stack)
+    locations, index_ray, index_tri = ours.intersects_location(origins, directions, max_hits=None)
+    counts = np.bincount(index_ray, minlength=300)
+    assert counts.max() == 24
+    their_loc, their_ray, _ = EmbreeIntersector(stack).intersects_location(origins, directions)
+    assert np.array_equal(counts, np.bincount(their_ray, minlength=300))
+    key = np.lexsort((np.linalg.norm(their_loc - origins[their_ray], axis=1), their_ray))
+    np.testing.assert_allclose(locations, their_loc[key], atol=1e-6 * stack.scale)
+    near, near_ray, _ = ours.intersects_location(origins, directions, max_hits=10)
+    assert np.bincount(near_ray, minlength=300).max() == 10
+    first10 = np.concatenate([np.flatnonzero(index_ray == r)[:10] for r in range(300)])
+    np.testing.assert_array_equal(near, locations[first10])

@@ -1,18 +1,20 @@
 """Inside/outside by parity: count the surface crossings along a ray from the point, both ways.
 
-No hit list is materialised: each cast collects at most ``CAP`` hits in per-thread scratch,
-sorts and merges them (``walk.merge_crossings``) and keeps only the count. A cast is
+No hit list is materialised: one walk per direction collects the hits along the whole line
+through the point (t in (-inf, inf): the forward cast is t > 0, the backward one t < 0) in
+per-thread scratch of at most ``CAP`` hits, sorts and merges them (``walk.merge_crossings``) and
+keeps only the two counts. A line is
 *ambiguous* when the point lies on the surface (a hit at t < gap), when a hit sits exactly on a
 triangle's edge (barycentric 0), when two triangles report one crossing (the ray may graze an
 edge or a vertex rather than cross), or when it has more than CAP hits. As in trimesh, the
-answer is taken from the forward and backward casts of the first direction in ``DIRECTIONS``
-where neither is ambiguous and both parities agree; when none qualifies, the parities of all
-casts vote. Points outside the mesh's bounding box are outside without a cast.
+answer is taken from the forward and backward counts of the first direction in ``DIRECTIONS``
+whose line is not ambiguous and whose two parities agree; when none qualifies, the parities of
+all casts vote. Points outside the mesh's bounding box are outside without a cast.
 """
 import numpy as np
 from numba import njit, prange
 
-from engine.query.walk import COLLECT, STACK_SIZE, merge_crossings, sort_hits, walk
+from engine.query.walk import new_stack, COLLECT, merge_crossings, sort_hits, walk
 
 #: Hits one cast may collect before it counts as ambiguous.
 CAP = 256
@@ -26,30 +28,34 @@ DIRECTIONS = DIRECTIONS / np.linalg.norm(DIRECTIONS, axis=1, keepdims=True)
 
 
 @njit(cache=True)
-def _cast(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, stack, bt, btri, bu, bv, gap):
-    """(crossings, ambiguous) of the ray in row 0 of org, dirs, inv."""
-    n, _, _, _, _ = walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, 0,
-                         np.float32(0.0), np.float32(np.inf), COLLECT, stack, bt, btri, bu, bv, CAP)
+def _line(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv, stack, stack_t, bt, btri, bu, bv, gap):
+    """(crossings ahead, crossings behind, ambiguous) of the line in row 0 of org, dirs, inv."""
+    n, _, _, _, _ = walk(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv, 0,
+                         np.float32(-np.inf), np.float32(np.inf), COLLECT, stack, stack_t, bt, btri, bu, bv, CAP)
     if n > CAP:
-        return n, True
+        return 0, 0, True
     ambiguous = False
     for i in range(n):
-        if bu[i] == 0 or bv[i] == 0 or bu[i] + bv[i] >= 1 or bt[i] < gap:
+        if bu[i] == 0 or bv[i] == 0 or bu[i] + bv[i] >= 1 or abs(bt[i]) < gap:
             ambiguous = True
     sort_hits(bt, btri, bu, bv, n)
     kept = merge_crossings(bt, btri, bu, bv, n, gap)
-    return kept, ambiguous or kept != n
+    ahead = 0
+    for i in range(kept):
+        if bt[i] > 0:
+            ahead += 1
+    return ahead, kept - ahead, ambiguous or kept != n
 
 
 @njit(cache=True, parallel=True)
-def contains_kernel(bmin, bmax, first, count, prim, v0, v1, v2, points, inside_box, directions, gap, out):
+def contains_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, points, inside_box, directions, gap, out):
     """out (bool[n]): is each local point (f32[n,3]) inside the closed mesh. inside_box
     (bool[n]): the point is within the mesh's bounds (others are outside, uncast).
     directions: f32[D,3] unit cast directions."""
     n = points.shape[0]
     chunk = 64
     for c in prange((n + chunk - 1) // chunk):
-        stack = np.empty(STACK_SIZE, np.int32)
+        stack, stack_t = new_stack()
         bt = np.empty(CAP, np.float32)
         btri = np.empty(CAP, np.int32)
         bu = np.empty(CAP, np.float32)
@@ -67,23 +73,15 @@ def contains_kernel(bmin, bmax, first, count, prim, v0, v1, v2, points, inside_b
             casts = 0
             decided = False
             for k in range(directions.shape[0]):
-                p_forward = 0
-                p_backward = 0
-                unclear = False
-                for s in range(2):
-                    sign = np.float32(1.0) if s == 0 else np.float32(-1.0)
-                    for a in range(3):
-                        dirs[0, a] = sign * directions[k, a]
-                        inv[0, a] = np.float32(1.0) / dirs[0, a]
-                    crossings, ambiguous = _cast(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv,
-                                                 stack, bt, btri, bu, bv, gap)
-                    if s == 0:
-                        p_forward = crossings % 2
-                    else:
-                        p_backward = crossings % 2
-                    votes += crossings % 2
-                    casts += 1
-                    unclear = unclear or ambiguous
+                for a in range(3):
+                    dirs[0, a] = directions[k, a]
+                    inv[0, a] = np.float32(1.0) / dirs[0, a]
+                ahead, behind, unclear = _line(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv,
+                                               stack, stack_t, bt, btri, bu, bv, gap)
+                p_forward = ahead % 2
+                p_backward = behind % 2
+                votes += p_forward + p_backward
+                casts += 2
                 if not unclear and p_forward == p_backward:
                     out[i] = p_forward == 1
                     decided = True

@@ -1,26 +1,31 @@
 """Parallel query kernels over rays in walk order (``order.ray_order``).
 
-Every kernel takes the BVH's arrays, the local float32 corners v0, v1, v2 (f32[P,3], in prim
+Every kernel takes the 4-wide tree's arrays (``engine.query.wide``), the BVH's ``prim``, the local float32 corners v0, v1, v2 (f32[P,3], in prim
 order) and local rays org, dirs, inv (f32[n,3]) with ``valid`` (bool[n]; invalid rays are
 misses), gathered in walk order (row k is input ray order[k]); threads take contiguous chunks
 of rows, so neighbouring rays share a thread.
 
 - ``first_hit_kernel``: closest (or any) hit per ray.
-- ``count_hits_kernel`` then ``fill_hits_kernel``: every hit per ray, counted, then written into
-  exact slices, sorted by distance, merged where one crossing reported two triangles, cut to
-  ``max_hits``.
+- ``collect_hits_kernel``: every hit per ray in one walk, into per-thread scratch, sorted by
+  distance, merged where one crossing reported two triangles, cut to ``max_hits`` and kept in a
+  fixed slot of ``slot`` hits per ray; a ray with more (rare) is marked for the path below.
+- ``count_hits_kernel`` then ``fill_hits_kernel``: the same for any number of hits: counted,
+  then written into exact slices.
 - ``compact_hits_kernel``: the kept hits of all rays in ray order, as flat arrays.
 """
 import numpy as np
 from numba import njit, prange
 
-from engine.query.walk import ANY, CLOSEST, COLLECT, STACK_SIZE, merge_crossings, sort_hits, walk
+from engine.query.walk import new_stack, ANY, CLOSEST, COLLECT, merge_crossings, sort_hits, walk
 
 CHUNK = 256  # rays per prange task: one stack allocation per chunk
 
+#: Raw hits one walk may collect in scratch before its ray goes to the count-then-fill path.
+SCRATCH = 256
+
 
 @njit(cache=True, parallel=True)
-def first_hit_kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, valid, order, any_hit,
+def first_hit_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv, valid, order, any_hit,
                      out_tri, out_t, out_u, out_v):
     """out_tri (i64[n], -1 = miss), out_t (f32[n], local distance), out_u, out_v (f32[n]) of the
     closest hit (any_hit False) or of some hit (any_hit True) of every ray on [0, inf), written
@@ -30,7 +35,7 @@ def first_hit_kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv,
     empty_i = np.empty(0, np.int32)
     mode = ANY if any_hit else CLOSEST
     for c in prange((n + CHUNK - 1) // CHUNK):
-        stack = np.empty(STACK_SIZE, np.int32)
+        stack, stack_t = new_stack()
         for k in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
             r = order[k]
             out_tri[r] = -1
@@ -39,8 +44,8 @@ def first_hit_kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv,
             out_v[r] = 0
             if not valid[k]:
                 continue
-            hit, t, tri, u, v = walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, k,
-                                     np.float32(0.0), np.float32(np.inf), mode, stack,
+            hit, t, tri, u, v = walk(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv, k,
+                                     np.float32(0.0), np.float32(np.inf), mode, stack, stack_t,
                                      empty_t, empty_i, empty_t, empty_t, 0)
             if hit:
                 out_tri[r] = tri
@@ -50,38 +55,73 @@ def first_hit_kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv,
 
 
 @njit(cache=True, parallel=True)
-def count_hits_kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, valid, counts):
+def collect_hits_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv, valid, gap, max_hits, slot,
+                        out_t, out_tri, out_u, out_v, kept):
+    """Row k's hits, sorted by (t, triangle), merged within ``gap`` and cut to max_hits, go to
+    out_*[k * slot : k * slot + kept[k]] (out_t, out_u, out_v f32[n * slot], out_tri i32[n * slot]);
+    kept[k] = -1 when they do not fit (more than SCRATCH raw hits or ``slot`` kept ones)."""
+    n = org.shape[0]
+    for c in prange((n + CHUNK - 1) // CHUNK):
+        stack, stack_t = new_stack()
+        st = np.empty(SCRATCH, np.float32)
+        stri = np.empty(SCRATCH, np.int32)
+        su = np.empty(SCRATCH, np.float32)
+        sv = np.empty(SCRATCH, np.float32)
+        for k in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
+            kept[k] = 0
+            if not valid[k]:
+                continue
+            found, _, _, _, _ = walk(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv, k,
+                                     np.float32(0.0), np.float32(np.inf), COLLECT, stack, stack_t, st, stri, su, sv, SCRATCH)
+            if found > SCRATCH:
+                kept[k] = -1
+                continue
+            sort_hits(st, stri, su, sv, found)
+            m = min(merge_crossings(st, stri, su, sv, found, gap), max_hits)
+            if m > slot:
+                kept[k] = -1
+                continue
+            kept[k] = m
+            for j in range(m):
+                out_t[k * slot + j] = st[j]
+                out_tri[k * slot + j] = stri[j]
+                out_u[k * slot + j] = su[j]
+                out_v[k * slot + j] = sv[j]
+
+
+@njit(cache=True, parallel=True)
+def count_hits_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv, valid, counts):
     """counts (i64[n]): how many triangles the ray of each row hits on [0, inf), before merging."""
     n = org.shape[0]
     empty_t = np.empty(0, np.float32)
     empty_i = np.empty(0, np.int32)
     for c in prange((n + CHUNK - 1) // CHUNK):
-        stack = np.empty(STACK_SIZE, np.int32)
+        stack, stack_t = new_stack()
         for k in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
             counts[k] = 0
             if valid[k]:
-                counts[k], _, _, _, _ = walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, k,
-                                             np.float32(0.0), np.float32(np.inf), COLLECT, stack,
+                counts[k], _, _, _, _ = walk(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv, k,
+                                             np.float32(0.0), np.float32(np.inf), COLLECT, stack, stack_t,
                                              empty_t, empty_i, empty_t, empty_t, 0)
 
 
 @njit(cache=True, parallel=True)
-def fill_hits_kernel(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, offsets,
+def fill_hits_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv, offsets,
                      gap, max_hits, buf_t, buf_tri, buf_u, buf_v, kept):
     """Row k's hits go to slice offsets[k] : offsets[k + 1] of buf_t, buf_tri, buf_u, buf_v
     (sized by ``count_hits_kernel``), sorted by (t, triangle), merged within ``gap`` (local
     units) and cut to max_hits; kept (i64[n]) is how many of them are real."""
     n = org.shape[0]
     for c in prange((n + CHUNK - 1) // CHUNK):
-        stack = np.empty(STACK_SIZE, np.int32)
+        stack, stack_t = new_stack()
         for k in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
             kept[k] = 0
             lo, hi = offsets[k], offsets[k + 1]
             if hi == lo:
                 continue
             st, stri, su, sv = buf_t[lo:hi], buf_tri[lo:hi], buf_u[lo:hi], buf_v[lo:hi]
-            found, _, _, _, _ = walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, k,
-                                     np.float32(0.0), np.float32(np.inf), COLLECT, stack, st, stri, su, sv, hi - lo)
+            found, _, _, _, _ = walk(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv, k,
+                                     np.float32(0.0), np.float32(np.inf), COLLECT, stack, stack_t, st, stri, su, sv, hi - lo)
             found = min(found, hi - lo)
             sort_hits(st, stri, su, sv, found)
             kept[k] = min(merge_crossings(st, stri, su, sv, found, gap), max_hits)

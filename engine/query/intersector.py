@@ -41,9 +41,11 @@ from engine.core.types import BVH
 from engine.query.contains import DIRECTIONS, contains_kernel
 from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
 from engine.query.frame import MeshFrame, local_rays, mesh_frame
-from engine.query.hits import compact_hits_kernel, count_hits_kernel, fill_hits_kernel, first_hit_kernel
+from engine.query.hits import (collect_hits_kernel, compact_hits_kernel, count_hits_kernel, fill_hits_kernel,
+                               first_hit_kernel)
 from engine.query.locations import locations_kernel
 from engine.query.order import ray_order
+from engine.query.wide import collapse
 
 #: Hits closer than this (in units of the mesh's largest extent) to the previous one along a
 #: ray are one crossing; trimesh steps 1e-6 of the mesh's scale past each hit.
@@ -52,6 +54,12 @@ MERGE_GAP = 1e-6
 #: trimesh's default cap on hits per ray.
 DEFAULT_MAX_HITS = 100
 
+#: How rays are ordered before the walk (see RayMeshIntersector).
+ORDERS = ("input", "morton")
+
+#: Hits per ray kept by the one-walk all-hits kernel; rays with more take a count-then-fill walk.
+SLOT = 8
+
 
 class _Structure(NamedTuple):
     faces_key: object
@@ -59,6 +67,7 @@ class _Structure(NamedTuple):
     faces: np.ndarray      # i64[T,3]
     frame: MeshFrame
     bvh: BVH
+    wide: tuple            # (lo, hi, child, size) of the 4-wide tree over bvh
     v0: np.ndarray         # f32[P,3] local corners in the BVH's prim order (leaves contiguous)
     v1: np.ndarray
     v2: np.ndarray
@@ -128,12 +137,19 @@ class RayMeshIntersector:
     mesh       a ``trimesh.Trimesh`` (or anything with ``vertices`` f[V,3] and ``faces`` i[T,3]);
                kept as ``self.mesh`` and followed as it changes.
     leaf_size, bins  BVH build settings.
+    order      "input" (default): rays are walked in the order given; "morton": sorted first by
+               direction octant and a Morton code of the origin (``engine.query.order``, numba,
+               parallel). The per-ray walk does not need packets, and on the bunny and the kitchen
+               sorting cost more than it saved (see README, "Using packetrt from trimesh"); it
+               is there for huge batches of shuffled, locally coherent rays.
     """
 
-    def __init__(self, mesh, *, leaf_size: int = 4, bins: int = 16):
+    def __init__(self, mesh, *, leaf_size: int = 4, bins: int = 16, order: str = "input"):
         _mesh_arrays(mesh)
+        if order not in ORDERS:
+            raise QueryInputError(f"order must be one of {', '.join(ORDERS)}, got {order!r}")
         self.mesh = mesh
-        self._leaf_size, self._bins = leaf_size, bins
+        self._leaf_size, self._bins, self._order = leaf_size, bins, order
         self._structure_cache = None
 
     def __repr__(self) -> str:
@@ -154,7 +170,8 @@ class RayMeshIntersector:
         else:
             bvh = build_bvh(tris, leaf_size=self._leaf_size, bins=self._bins)
         corners = (np.ascontiguousarray(c[bvh.prim]) for c in (tris.v0, tris.v1, tris.v2))
-        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, *corners)
+        wide = collapse(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
+        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, wide, *corners)
         return self._structure_cache
 
     def __getstate__(self):
@@ -166,7 +183,7 @@ class RayMeshIntersector:
         self.__dict__.update(state)
 
     def __copy__(self):
-        return RayMeshIntersector(self.mesh, leaf_size=self._leaf_size, bins=self._bins)
+        return RayMeshIntersector(self.mesh, leaf_size=self._leaf_size, bins=self._bins, order=self._order)
 
     def __deepcopy__(self, memo):
         return self.__copy__()
@@ -178,7 +195,10 @@ class RayMeshIntersector:
         if origins.shape != directions.shape:
             raise QueryInputError(f"ray_directions has shape {directions.shape} but ray_origins has "
                                   f"{origins.shape}; give one direction per origin")
-        order = ray_order(origins, directions, s.frame.center, s.frame.scale)
+        if self._order == "morton":
+            order = ray_order(origins, directions, s.frame.center, s.frame.scale)
+        else:
+            order = np.arange(len(origins), dtype=np.int64)
         org, dirs, inv, valid = local_rays(s.frame, origins, directions, order)
         bad = len(valid) - int(np.count_nonzero(valid))
         if bad:
@@ -190,8 +210,7 @@ class RayMeshIntersector:
 
     @staticmethod
     def _tree(s: _Structure):
-        b = s.bvh
-        return b.bmin, b.bmax, b.first, b.count, b.prim, s.v0, s.v1, s.v2
+        return (*s.wide, s.bvh.prim, s.v0, s.v1, s.v2)
 
     def _first(self, s, rays, any_hit):
         n = rays.org.shape[0]
@@ -206,16 +225,28 @@ class RayMeshIntersector:
         """(index_ray, index_tri i64[m], u, v f32[m]): every hit, by ray then distance."""
         tree = self._tree(s)
         n = rays.org.shape[0]
-        counts = np.empty(n, np.int64)
-        count_hits_kernel(*tree, rays.org, rays.dirs, rays.inv, rays.valid, counts)
-        offsets = np.zeros(n + 1, np.int64)
-        np.cumsum(counts, out=offsets[1:])
-        total = int(offsets[-1])
-        bt, bu, bv = (np.empty(total, np.float32) for _ in range(3))
-        btri = np.empty(total, np.int32)
+        slot = min(SLOT, max_hits)
+        bt, bu, bv = (np.empty(n * slot, np.float32) for _ in range(3))
+        btri = np.empty(n * slot, np.int32)
         kept = np.empty(n, np.int64)
-        fill_hits_kernel(*tree, rays.org, rays.dirs, rays.inv, offsets, np.float32(MERGE_GAP), max_hits,
-                         bt, btri, bu, bv, kept)
+        collect_hits_kernel(*tree, rays.org, rays.dirs, rays.inv, rays.valid, np.float32(MERGE_GAP), max_hits, slot,
+                            bt, btri, bu, bv, kept)
+        offsets = np.arange(n + 1, dtype=np.int64) * slot  # where each row's hits start
+        over = np.flatnonzero(kept < 0)
+        if len(over):  # rays with many hits: count, then fill exact slices, appended to the buffers
+            org, dirs, inv = (np.ascontiguousarray(a[over]) for a in (rays.org, rays.dirs, rays.inv))
+            counts = np.empty(len(over), np.int64)
+            count_hits_kernel(*tree, org, dirs, inv, np.ones(len(over), np.bool_), counts)
+            extra = np.zeros(len(over) + 1, np.int64)
+            np.cumsum(counts, out=extra[1:])
+            et, eu, ev = (np.empty(int(extra[-1]), np.float32) for _ in range(3))
+            etri = np.empty(int(extra[-1]), np.int32)
+            extra_kept = np.empty(len(over), np.int64)
+            fill_hits_kernel(*tree, org, dirs, inv, extra, np.float32(MERGE_GAP), max_hits, et, etri, eu, ev,
+                             extra_kept)
+            offsets[over] = n * slot + extra[:-1]
+            kept[over] = extra_kept
+            bt, btri, bu, bv = (np.concatenate(pair) for pair in ((bt, et), (btri, etri), (bu, eu), (bv, ev)))
         out_offsets = np.zeros(n + 1, np.int64)
         np.cumsum(kept[rays.rank], out=out_offsets[1:])
         m = int(out_offsets[-1])

@@ -1,4 +1,5 @@
-"""The per-ray BVH walk every mesh query shares (one ray, a stack, near child first).
+"""The per-ray BVH walk every mesh query shares (one ray, a stack, nearest child first, over
+the 4-wide tree of ``engine.query.wide``).
 
 Modes (integer constants, so one compiled helper serves every kernel and reaches the disk cache):
 
@@ -14,25 +15,39 @@ BVH's ``prim`` order (row i is triangle prim[i]), so a leaf's corners are contig
 import numpy as np
 from numba import njit
 
-from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear, slab_test
+from engine.core.triangle import F32_INF, SLAB_SLACK, closer, ray_shear
+from engine.core.triangle import intersect_triangle as _shared_triangle_test
+from engine.query.wide import WIDTH
 from engine.core.types import MAX_BVH_DEPTH
 
 CLOSEST, ANY, COLLECT = 0, 1, 2
 
-#: Size of the per-thread traversal stack (i32).
-STACK_SIZE = 2 * MAX_BVH_DEPTH + 2
+# The shared watertight test, compiled again to be inlined into the walk: a call per triangle
+# passes three arrays (reference counts included), which costs as much as the test itself.
+intersect_triangle = njit(inline="always")(_shared_triangle_test.py_func)
+
+#: Entries of the per-thread traversal stack: at most WIDTH - 1 left behind per level.
+STACK_SIZE = WIDTH * MAX_BVH_DEPTH + 2
 
 
 @njit(cache=True)
-def walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, r, t_lo, t_hi, mode, stack,
+def new_stack():
+    """Scratch for one thread's walks: (stack i32[STACK_SIZE, 2]: child and size of each entry,
+    stack_t f32[STACK_SIZE + WIDTH]: its entry distance; the last WIDTH hold a node's children's)."""
+    return np.empty((STACK_SIZE, 2), np.int32), np.empty(STACK_SIZE + WIDTH, np.float32)
+
+
+@njit(cache=True, inline="always")  # inlined: a call per ray costs as much as a short walk
+def walk(lo, hi, child, size, prim, v0, v1, v2, org, dirs, inv, r, t_lo, t_hi, mode, stack, stack_t,
          buf_t, buf_tri, buf_u, buf_v, cap):
-    """Walk ray r (row of org, dirs, inv: f32[R,3]) over [t_lo, t_hi].
+    """Walk ray r (row of org, dirs, inv: f32[R,3]) over [t_lo, t_hi] through the 4-wide tree
+    (lo, hi, child, size: ``engine.query.wide``).
 
     v0, v1, v2: f32[P,3] corners in prim order. Returns (n, t, tri, u, v): tri is a mesh face
     index (prim[i]). For CLOSEST / ANY, n is 1 on a hit and (t, tri, u, v) the hit;
     for COLLECT, n is the number of hits (all of them, even past ``cap``); the first min(n, cap)
     are in buf_t, buf_tri, buf_u, buf_v (f32/i32/f32/f32[cap]) in the order found.
-    stack: i32[STACK_SIZE] scratch.
+    stack, stack_t: scratch from ``new_stack``.
     """
     best_t = F32_INF
     best_tri = -1
@@ -43,15 +58,19 @@ def walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, r, t_lo, t_
     ix, iy, iz = inv[r, 0], inv[r, 1], inv[r, 2]
     kx, ky, kz, sx, sy, sz = ray_shear(dirs[r, 0], dirs[r, 1], dirs[r, 2])
     okx, oky, okz = org[r, kx], org[r, ky], org[r, kz]
-    if slab_test(ox, oy, oz, ix, iy, iz, t_lo, t_hi, bmin, bmax, 0) == F32_INF:
-        return 0, best_t, best_tri, best_u, best_v
-    stack[0] = 0
+    near = stack_t[STACK_SIZE:]
+    stack[0, 0] = 0
+    stack[0, 1] = 0
+    stack_t[0] = t_lo
     top = 1
     while top > 0:
         top -= 1
-        node = stack[top]
-        if count[node] > 0:
-            for i in range(first[node], first[node] + count[node]):
+        if stack_t[top] > t_hi:
+            continue  # CLOSEST: entered beyond the best hit so far
+        node = stack[top, 0]
+        leaf = stack[top, 1]
+        if leaf > 0:
+            for i in range(node, node + leaf):
                 t, u, v = intersect_triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi, v0, v1, v2, i)
                 if t == F32_INF:
                     continue
@@ -70,19 +89,39 @@ def walk(bmin, bmax, first, count, prim, v0, v1, v2, org, dirs, inv, r, t_lo, t_
                         return n, best_t, best_tri, best_u, best_v
                     t_hi = t  # CLOSEST: nothing beyond this hit matters any more
             continue
-        left = first[node]
-        t_left = slab_test(ox, oy, oz, ix, iy, iz, t_lo, t_hi, bmin, bmax, left)
-        t_right = slab_test(ox, oy, oz, ix, iy, iz, t_lo, t_hi, bmin, bmax, left + 1)
-        near, far = left, left + 1
-        if t_right < t_left:
-            near, far = left + 1, left
-            t_left, t_right = t_right, t_left
-        if t_right < F32_INF:
-            stack[top] = far
-            top += 1
-        if t_left < F32_INF:
-            stack[top] = near
-            top += 1
+        # The four children's slab tests (the arithmetic of engine.core.triangle.slab_test), in a
+        # branch-free loop the compiler vectorises; a missed or empty slot gets inf.
+        for s in range(WIDTH):
+            t0 = (lo[node, 0, s] - ox) * ix
+            t1 = (hi[node, 0, s] - ox) * ix
+            tn = min(t0, t1)
+            tf = max(t0, t1)
+            t0 = (lo[node, 1, s] - oy) * iy
+            t1 = (hi[node, 1, s] - oy) * iy
+            tn = max(tn, min(t0, t1))
+            tf = min(tf, max(t0, t1))
+            t0 = (lo[node, 2, s] - oz) * iz
+            t1 = (hi[node, 2, s] - oz) * iz
+            tn = max(tn, min(t0, t1))
+            tf = min(tf, max(t0, t1))
+            tn = max(tn - abs(tn) * SLAB_SLACK, t_lo)
+            tf = min(tf + abs(tf) * SLAB_SLACK, t_hi)
+            near[s] = tn if tn <= tf else F32_INF
+        base = top
+        for s in range(WIDTH):
+            tn = near[s]
+            if tn < F32_INF and size[node, s] >= 0:
+                # insert, keeping stack[base:top] sorted far (bottom) to near (top)
+                j = top
+                while j > base and stack_t[j - 1] < tn:
+                    stack[j, 0] = stack[j - 1, 0]
+                    stack[j, 1] = stack[j - 1, 1]
+                    stack_t[j] = stack_t[j - 1]
+                    j -= 1
+                stack[j, 0] = child[node, s]
+                stack[j, 1] = size[node, s]
+                stack_t[j] = tn
+                top += 1
     return n, best_t, best_tri, best_u, best_v
 
 
