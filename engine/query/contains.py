@@ -27,10 +27,11 @@ DIRECTIONS = np.array([[0.4395064455, 0.617598629942, 0.652231566745],
 DIRECTIONS = DIRECTIONS / np.linalg.norm(DIRECTIONS, axis=1, keepdims=True)
 
 
-@njit(cache=True)
-def _line(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv, stack, stack_t, bt, btri, bu, bv, gap):
-    """(crossings ahead, crossings behind, ambiguous) of the line in row 0 of org, dirs, inv."""
-    n, _, _, _, _ = walk(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv, 0,
+@njit(cache=True, inline="always")
+def _line(box_lo, box_hi, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz, stack, stack_t, bt, btri, bu, bv,
+          gap):
+    """(crossings ahead, crossings behind, ambiguous) of the line (ox, oy, oz) + t (dx, dy, dz)."""
+    n, _, _, _, _ = walk(box_lo, box_hi, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz,
                          np.float32(-np.inf), np.float32(np.inf), COLLECT, stack, stack_t, bt, btri, bu, bv, CAP)
     if n > CAP:
         return 0, 0, True
@@ -48,10 +49,11 @@ def _line(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv, stack, 
 
 
 @njit(cache=True, parallel=True)
-def contains_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, points, inside_box, directions, gap, out):
-    """out (bool[n]): is each local point (f32[n,3]) inside the closed mesh. inside_box
-    (bool[n]): the point is within the mesh's bounds (others are outside, uncast).
-    directions: f32[D,3] unit cast directions."""
+def contains_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, points, center, scale, lo, hi, directions, gap,
+                    out):
+    """out (bool[n]): is each world point (f64[n,3]) inside the closed mesh. center (f64[3]),
+    scale: the mesh's frame; lo, hi (f64[3]): the mesh's box in that frame (points outside it, or
+    NaN, are outside without a cast). directions: f32[D,3] unit cast directions."""
     n = points.shape[0]
     chunk = 64
     for c in prange((n + chunk - 1) // chunk):
@@ -60,23 +62,20 @@ def contains_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, points, insid
         btri = np.empty(CAP, np.int32)
         bu = np.empty(CAP, np.float32)
         bv = np.empty(CAP, np.float32)
-        org = np.empty((1, 3), np.float32)
-        dirs = np.empty((1, 3), np.float32)
-        inv = np.empty((1, 3), np.float32)
         for i in range(c * chunk, min(n, (c + 1) * chunk)):
             out[i] = False
-            if not inside_box[i]:
+            lx = (points[i, 0] - center[0]) / scale
+            ly = (points[i, 1] - center[1]) / scale
+            lz = (points[i, 2] - center[2]) / scale
+            if not (lo[0] <= lx <= hi[0] and lo[1] <= ly <= hi[1] and lo[2] <= lz <= hi[2]):
                 continue
-            for a in range(3):
-                org[0, a] = points[i, a]
+            ox, oy, oz = np.float32(lx), np.float32(ly), np.float32(lz)
             votes = 0
             casts = 0
             decided = False
             for k in range(directions.shape[0]):
-                for a in range(3):
-                    dirs[0, a] = directions[k, a]
-                    inv[0, a] = np.float32(1.0) / dirs[0, a]
-                ahead, behind, unclear = _line(box_lo, box_hi, child, size, prim, v0, v1, v2, org, dirs, inv,
+                ahead, behind, unclear = _line(box_lo, box_hi, child, size, prim, v0, v1, v2, ox, oy, oz,
+                                               directions[k, 0], directions[k, 1], directions[k, 2],
                                                stack, stack_t, bt, btri, bu, bv, gap)
                 p_forward = ahead % 2
                 p_backward = behind % 2

@@ -40,7 +40,7 @@ from engine.core.scene import make_triangles
 from engine.core.types import BVH
 from engine.query.contains import DIRECTIONS, contains_kernel
 from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
-from engine.query.frame import MeshFrame, local_rays, mesh_frame
+from engine.query.frame import MeshFrame, mesh_frame
 from engine.query.hits import (collect_hits_kernel, compact_hits_kernel, count_hits_kernel, fill_hits_kernel,
                                first_hit_kernel)
 from engine.query.locations import locations_kernel
@@ -76,11 +76,7 @@ class _Structure(NamedTuple):
 class _Rays(NamedTuple):
     origins: np.ndarray    # f64[n,3] world, input order
     directions: np.ndarray  # f64[n,3] world, input order
-    org: np.ndarray        # f32[n,3] local, unit direction, 1/dir: row k is input ray order[k]
-    dirs: np.ndarray
-    inv: np.ndarray
-    valid: np.ndarray      # bool[n], by row
-    order: np.ndarray      # i64[n] input ray of each row
+    rows: np.ndarray       # i64[n] input ray walked in row k
     rank: np.ndarray       # i64[n] row of each input ray
 
 
@@ -195,55 +191,64 @@ class RayMeshIntersector:
         if origins.shape != directions.shape:
             raise QueryInputError(f"ray_directions has shape {directions.shape} but ray_origins has "
                                   f"{origins.shape}; give one direction per origin")
+        n = len(origins)
         if self._order == "morton":
-            order = ray_order(origins, directions, s.frame.center, s.frame.scale)
+            rows = ray_order(origins, directions, s.frame.center, s.frame.scale)
+            rank = np.empty_like(rows)
+            rank[rows] = np.arange(n)
         else:
-            order = np.arange(len(origins), dtype=np.int64)
-        org, dirs, inv, valid = local_rays(s.frame, origins, directions, order)
-        bad = len(valid) - int(np.count_nonzero(valid))
+            rows = rank = np.arange(n, dtype=np.int64)
+        return _Rays(origins, directions, rows, rank)
+
+    @staticmethod
+    def _warn_bad(ok: np.ndarray) -> None:
+        bad = len(ok) - int(np.count_nonzero(ok))
         if bad:
-            warnings.warn(f"{bad} of {len(valid)} rays have a NaN/inf component or a zero direction; "
-                          f"answered as misses", BadRayWarning, stacklevel=3)
-        rank = np.empty_like(order)
-        rank[order] = np.arange(len(order))
-        return _Rays(origins, directions, org, dirs, inv, valid, order, rank)
+            warnings.warn(f"{bad} of {len(ok)} rays have a NaN/inf component or a zero direction; "
+                          f"answered as misses", BadRayWarning, stacklevel=4)
 
     @staticmethod
     def _tree(s: _Structure):
         return (*s.wide, s.bvh.prim, s.v0, s.v1, s.v2)
 
+    @staticmethod
+    def _frame_args(s: _Structure, rays: _Rays):
+        return rays.origins, rays.directions, s.frame.center, float(s.frame.scale)
+
     def _first(self, s, rays, any_hit):
-        n = rays.org.shape[0]
+        """(triangle i64[n], u, v f32[n]) of the first (any_hit: some) hit of every ray."""
+        n = len(rays.rows)
         tri = np.empty(n, np.int64)
-        t = np.empty(n, np.float32)
         u = np.empty(n, np.float32)
         v = np.empty(n, np.float32)
-        first_hit_kernel(*self._tree(s), rays.org, rays.dirs, rays.inv, rays.valid, rays.order, any_hit, tri, t, u, v)
+        ok = np.empty(n, np.bool_)
+        first_hit_kernel(*self._tree(s), *self._frame_args(s, rays), rays.rows, any_hit, tri, u, v, ok)
+        self._warn_bad(ok)
         return tri, u, v
 
     def _all(self, s, rays, max_hits):
         """(index_ray, index_tri i64[m], u, v f32[m]): every hit, by ray then distance."""
-        tree = self._tree(s)
-        n = rays.org.shape[0]
+        tree, frame = self._tree(s), self._frame_args(s, rays)
+        n = len(rays.rows)
         slot = min(SLOT, max_hits)
         bt, bu, bv = (np.empty(n * slot, np.float32) for _ in range(3))
         btri = np.empty(n * slot, np.int32)
         kept = np.empty(n, np.int64)
-        collect_hits_kernel(*tree, rays.org, rays.dirs, rays.inv, rays.valid, np.float32(MERGE_GAP), max_hits, slot,
-                            bt, btri, bu, bv, kept)
+        ok = np.empty(n, np.bool_)
+        collect_hits_kernel(*tree, *frame, rays.rows, np.float32(MERGE_GAP), max_hits, slot, bt, btri, bu, bv, kept, ok)
+        self._warn_bad(ok)
         offsets = np.arange(n + 1, dtype=np.int64) * slot  # where each row's hits start
         over = np.flatnonzero(kept < 0)
         if len(over):  # rays with many hits: count, then fill exact slices, appended to the buffers
-            org, dirs, inv = (np.ascontiguousarray(a[over]) for a in (rays.org, rays.dirs, rays.inv))
+            rows = rays.rows[over]
             counts = np.empty(len(over), np.int64)
-            count_hits_kernel(*tree, org, dirs, inv, np.ones(len(over), np.bool_), counts)
+            count_hits_kernel(*tree, *frame, rows, counts)
             extra = np.zeros(len(over) + 1, np.int64)
             np.cumsum(counts, out=extra[1:])
             et, eu, ev = (np.empty(int(extra[-1]), np.float32) for _ in range(3))
             etri = np.empty(int(extra[-1]), np.int32)
             extra_kept = np.empty(len(over), np.int64)
-            fill_hits_kernel(*tree, org, dirs, inv, extra, np.float32(MERGE_GAP), max_hits, et, etri, eu, ev,
-                             extra_kept)
+            fill_hits_kernel(*tree, *frame, rows, extra, np.float32(MERGE_GAP), max_hits, et, etri, eu, ev, extra_kept)
             offsets[over] = n * slot + extra[:-1]
             kept[over] = extra_kept
             bt, btri, bu, bv = (np.concatenate(pair) for pair in ((bt, et), (btri, etri), (bu, eu), (bv, ev)))
@@ -308,13 +313,7 @@ class RayMeshIntersector:
         meshes; a point on the surface may go either way (as in trimesh). A NaN point is outside."""
         pts = _points("points", points)
         s = self._structure()
-        f = s.frame
-        with np.errstate(invalid="ignore"):
-            local = ((pts - f.center) / f.scale)
-            lo = (s.frame.corners.min(axis=(0, 1)) - f.center) / f.scale
-            hi = (s.frame.corners.max(axis=(0, 1)) - f.center) / f.scale
-            inside_box = np.all((local >= lo) & (local <= hi), axis=1)
         out = np.empty(len(pts), np.bool_)
-        contains_kernel(*self._tree(s), np.ascontiguousarray(np.where(inside_box[:, None], local, 0), np.float32),
-                        inside_box, DIRECTIONS.astype(np.float32), np.float32(MERGE_GAP), out)
+        contains_kernel(*self._tree(s), pts, s.frame.center, float(s.frame.scale), s.frame.lo, s.frame.hi,
+                        DIRECTIONS.astype(np.float32), np.float32(MERGE_GAP), out)
         return out

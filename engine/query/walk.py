@@ -15,7 +15,7 @@ BVH's ``prim`` order (row i is triangle prim[i]), so a leaf's corners are contig
 import numpy as np
 from numba import njit
 
-from engine.core.triangle import F32_INF, SLAB_SLACK, closer, ray_shear
+from engine.core.triangle import F32_INF, F32_ONE, HUGE_INV, SLAB_SLACK, closer, ray_shear
 from engine.core.triangle import intersect_triangle as _shared_triangle_test
 from engine.query.wide import WIDTH
 from engine.core.types import MAX_BVH_DEPTH
@@ -30,6 +30,14 @@ intersect_triangle = njit(inline="always")(_shared_triangle_test.py_func)
 STACK_SIZE = WIDTH * MAX_BVH_DEPTH + 2
 
 
+@njit(cache=True, inline="always")
+def safe_inverse1(d):
+    """1/d for one f32 direction component, zero mapped to +-HUGE_INV (as ``safe_inverse``)."""
+    if d == 0:
+        return -HUGE_INV if np.signbit(d) else HUGE_INV
+    return F32_ONE / d
+
+
 @njit(cache=True)
 def new_stack():
     """Scratch for one thread's walks: (stack i32[STACK_SIZE, 2]: child and size of each entry,
@@ -38,10 +46,10 @@ def new_stack():
 
 
 @njit(cache=True, inline="always")  # inlined: a call per ray costs as much as a short walk
-def walk(lo, hi, child, size, prim, v0, v1, v2, org, dirs, inv, r, t_lo, t_hi, mode, stack, stack_t,
+def walk(lo, hi, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz, t_lo, t_hi, mode, stack, stack_t,
          buf_t, buf_tri, buf_u, buf_v, cap):
-    """Walk ray r (row of org, dirs, inv: f32[R,3]) over [t_lo, t_hi] through the 4-wide tree
-    (lo, hi, child, size: ``engine.query.wide``).
+    """Walk the ray (ox, oy, oz) + t (dx, dy, dz) (f32 scalars, local frame, non-zero direction)
+    over [t_lo, t_hi] through the 4-wide tree (lo, hi, child, size: ``engine.query.wide``).
 
     v0, v1, v2: f32[P,3] corners in prim order. Returns (n, t, tri, u, v): tri is a mesh face
     index (prim[i]). For CLOSEST / ANY, n is 1 on a hit and (t, tri, u, v) the hit;
@@ -54,10 +62,11 @@ def walk(lo, hi, child, size, prim, v0, v1, v2, org, dirs, inv, r, t_lo, t_hi, m
     best_u = np.float32(0.0)
     best_v = np.float32(0.0)
     n = 0
-    ox, oy, oz = org[r, 0], org[r, 1], org[r, 2]
-    ix, iy, iz = inv[r, 0], inv[r, 1], inv[r, 2]
-    kx, ky, kz, sx, sy, sz = ray_shear(dirs[r, 0], dirs[r, 1], dirs[r, 2])
-    okx, oky, okz = org[r, kx], org[r, ky], org[r, kz]
+    ix, iy, iz = safe_inverse1(dx), safe_inverse1(dy), safe_inverse1(dz)
+    kx, ky, kz, sx, sy, sz = ray_shear(dx, dy, dz)
+    okx = ox if kx == 0 else (oy if kx == 1 else oz)
+    oky = ox if ky == 0 else (oy if ky == 1 else oz)
+    okz = ox if kz == 0 else (oy if kz == 1 else oz)
     near = stack_t[STACK_SIZE:]
     stack[0, 0] = 0
     stack[0, 1] = 0
