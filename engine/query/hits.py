@@ -12,7 +12,7 @@ batch is made; a bad ray is a miss with ok[ray] False. Threads take contiguous c
   distance, merged where one crossing reported two triangles, cut to ``max_hits`` and kept in a
   fixed slot of ``slot`` hits per row; a ray with more (rare) is marked for the path below.
 - ``count_hits_kernel`` then ``fill_hits_kernel``: the same for any number of hits: counted,
-  then written into exact slices.
+  then written into exact slices (serial: waking threads costs more than these few rays).
 - ``compact_hits_kernel``: the kept hits of all rays in ray order, as flat arrays.
 """
 import numpy as np
@@ -97,7 +97,7 @@ def collect_hits_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, origins, 
                 out_v[k * slot + j] = sv[j]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)  # serial: only the rare rays with many hits come here
 def count_hits_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, origins, directions, center, scale, rows,
                       counts):
     """counts (i64[n]): how many triangles the ray of each row hits on [0, inf), before merging
@@ -105,7 +105,7 @@ def count_hits_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, origins, di
     n = rows.shape[0]
     empty_t = np.empty(0, np.float32)
     empty_i = np.empty(0, np.int32)
-    for c in prange((n + CHUNK - 1) // CHUNK):
+    for c in range((n + CHUNK - 1) // CHUNK):
         stack, stack_t = new_stack()
         for k in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
             _, ox, oy, oz, dx, dy, dz = local_ray(origins, directions, rows[k], center, scale)
@@ -114,14 +114,14 @@ def count_hits_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, origins, di
                                          empty_t, empty_i, empty_t, empty_t, 0)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)  # serial: only the rare rays with many hits come here
 def fill_hits_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, origins, directions, center, scale, rows,
                      offsets, gap, max_hits, buf_t, buf_tri, buf_u, buf_v, kept):
     """Row k's hits go to slice offsets[k] : offsets[k + 1] of buf_t, buf_tri, buf_u, buf_v
     (sized by ``count_hits_kernel``), sorted by (t, triangle), merged within ``gap`` (local
     units) and cut to max_hits; kept (i64[n]) is how many of them are real."""
     n = rows.shape[0]
-    for c in prange((n + CHUNK - 1) // CHUNK):
+    for c in range((n + CHUNK - 1) // CHUNK):
         stack, stack_t = new_stack()
         for k in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
             kept[k] = 0
