@@ -48,6 +48,7 @@ from engine.core.triangle import safe_inverse
 from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch, Triangles, empty_hits
 from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
 from engine.query.intersector import RayMeshIntersector
+from engine.query.order import spread_bits
 
 __all__ = ["RayTracer", "RayMeshIntersector", "RayInputError", "RayInputTypeError", "ApiArgumentError",
            "QueryInputError", "QueryTypeError", "BadRayWarning"]
@@ -158,15 +159,6 @@ def check_rays(origins, directions, tmin=None, tmax=None):
 
 
 # -- incoherent rays -> packets --------------------------------------------------------------
-@njit(cache=True)
-def _spread6(q):
-    """The low MORTON_BITS bits of q, bit b moved to bit 6 b."""
-    out = np.uint64(0)
-    for bit in range(MORTON_BITS):
-        out |= ((q >> np.uint64(bit)) & np.uint64(1)) << np.uint64(6 * bit)
-    return out
-
-
 @njit(cache=True, parallel=True)
 def morton_keys_kernel(org, dirs, lo, hi, keys):
     """keys[i] (u64): direction octant (3 bits, sign bits of x, y, z) above a 6-D Morton code of
@@ -185,8 +177,8 @@ def morton_keys_kernel(org, dirs, lo, hi, keys):
             qo = min(max(int(np.floor(x * top + 0.5)), 0), top)
             y = (np.float64(dirs[i, a]) / norm + 1.0) * 0.5
             qd = min(max(int(np.floor(y * top + 0.5)), 0), top)
-            code |= _spread6(np.uint64(qo)) << np.uint64(5 - a)
-            code |= _spread6(np.uint64(qd)) << np.uint64(2 - a)
+            code |= spread_bits(np.uint64(qo), MORTON_BITS, 6) << np.uint64(5 - a)
+            code |= spread_bits(np.uint64(qd), MORTON_BITS, 6) << np.uint64(2 - a)
             if np.signbit(dirs[i, a]):
                 octant |= np.uint64(1) << np.uint64(2 - a)
         keys[i] = code | (octant << np.uint64(6 * MORTON_BITS))

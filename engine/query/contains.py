@@ -14,7 +14,7 @@ all casts vote. Points outside the mesh's bounding box are outside without a cas
 import numpy as np
 from numba import njit, prange
 
-from engine.query.walk import new_stack, COLLECT, merge_crossings, sort_hits, walk
+from engine.query.walk import COLLECT, merge_crossings, new_hit_buffers, new_stack, sort_hits, walk
 
 #: Hits one cast may collect before it counts as ambiguous.
 CAP = 256
@@ -58,10 +58,7 @@ def contains_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, points, cente
     chunk = 64
     for c in prange((n + chunk - 1) // chunk):
         stack, stack_t = new_stack()
-        bt = np.empty(CAP, np.float32)
-        btri = np.empty(CAP, np.int32)
-        bu = np.empty(CAP, np.float32)
-        bv = np.empty(CAP, np.float32)
+        bt, btri, bu, bv = new_hit_buffers(CAP)
         for i in range(c * chunk, min(n, (c + 1) * chunk)):
             out[i] = False
             lx = (points[i, 0] - center[0]) / scale

@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit, prange
 
 from engine.query.frame import local_ray
-from engine.query.walk import ANY, CLOSEST, COLLECT, merge_crossings, new_stack, sort_hits, walk
+from engine.query.walk import ANY, CLOSEST, COLLECT, merge_crossings, new_hit_buffers, new_stack, sort_hits, walk
 
 CHUNK = 256  # rays per prange task: one stack allocation per chunk
 
@@ -68,10 +68,7 @@ def collect_hits_kernel(box_lo, box_hi, child, size, prim, v0, v1, v2, origins, 
     n = rows.shape[0]
     for c in prange((n + CHUNK - 1) // CHUNK):
         stack, stack_t = new_stack()
-        st = np.empty(SCRATCH, np.float32)
-        stri = np.empty(SCRATCH, np.int32)
-        su = np.empty(SCRATCH, np.float32)
-        sv = np.empty(SCRATCH, np.float32)
+        st, stri, su, sv = new_hit_buffers(SCRATCH)
         for k in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
             kept[k] = 0
             r = rows[k]

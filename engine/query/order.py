@@ -15,11 +15,12 @@ ORIGIN_BITS, DIRECTION_BITS = 10, 4
 
 
 @njit(cache=True)
-def _spread3(q, bits):
-    """The low ``bits`` bits of q, bit b moved to bit 3 b."""
+def spread_bits(q, bits, stride):
+    """The low ``bits`` bits of q (u64), bit b moved to bit stride * b: one coordinate of a
+    Morton code interleaving ``stride`` coordinates."""
     out = np.uint64(0)
     for b in range(bits):
-        out |= ((q >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b)
+        out |= ((q >> np.uint64(b)) & np.uint64(1)) << np.uint64(stride * b)
     return out
 
 
@@ -45,8 +46,8 @@ def ray_keys_kernel(origins, directions, center, scale, keys):
             qo = int(x * top_o + 0.5)
             y = (directions[i, a] / norm + 1.0) * 0.5
             qd = min(max(int(y * top_d + 0.5), 0), top_d)
-            code |= _spread3(np.uint64(qo), ORIGIN_BITS) << np.uint64(3 * DIRECTION_BITS + 2 - a)
-            code |= _spread3(np.uint64(qd), DIRECTION_BITS) << np.uint64(2 - a)
+            code |= spread_bits(np.uint64(qo), ORIGIN_BITS, 3) << np.uint64(3 * DIRECTION_BITS + 2 - a)
+            code |= spread_bits(np.uint64(qd), DIRECTION_BITS, 3) << np.uint64(2 - a)
             if np.signbit(directions[i, a]):
                 octant |= np.uint64(1) << np.uint64(2 - a)
         keys[i] = code | (octant << np.uint64(3 * (ORIGIN_BITS + DIRECTION_BITS)))

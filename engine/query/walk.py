@@ -45,6 +45,13 @@ def new_stack():
     return np.empty((STACK_SIZE, 2), np.int32), np.empty(STACK_SIZE + WIDTH, np.float32)
 
 
+@njit(cache=True)
+def new_hit_buffers(cap):
+    """Scratch for COLLECT walks: (t f32[cap], tri i32[cap], u f32[cap], v f32[cap])."""
+    return (np.empty(cap, np.float32), np.empty(cap, np.int32), np.empty(cap, np.float32),
+            np.empty(cap, np.float32))
+
+
 @njit(cache=True, inline="always")  # inlined: a call per ray costs as much as a short walk
 def walk(lo, hi, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz, t_lo, t_hi, mode, stack, stack_t,
          buf_t, buf_tri, buf_u, buf_v, cap):
