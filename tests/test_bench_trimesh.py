@@ -1,11 +1,21 @@
 """The trimesh benchmark matrix (engine.bench.trimesh_queries): checked before work, and a tiny
 run on a procedural scene gives one record per query with agreement counted."""
 import json
+from pathlib import Path
 
 import pytest
 
 from engine.bench.trimesh_queries import parse, run
 from engine.core.errors import ConfigError
+from engine.render.config import read_toml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_bundled_trimesh_matrix_parses():
+    spec = parse(read_toml(str(ROOT / "benchmarks" / "trimesh.toml"), "matrix"), "trimesh.toml")
+    assert [m["scene"] for m in spec["mesh"]] == ["bunny", "bart-kitchen"]
+    assert spec["queries"] == ["first", "any", "all", "contains"] and spec["rays"] >= 100000
 
 
 def test_a_tiny_matrix_runs_and_counts_agreement(tmp_path):
