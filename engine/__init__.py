@@ -1,6 +1,6 @@
 """packetrt: a Whitted ray tracer whose hot loops are numba kernels, with plugin traversals.
 
-The public faces sit here: ``engine.api`` (``RayTracer``, ``RayInputError``) and ``engine.cli``
+The public faces sit here: ``engine.api`` (``RayTracer``, ``RayMeshIntersector``, ``RayInputError``) and ``engine.cli``
 (the ``packetrt`` command). The layers below, from the bottom up: ``engine.core`` (contracts,
 scene, BVH, triangle test, registry), ``engine.packet`` and ``engine.rayspace`` (the two papers'
 machinery), the plugin packages ``traversals``, ``frusta`` and ``scenes``, ``engine.render``
@@ -14,7 +14,7 @@ from engine.core.jit_cache import use_source_keyed_cache as _use_source_keyed_ca
 # so a kernel never loads machine code compiled against an older callee. Writes nothing.
 _use_source_keyed_cache()
 
-__all__ = ["RayTracer", "RayInputError"]
+__all__ = ["RayTracer", "RayInputError", "RayMeshIntersector"]
 
 
 def __getattr__(name):

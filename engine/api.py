@@ -23,7 +23,9 @@ Conventions
       answers are those of the shared watertight kernel, equal to Embree's up to floating-point
       ties (a ray through a shared edge may report either triangle).
     - ``intersects_location`` and ``intersects_id`` return the first hit per ray only (trimesh's
-      ``multiple_hits=False``), in increasing ray order.
+      ``multiple_hits=False``), in increasing ray order. For trimesh's own semantics (every hit
+      by default, ``contains_points``, float64 locations, bad rays as misses) use
+      ``RayMeshIntersector`` (engine/query/), a drop-in ``mesh.ray``.
 
 Incoherent rays become packets here: rays are grouped by direction octant, sorted by a Morton
 code over origin and direction inside each octant, and dealt to n x n packets (``packet``) of
@@ -41,9 +43,15 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from engine.core.errors import ConfigError, PacketrtError
+from engine.core.errors import ConfigError
 from engine.core.triangle import safe_inverse
 from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch, Triangles, empty_hits
+from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
+from engine.query.intersector import RayMeshIntersector
+from engine.query.order import spread_bits
+
+__all__ = ["RayTracer", "RayMeshIntersector", "RayInputError", "RayInputTypeError", "ApiArgumentError",
+           "QueryInputError", "QueryTypeError", "BadRayWarning"]
 
 #: Direction lengths the float32 kernels handle without underflow or overflow in t or |d|^2.
 MIN_DIRECTION_LENGTH, MAX_DIRECTION_LENGTH = 1e-18, 1e18
@@ -52,13 +60,35 @@ MIN_DIRECTION_LENGTH, MAX_DIRECTION_LENGTH = 1e-18, 1e18
 MORTON_BITS = 9
 
 
-class RayInputError(PacketrtError, ValueError):
-    """Ray arrays given to a query are malformed; the message names the argument and a row."""
+class RayInputError(QueryInputError):
+    """Ray arrays given to a query are malformed; the message names the argument and a row.
+    A ValueError (and a PacketrtError)."""
+
+
+class RayInputTypeError(RayInputError, QueryTypeError):
+    """A ray argument has the wrong type (strings, objects, complex numbers); also a TypeError."""
+
+
+class ApiArgumentError(ConfigError, ValueError):
+    """A RayTracer argument (mesh, traversal, packet, threads, multiple_hits) is not allowed;
+    a ConfigError that is also a ValueError."""
+
+
+def _real_dtype(name: str, value, shape: str) -> None:
+    """RayInputTypeError unless ``value`` converts to a real (bool, int or float) array."""
+    try:
+        kind = np.asarray(value).dtype.kind
+    except (TypeError, ValueError) as exc:
+        raise RayInputTypeError(f"{name} must be a numeric array of shape {shape}: {exc}") from None
+    if kind not in "biuf":
+        raise RayInputTypeError(f"{name} must be a real numeric array of shape {shape}, got dtype "
+                                f"{np.asarray(value).dtype}")
 
 
 # -- inputs ----------------------------------------------------------------------------------
 def _vectors(name: str, value, n: int | None = None) -> np.ndarray:
     """f32[n,3] from an array-like, with a RayInputError naming ``name`` when it is not one."""
+    _real_dtype(name, value, "(n, 3)")
     try:
         with np.errstate(over="ignore"):
             f32 = np.ascontiguousarray(value, dtype=np.float32)
@@ -80,6 +110,7 @@ def _vectors(name: str, value, n: int | None = None) -> np.ndarray:
 def _segment_bound(name: str, value, n: int, default: float) -> np.ndarray:
     if value is None:
         return np.full(n, default, np.float32)
+    _real_dtype(name, value, f"({n},) or a number")
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -128,15 +159,6 @@ def check_rays(origins, directions, tmin=None, tmax=None):
 
 
 # -- incoherent rays -> packets --------------------------------------------------------------
-@njit(cache=True)
-def _spread6(q):
-    """The low MORTON_BITS bits of q, bit b moved to bit 6 b."""
-    out = np.uint64(0)
-    for bit in range(MORTON_BITS):
-        out |= ((q >> np.uint64(bit)) & np.uint64(1)) << np.uint64(6 * bit)
-    return out
-
-
 @njit(cache=True, parallel=True)
 def morton_keys_kernel(org, dirs, lo, hi, keys):
     """keys[i] (u64): direction octant (3 bits, sign bits of x, y, z) above a 6-D Morton code of
@@ -155,8 +177,8 @@ def morton_keys_kernel(org, dirs, lo, hi, keys):
             qo = min(max(int(np.floor(x * top + 0.5)), 0), top)
             y = (np.float64(dirs[i, a]) / norm + 1.0) * 0.5
             qd = min(max(int(np.floor(y * top + 0.5)), 0), top)
-            code |= _spread6(np.uint64(qo)) << np.uint64(5 - a)
-            code |= _spread6(np.uint64(qd)) << np.uint64(2 - a)
+            code |= spread_bits(np.uint64(qo), MORTON_BITS, 6) << np.uint64(5 - a)
+            code |= spread_bits(np.uint64(qd), MORTON_BITS, 6) << np.uint64(2 - a)
             if np.signbit(dirs[i, a]):
                 octant |= np.uint64(1) << np.uint64(2 - a)
         keys[i] = code | (octant << np.uint64(6 * MORTON_BITS))
@@ -286,13 +308,13 @@ def _scene_from(mesh_or_scene):
     elif isinstance(mesh_or_scene, (tuple, list)) and len(mesh_or_scene) == 2:
         vertices, faces = mesh_or_scene
     else:
-        raise ConfigError("RayTracer needs a trimesh.Trimesh, a (vertices (V,3), faces (T,3)) pair, "
+        raise ApiArgumentError("RayTracer needs a trimesh.Trimesh, a (vertices (V,3), faces (T,3)) pair, "
                           f"packetrt Triangles or a packetrt Scene; got {type(mesh_or_scene).__name__}")
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
-        raise ConfigError(f"faces must be an integer array of shape (T, 3), got {faces.dtype} {faces.shape}")
+        raise ApiArgumentError(f"faces must be an integer array of shape (T, 3), got {faces.dtype} {faces.shape}")
     if len(faces) == 0:
-        raise ConfigError("the mesh has no faces")
+        raise ApiArgumentError("the mesh has no faces")
     builder.add_mesh(vertices, faces, builder.add_material(_default_material()), source="RayTracer mesh")
     return builder.build()
 
@@ -314,7 +336,7 @@ def _as_config(config):
         return cfg.from_dict(config)
     if isinstance(config, (str, Path)):
         return cfg.load(str(config))
-    raise ConfigError(f"render config must be a Config, a dict of TOML tables or a TOML path; "
+    raise ApiArgumentError(f"render config must be a Config, a dict of TOML tables or a TOML path; "
                       f"got {type(config).__name__}")
 
 
@@ -349,13 +371,20 @@ class RayTracer:
 
         self.scene = _scene_from(mesh_or_scene)
         self.triangles: Triangles = self.scene.triangles
-        self.packet = check_packet_size(packet)
+        if isinstance(threads, (bool, np.bool_)) or not isinstance(threads, (int, np.integer)):
+            raise ApiArgumentError(f"threads must be an integer >= 0 (0 = all cores), got {threads!r}")
         self.threads = int(threads)
         if self.threads < 0:
-            raise ConfigError(f"threads must be >= 0 (0 = all cores), got {threads}")
-        self.traversal_name, self.frustum_name = traversal, frustum
-        self.traversal = make_traversal(traversal)
-        self.frustum = make_frustum(frustum)
+            raise ApiArgumentError(f"threads must be >= 0 (0 = all cores), got {threads}")
+        try:  # the plugin layers raise ConfigError; the API's mistakes are ValueErrors too
+            self.packet = check_packet_size(packet)
+            self.traversal_name, self.frustum_name = traversal, frustum
+            self.traversal = make_traversal(traversal)
+            self.frustum = make_frustum(frustum)
+        except ConfigError as exc:
+            if isinstance(exc, (ApiArgumentError, TypeError)):
+                raise
+            raise ApiArgumentError(str(exc)) from None
         self.bvh = build_bvh(self.triangles, leaf_size=leaf_size, bins=bins)
         self.bounds = scene_bounds(self.bvh)
         self.tracer = Tracer(self.bvh, self.triangles, self.bounds, dict.fromkeys(RAY_KINDS, self.traversal),
@@ -473,5 +502,5 @@ class RayTracer:
 
 def _first_hit_only(multiple_hits: bool, where: str) -> None:
     if multiple_hits:
-        raise ConfigError(f"{where}: multiple_hits=True is not supported; packetrt answers the first hit "
+        raise ApiArgumentError(f"{where}: multiple_hits=True is not supported; packetrt answers the first hit "
                           f"per ray (trimesh's multiple_hits=False)")

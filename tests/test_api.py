@@ -255,6 +255,10 @@ def test_incoherent_packets_follow_the_packet_contract():
     (np.zeros((2, 3)), np.ones((2, 3)), {"tmin": 2.0, "tmax": [5, 1]}, ["tmax[1]", "below tmin[1]"]),
     (np.zeros((2, 3)), np.ones((2, 3)), {"tmax": [1, 2, 3]}, ["tmax", "shape (2,)"]),
     ([["a", "b", "c"]], np.ones((1, 3)), {}, ["origins", "numeric"]),
+    (np.zeros((1, 3)), np.ones((1, 3)) * (1 + 1j), {}, ["directions", "real numeric", "complex"]),
+    ([[0, 0, None]], np.ones((1, 3)), {}, ["origins", "numeric"]),
+    (np.zeros((2, 3)), np.ones((2, 3)), {"tmax": "far"}, ["tmax", "real numeric"]),
+    (np.zeros((2, 3)), np.ones((2, 3)), {"tmin": [[0, 0]]}, ["tmin", "shape (2,)"]),
 ])
 def test_bad_rays_are_named(sphere, origins, directions, kwargs, words):
     tracer = RayTracer(sphere)
@@ -264,6 +268,22 @@ def test_bad_rays_are_named(sphere, origins, directions, kwargs, words):
         for word in words:
             assert word in str(info.value), (word, str(info.value))
     assert issubclass(RayInputError, PacketrtError) and issubclass(RayInputError, ValueError)
+    assert "\n" not in str(info.value)
+
+
+def test_bad_arguments_are_value_errors_naming_the_argument(sphere):
+    """Issue 16 items 17 and 19: every API mistake is a ValueError (TypeError too for a wrong
+    type) whose one line names the argument, never a numba typing error."""
+    from engine.api import ApiArgumentError, RayInputTypeError
+
+    for kwargs, word in (({"threads": -1}, "threads"), ({"threads": "2"}, "threads"), ({"packet": 3}, "packet"),
+                         ({"traversal": "nope"}, "traversal")):
+        with pytest.raises(ValueError, match=word) as info:
+            RayTracer(sphere, **kwargs)
+        assert isinstance(info.value, ApiArgumentError) and "\n" not in str(info.value)
+    with pytest.raises(TypeError, match="origins"):
+        RayTracer(sphere).intersects_first(np.array([["x", "y", "z"]]), np.ones((1, 3)))
+    assert issubclass(RayInputTypeError, TypeError) and issubclass(RayInputTypeError, ValueError)
 
 
 def test_bad_construction_is_named(sphere):

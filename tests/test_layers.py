@@ -4,7 +4,7 @@ Each package has a rank; a module may import only from its own package or from p
 lower rank (lazy imports inside functions count too: they are dependencies all the same):
 
     0  engine.core                                  data contracts, BVH, triangle test, registry
-    1  engine.packet, engine.rayspace               the two papers' support code
+    1  engine.packet, engine.rayspace, engine.query the two papers' support code; mesh queries
     2  traversals, frusta, scenes                   plugins and scene loaders
     3  engine.render                                tracer, Whitted loop, plugin composition
     4  validation                                   audits against the oracles
@@ -24,8 +24,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SOURCE_PACKAGES = ("engine", "traversals", "frusta", "scenes", "validation")
 RANKS = {
-    "engine.core": 0, "engine.packet": 1, "engine.rayspace": 1, "traversals": 2, "frusta": 2, "scenes": 2,
-    "engine.render": 3, "validation": 4, "engine.bench": 5, "engine.debug": 5, "engine.animate": 5,
+    "engine.core": 0, "engine.packet": 1, "engine.rayspace": 1, "engine.query": 1, "traversals": 2, "frusta": 2,
+    "scenes": 2, "engine.render": 3, "validation": 4, "engine.bench": 5, "engine.debug": 5, "engine.animate": 5,
     "engine": 6,  # engine/__init__.py, engine/api.py, engine/cli.py: one layer of public faces
 }
 

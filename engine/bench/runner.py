@@ -489,7 +489,7 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
 def cmd_bench(args) -> int:
     """The CLI entry: validate the whole matrix, then run it."""
     data = read_toml(args.matrix, "matrix")
-    if isinstance(data.get("kind"), str) and data["kind"] == "dynamic":   # whole animation paths
+    if data.get("kind") == "dynamic":   # whole animation paths
         from engine.bench.dynamic import run_dynamic
 
         out = Path(args.out) if args.out else Path("out") / f"bench-{data.get('name', Path(args.matrix).stem)}"
@@ -497,6 +497,10 @@ def cmd_bench(args) -> int:
         print(f"{data.get('name', Path(args.matrix).stem)}: ran {summary['ran']} cell(s), skipped "
               f"{summary['skipped']}; wrote {', '.join(str(p) for p in summary['files'])}")
         return 0
+    if data.get("kind") == "trimesh":  # mesh queries, not renders: their own small runner
+        from engine.bench.trimesh_queries import cmd_trimesh_bench
+
+        return cmd_trimesh_bench(args, data)
     matrix = load_matrix(args.matrix, repeat=args.repeat)
     out = Path(args.out) if args.out else Path("out") / f"bench-{matrix.name}"
     summary = run_matrix(matrix, out, resume=args.resume)

@@ -1,0 +1,227 @@
+"""The trimesh matrix (``kind = "trimesh"``): the same mesh queries through trimesh's default
+ray backend (embreex, via ``trimesh.ray.ray_pyembree``) and through ``RayMeshIntersector``,
+timed and checked against each other.
+
+    kind = "trimesh"
+    name = "trimesh"
+    repeat = 5                      # timed repeats per query and backend (medians reported)
+    threads = 0                     # numba threads for packetrt (0 = all); trimesh's embreex is one thread
+    queries = ["first", "any", "all", "contains"]
+    rays = 200000                   # rays per first / any query
+    all_rays = 50000                # rays per all-hits query (trimesh re-casts from every hit)
+    points = 50000                  # points per contains query
+    render_path = true              # also time the render path's primary packets (coherent ray sets)
+
+    [[mesh]]                        # catalog scenes, as in the other matrices
+    scene = "bunny"
+    lod = 0
+    [[mesh]]
+    scene = "bart-kitchen"
+
+Ray sets per mesh: ``incoherent`` (origins around the mesh, aimed at random points inside its
+box; seeded) and ``primary`` (the scene's auto camera, one ray per pixel of a square image of
+about ``rays`` pixels: coherent). Points for ``contains``: uniform in the mesh's box.
+
+Agreement per query and ray: ``first``: the same triangle, or hits at the same distance (within
+1e-5 of the mesh's size: an edge shared by two triangles); ``any``: the same answer; ``all``: the
+same number of hits; ``contains``: the same answer. Results go to ``OUT/results.jsonl`` (one
+record per mesh, ray set and query) and ``OUT/results.md`` (the table).
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from engine.core.atomic import output_folder, plain_json, write_text
+from engine.core.errors import ConfigError
+
+QUERIES = ("first", "any", "all", "contains")
+KEYS = ("kind", "name", "description", "repeat", "threads", "queries", "rays", "all_rays", "points",
+        "render_path", "mesh")
+
+
+def parse(data: dict, source: str, repeat: int | None = None) -> dict:
+    """The trimesh matrix as a plain dict; a wrong key or value is a ConfigError naming it."""
+    unknown = set(data) - set(KEYS)
+    if unknown:
+        raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)}; allowed: {', '.join(KEYS)}")
+    spec = {"name": data.get("name", Path(source).stem), "description": data.get("description", ""),
+            "repeat": repeat or data.get("repeat", 5), "threads": data.get("threads", 0),
+            "queries": data.get("queries", list(QUERIES)), "rays": data.get("rays", 200000),
+            "all_rays": data.get("all_rays", 50000), "points": data.get("points", 50000),
+            "render_path": data.get("render_path", True), "mesh": data.get("mesh", [])}
+    for key in ("repeat", "threads", "rays", "all_rays", "points"):
+        value = spec[key]
+        if isinstance(value, bool) or not isinstance(value, int) or value < (0 if key == "threads" else 1):
+            raise ConfigError(f"{source}: {key} must be a positive integer, got {value!r}")
+    bad = [q for q in spec["queries"] if q not in QUERIES]
+    if bad or not spec["queries"]:
+        raise ConfigError(f"{source}: queries {bad} unknown; allowed: {', '.join(QUERIES)}")
+    if not spec["mesh"] or not all(isinstance(m, dict) and isinstance(m.get("scene"), str) for m in spec["mesh"]):
+        raise ConfigError(f"{source}: give at least one [[mesh]] table with scene = \"<catalog name>\"")
+    return spec
+
+
+def load_mesh(entry: dict):
+    """(trimesh.Trimesh of the scene's triangles, Scene, label) for a [[mesh]] table."""
+    import trimesh
+
+    from scenes.catalog import load_named
+
+    params = {k: v for k, v in entry.items() if k not in ("scene", "label")}
+    scene = load_named(entry["scene"], params)
+    tris = scene.triangles
+    corners = np.stack([tris.v0, tris.v1, tris.v2], axis=1).astype(np.float64)
+    mesh = trimesh.Trimesh(corners.reshape(-1, 3), np.arange(3 * len(corners)).reshape(-1, 3), process=False)
+    return mesh, scene, entry.get("label", entry["scene"])
+
+
+def incoherent_rays(mesh, n: int, seed: int = 0):
+    """(origins, directions) f64[n,3]: from a box 3x the mesh's, aimed at points inside its box."""
+    rng = np.random.default_rng(seed)
+    lo, hi = mesh.bounds
+    size = hi - lo
+    origins = rng.uniform(lo - size, hi + size, size=(n, 3))
+    targets = rng.uniform(lo, hi, size=(n, 3))
+    return origins, targets - origins
+
+
+def _median_seconds(call, repeat: int):
+    call()  # warm-up: JIT compilation, caches
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        answer = call()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times)), answer
+
+
+def _plane_t(mesh, origins, directions, ray, tri):
+    unit = directions[ray] / np.linalg.norm(directions[ray], axis=1, keepdims=True)
+    normal = mesh.face_normals[tri]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (np.einsum("ij,ij->i", mesh.triangles[tri, 0] - origins[ray], normal)
+                / np.einsum("ij,ij->i", unit, normal))
+
+
+def agreement(query: str, mesh, ours, theirs, origins=None, directions=None) -> int:
+    """How many rays (points) the two answers agree on, by the rules in the module doc."""
+    if query == "first":
+        same = ours == theirs
+        differ = np.flatnonzero(~same & (ours >= 0) & (theirs >= 0))
+        if len(differ):
+            a = _plane_t(mesh, origins, directions, differ, ours[differ])
+            b = _plane_t(mesh, origins, directions, differ, theirs[differ])
+            same[differ] = np.abs(a - b) <= 1e-5 * mesh.scale
+        return int(same.sum())
+    if query == "all":
+        n = len(origins)
+        return int((np.bincount(ours[1], minlength=n) == np.bincount(theirs[1], minlength=n)).sum())
+    return int((np.asarray(ours) == np.asarray(theirs)).sum())
+
+
+def render_path_rate(scene, width: int, repeat: int) -> float:
+    """Mrays/s of the render path's primary query (camera rays in n x n packets, Ranged + pinhole
+    frusta, as the paper's renders trace them) on a width x width image of the scene."""
+    from engine.core.bvh import build_bvh, scene_bounds
+    from engine.packet.layout import make_batch
+    from engine.render.camera import camera_rays
+    from engine.render.plugins import make_frustum, make_traversal
+    from engine.render.tracer import Tracer
+
+    bvh = build_bvh(scene.triangles)
+    tracer = Tracer(bvh, scene.triangles, scene_bounds(bvh), {"primary": make_traversal("ranged")},
+                    {"primary": make_frustum("pinhole")})
+    tracer.prepare()
+    org, d = camera_rays(scene, width, width)
+    count = width * width
+    rays, packets = make_batch("primary", org, d, np.zeros(count), np.full(count, np.inf),
+                               np.arange(count, dtype=np.int32), np.ones((count, 3)), width, width, 8)
+    seconds, _ = _median_seconds(lambda: tracer.trace("primary", "intersect", rays, packets), repeat)
+    return count / seconds / 1e6
+
+
+def run(spec: dict, out: Path, progress=print) -> list:
+    """Every (mesh, ray set, query) record; written to out/results.jsonl and out/results.md."""
+    import numba
+    import trimesh
+    from trimesh.ray.ray_pyembree import RayMeshIntersector as TrimeshDefault
+
+    from engine.query.intersector import RayMeshIntersector
+    from engine.render.camera import camera_rays
+
+    threads = spec["threads"] or numba.config.NUMBA_NUM_THREADS
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    output_folder(out, "--out")
+    records = []
+    for entry in spec["mesh"]:
+        mesh, scene, label = load_mesh(entry)
+        ours, theirs = RayMeshIntersector(mesh), TrimeshDefault(mesh)
+        side = int(np.sqrt(spec["rays"]))
+        cam_o, cam_d = camera_rays(scene, side, side)
+        ray_sets = {"incoherent": incoherent_rays(mesh, spec["rays"]),
+                    "primary": (cam_o.astype(np.float64), cam_d.astype(np.float64))}
+        render_rate = render_path_rate(scene, side, spec["repeat"]) if spec["render_path"] else None
+        rng = np.random.default_rng(1)
+        points = rng.uniform(*mesh.bounds, size=(spec["points"], 3))
+        for set_name, (origins, directions) in ray_sets.items():
+            for query in spec["queries"]:
+                if query == "contains" and set_name != "incoherent":
+                    continue  # contains takes points, not rays: once per mesh
+                if query == "first":
+                    args, call = (origins, directions), "intersects_first"
+                elif query == "any":
+                    args, call = (origins, directions), "intersects_any"
+                elif query == "all":
+                    n = spec["all_rays"]
+                    args, call = (origins[:n], directions[:n]), "intersects_id"
+                else:
+                    args, call = (points,), "contains_points"
+                t_theirs, a_theirs = _median_seconds(lambda: getattr(theirs, call)(*args), spec["repeat"])
+                t_ours, a_ours = _median_seconds(lambda: getattr(ours, call)(*args), spec["repeat"])
+                n = len(args[0])
+                agree = agreement(query, mesh, a_ours, a_theirs, *args) if query != "contains" else \
+                    agreement(query, mesh, a_ours, a_theirs)
+                record = {"mesh": label, "triangles": len(mesh.faces), "rays": set_name if query != "contains" else
+                          "points", "query": query, "n": n, "repeat": spec["repeat"], "threads": threads,
+                          "trimesh_seconds": t_theirs, "packetrt_seconds": t_ours,
+                          "trimesh_mrays": n / t_theirs / 1e6, "packetrt_mrays": n / t_ours / 1e6,
+                          "speedup": t_theirs / t_ours, "agree": agree,
+                          "render_path_mrays": render_rate if set_name == "primary" and query == "first" else None}
+                records.append(record)
+                progress(f"{label:>14} {record['rays']:>10} {query:>8}: trimesh {record['trimesh_mrays']:6.2f}  "
+                         f"packetrt {record['packetrt_mrays']:6.2f} Mrays/s  x{record['speedup']:.2f}  "
+                         f"agree {agree}/{n}")
+    write_text(out / "results.jsonl", "".join(json_line(record) for record in records))
+    write_text(out / "results.md", markdown_table(records, trimesh.__version__))
+    return records
+
+
+def markdown_table(records: list, trimesh_version: str) -> str:
+    lines = [f"trimesh {trimesh_version} default backend (embreex, 1 thread) vs packetrt RayMeshIntersector "
+             f"({records[0]['threads'] if records else '?'} numba threads); medians of {records[0]['repeat'] if records else '?'}",
+             "", "| mesh | rays | query | n | trimesh Mrays/s | packetrt Mrays/s | speed-up | agree | render path Mrays/s |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|"]
+    for r in records:
+        render = f"{r['render_path_mrays']:.2f}" if r["render_path_mrays"] else ""
+        lines.append(f"| {r['mesh']} | {r['rays']} | {r['query']} | {r['n']:,} | {r['trimesh_mrays']:.2f} | "
+                     f"{r['packetrt_mrays']:.2f} | {r['speedup']:.2f} | {r['agree']:,}/{r['n']:,} | {render} |")
+    return "\n".join(lines) + "\n"
+
+
+def cmd_trimesh_bench(args, data: dict) -> int:
+    """``packetrt bench benchmarks/trimesh.toml``: run a trimesh matrix."""
+    spec = parse(data, args.matrix, args.repeat)
+    out = Path(args.out) if args.out else Path("out") / f"bench-{spec['name']}"
+    records = run(spec, out, progress=lambda line: print(line, file=sys.stderr))
+    print(f"{spec['name']}: {len(records)} queries; wrote {out / 'results.jsonl'}, {out / 'results.md'}")
+    return 0
+
+
+def json_line(record: dict) -> str:
+    """One strict-JSON line (NaN and infinities as null) of a record."""
+    return json.dumps(plain_json(record)) + "\n"

@@ -1,0 +1,320 @@
+"""``RayMeshIntersector``: trimesh's ray-intersector interface (``mesh.ray``) on packetrt kernels.
+
+>>> import trimesh
+>>> from engine import RayMeshIntersector
+>>> mesh = trimesh.creation.icosphere()
+>>> mesh.ray = RayMeshIntersector(mesh)      # mesh.contains, ray voxelisation ... now use packetrt
+
+Semantics follow trimesh's backends (``trimesh.ray.ray_pyembree`` / ``ray_triangle``):
+
+- Rays are ``origin + t * direction`` for t >= 0; directions need not be unit length.
+- ``intersects_id`` / ``intersects_location`` return *every* hit along each ray by default
+  (``multiple_hits=True``, at most ``max_hits`` = 100 per ray); hits are grouped by ray in
+  increasing ray index and, within a ray, in increasing distance. A ray through an edge or a
+  vertex shared by several triangles crosses the surface once and is reported once (hits within
+  1e-6 of the mesh's scale of the previous one are merged, as trimesh's stepping does).
+- Index arrays are int64 (``intersects_first``: int32 like trimesh's default embree backend);
+  locations are float64 (n, 3).
+- A ray with a NaN or inf component or a zero direction is a miss, counted in one
+  ``BadRayWarning``; only malformed arrays raise (``QueryInputError``, a ValueError;
+  ``QueryTypeError`` for a wrong type, also a TypeError).
+
+Precision: the mesh is moved to its own centre and scale before its corners are rounded to
+float32 (``frame``), and locations are float64 (``locations``).
+
+Freshness: every query compares the hashes of ``mesh.faces`` and ``mesh.vertices`` (trimesh
+caches them until the arrays change) with the ones the structure was built for: new faces
+rebuild the BVH, moved vertices refit it. Pickling and copying keep the mesh and rebuild the
+structure on first use, as trimesh's intersectors do.
+"""
+from __future__ import annotations
+
+import warnings
+import zlib
+from typing import NamedTuple
+
+import numpy as np
+
+from engine.core.bvh import build_bvh
+from engine.core.bvh_refit import refit_bvh
+from engine.core.scene import make_triangles
+from engine.core.types import BVH
+from engine.query.contains import DIRECTIONS, contains_kernel
+from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
+from engine.query.frame import MeshFrame, mesh_frame
+from engine.query.hits import (collect_hits_kernel, compact_hits_kernel, count_hits_kernel, fill_hits_kernel,
+                               first_hit_kernel)
+from engine.query.locations import locations_kernel
+from engine.query.order import ray_order
+from engine.query.wide import collapse
+
+#: Hits closer than this (in units of the mesh's largest extent) to the previous one along a
+#: ray are one crossing; trimesh steps 1e-6 of the mesh's scale past each hit.
+MERGE_GAP = 1e-6
+
+#: trimesh's default cap on hits per ray.
+DEFAULT_MAX_HITS = 100
+
+#: How rays are ordered before the walk (see RayMeshIntersector).
+ORDERS = ("input", "morton")
+
+#: Hits per ray kept by the one-walk all-hits kernel; rays with more take a count-then-fill walk.
+SLOT = 8
+
+
+class _Structure(NamedTuple):
+    faces_key: object
+    vertices_key: object
+    faces: np.ndarray      # i64[T,3]
+    frame: MeshFrame
+    bvh: BVH
+    wide: tuple            # (lo, hi, child, size) of the 4-wide tree over bvh
+    v0: np.ndarray         # f32[P,3] local corners in the BVH's prim order (leaves contiguous)
+    v1: np.ndarray
+    v2: np.ndarray
+
+
+class _Rays(NamedTuple):
+    origins: np.ndarray    # f64[n,3] world, input order
+    directions: np.ndarray  # f64[n,3] world, input order
+    rows: np.ndarray       # i64[n] input ray walked in row k
+    rank: np.ndarray       # i64[n] row of each input ray
+
+
+def _content_key(array):
+    """trimesh's cached content hash of a TrackedArray; a CRC of the bytes for a plain array."""
+    try:
+        return hash(array)
+    except TypeError:
+        arr = np.ascontiguousarray(array)
+        return arr.shape, str(arr.dtype), zlib.crc32(arr.view(np.uint8).reshape(-1))
+
+
+def _points(name: str, value) -> np.ndarray:
+    """f64[n,3] from user input, or a QueryInputError / QueryTypeError naming ``name``."""
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise QueryTypeError(f"{name} must be a real numeric array of shape (n, 3): {exc}") from None
+    if arr.dtype.kind not in "biuf":
+        raise QueryTypeError(f"{name} must be a real numeric array of shape (n, 3), got dtype {arr.dtype}")
+    if arr.size == 0 and arr.ndim <= 2:
+        return np.zeros((0, 3), np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise QueryInputError(f"{name} must have shape (n, 3), got {arr.shape}")
+    return np.ascontiguousarray(arr, np.float64)
+
+
+def _max_hits(value) -> int:
+    if value is None:
+        return np.iinfo(np.int64).max
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise QueryTypeError(f"max_hits must be a positive integer or None, got {value!r}")
+    if value < 1:
+        raise QueryInputError(f"max_hits must be >= 1 (or None for no limit), got {value}")
+    return int(value)
+
+
+def _mesh_arrays(mesh):
+    if not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")):
+        raise QueryTypeError(f"RayMeshIntersector needs a mesh with .vertices and .faces (a trimesh.Trimesh), "
+                             f"got {type(mesh).__name__}")
+    faces = np.asarray(mesh.faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu":
+        raise QueryInputError(f"mesh.faces must be an integer array of shape (T, 3), got {faces.dtype} {faces.shape}")
+    if len(faces) == 0:
+        raise QueryInputError("mesh.faces is empty: the mesh has no triangles to intersect")
+    vertices = _points("mesh.vertices", mesh.vertices)
+    return vertices, faces.astype(np.int64)
+
+
+class RayMeshIntersector:
+    """Ray queries on a trimesh mesh, with trimesh's ``mesh.ray`` interface (see the module doc).
+
+    mesh       a ``trimesh.Trimesh`` (or anything with ``vertices`` f[V,3] and ``faces`` i[T,3]);
+               kept as ``self.mesh`` and followed as it changes.
+    leaf_size, bins  BVH build settings.
+    order      "input" (default): rays are walked in the order given; "morton": sorted first by
+               direction octant and a Morton code of the origin (``engine.query.order``, numba,
+               parallel). The per-ray walk does not need packets, and on the bunny and the kitchen
+               sorting cost more than it saved (see README, "Using packetrt from trimesh"); it
+               is there for huge batches of shuffled, locally coherent rays.
+    """
+
+    def __init__(self, mesh, *, leaf_size: int = 4, bins: int = 16, order: str = "input"):
+        _mesh_arrays(mesh)
+        if order not in ORDERS:
+            raise QueryInputError(f"order must be one of {', '.join(ORDERS)}, got {order!r}")
+        self.mesh = mesh
+        self._leaf_size, self._bins, self._order = leaf_size, bins, order
+        self._structure_cache = None
+
+    def __repr__(self) -> str:
+        return f"RayMeshIntersector({len(self.mesh.faces):,} faces)"
+
+    # -- structure that follows the mesh -------------------------------------------------
+    def _structure(self) -> _Structure:
+        faces_key, vertices_key = _content_key(self.mesh.faces), _content_key(self.mesh.vertices)
+        old = self._structure_cache
+        if old is not None and old.faces_key == faces_key and old.vertices_key == vertices_key:
+            return old
+        vertices, faces = _mesh_arrays(self.mesh)
+        frame, local = mesh_frame(vertices, faces)
+        tris = make_triangles(local, faces, 0, source="mesh")
+        if old is not None and old.faces_key == faces_key and np.array_equal(old.faces, faces):
+            bvh = refit_bvh(old.bvh, tris)  # vertices moved, same triangles: same tree, new boxes
+            faces = old.faces
+        else:
+            bvh = build_bvh(tris, leaf_size=self._leaf_size, bins=self._bins)
+        corners = (np.ascontiguousarray(c[bvh.prim]) for c in (tris.v0, tris.v1, tris.v2))
+        wide = collapse(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
+        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, wide, *corners)
+        return self._structure_cache
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_structure_cache"] = None  # rebuilt on first use, as trimesh drops its cache
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+
+    def __copy__(self):
+        return RayMeshIntersector(self.mesh, leaf_size=self._leaf_size, bins=self._bins, order=self._order)
+
+    def __deepcopy__(self, memo):
+        return self.__copy__()
+
+    # -- rays --------------------------------------------------------------------------
+    def _rays(self, s: _Structure, ray_origins, ray_directions) -> _Rays:
+        origins = _points("ray_origins", ray_origins)
+        directions = _points("ray_directions", ray_directions)
+        if origins.shape != directions.shape:
+            raise QueryInputError(f"ray_directions has shape {directions.shape} but ray_origins has "
+                                  f"{origins.shape}; give one direction per origin")
+        n = len(origins)
+        if self._order == "morton":
+            rows = ray_order(origins, directions, s.frame.center, s.frame.scale)
+            rank = np.empty_like(rows)
+            rank[rows] = np.arange(n)
+        else:
+            rows = rank = np.arange(n, dtype=np.int64)
+        return _Rays(origins, directions, rows, rank)
+
+    @staticmethod
+    def _warn_bad(ok: np.ndarray) -> None:
+        bad = len(ok) - int(np.count_nonzero(ok))
+        if bad:
+            warnings.warn(f"{bad} of {len(ok)} rays have a NaN/inf component or a zero direction; "
+                          f"answered as misses", BadRayWarning, stacklevel=4)
+
+    @staticmethod
+    def _tree(s: _Structure):
+        return (*s.wide, s.bvh.prim, s.v0, s.v1, s.v2)
+
+    @staticmethod
+    def _frame_args(s: _Structure, rays: _Rays):
+        return rays.origins, rays.directions, s.frame.center, float(s.frame.scale)
+
+    def _first(self, s, rays, any_hit):
+        """(triangle i64[n], u, v f32[n]) of the first (any_hit: some) hit of every ray."""
+        n = len(rays.rows)
+        tri = np.empty(n, np.int64)
+        u = np.empty(n, np.float32)
+        v = np.empty(n, np.float32)
+        ok = np.empty(n, np.bool_)
+        first_hit_kernel(*self._tree(s), *self._frame_args(s, rays), rays.rows, any_hit, tri, u, v, ok)
+        self._warn_bad(ok)
+        return tri, u, v
+
+    def _all(self, s, rays, max_hits):
+        """(index_ray, index_tri i64[m], u, v f32[m]): every hit, by ray then distance."""
+        tree, frame = self._tree(s), self._frame_args(s, rays)
+        n = len(rays.rows)
+        slot = min(SLOT, max_hits)
+        bt, bu, bv = (np.empty(n * slot, np.float32) for _ in range(3))
+        btri = np.empty(n * slot, np.int32)
+        kept = np.empty(n, np.int64)
+        ok = np.empty(n, np.bool_)
+        collect_hits_kernel(*tree, *frame, rays.rows, np.float32(MERGE_GAP), max_hits, slot, bt, btri, bu, bv, kept, ok)
+        self._warn_bad(ok)
+        offsets = np.arange(n + 1, dtype=np.int64) * slot  # where each row's hits start
+        over = np.flatnonzero(kept < 0)
+        if len(over):  # rays with many hits: count, then fill exact slices, appended to the buffers
+            rows = rays.rows[over]
+            counts = np.empty(len(over), np.int64)
+            count_hits_kernel(*tree, *frame, rows, counts)
+            extra = np.zeros(len(over) + 1, np.int64)
+            np.cumsum(counts, out=extra[1:])
+            et, eu, ev = (np.empty(int(extra[-1]), np.float32) for _ in range(3))
+            etri = np.empty(int(extra[-1]), np.int32)
+            extra_kept = np.empty(len(over), np.int64)
+            fill_hits_kernel(*tree, *frame, rows, extra, np.float32(MERGE_GAP), max_hits, et, etri, eu, ev, extra_kept)
+            offsets[over] = n * slot + extra[:-1]
+            kept[over] = extra_kept
+            bt, btri, bu, bv = (np.concatenate(pair) for pair in ((bt, et), (btri, etri), (bu, eu), (bv, ev)))
+        out_offsets = np.zeros(n + 1, np.int64)
+        np.cumsum(kept[rays.rank], out=out_offsets[1:])
+        m = int(out_offsets[-1])
+        index_ray, index_tri = np.empty(m, np.int64), np.empty(m, np.int64)
+        t, u, v = (np.empty(m, np.float32) for _ in range(3))
+        compact_hits_kernel(offsets, kept, rays.rank, out_offsets, bt, btri, bu, bv, index_ray, index_tri, t, u, v)
+        return index_ray, index_tri, u, v
+
+    # -- trimesh's interface -------------------------------------------------------------
+    def intersects_id(self, ray_origins, ray_directions, multiple_hits: bool = True,
+                      max_hits: int | None = DEFAULT_MAX_HITS, return_locations: bool = False):
+        """Triangles hit by rays.
+
+        ray_origins, ray_directions: (n, 3) float. multiple_hits: every hit along each ray (True,
+        trimesh's default) or only the first. max_hits: at most this many hits per ray (None: no
+        limit). Returns ``(index_tri int64 (m,), index_ray int64 (m,))`` plus
+        ``locations float64 (m, 3)`` with return_locations; hits are ordered by ray index, then
+        by distance along the ray.
+        """
+        limit = _max_hits(max_hits)
+        s = self._structure()
+        rays = self._rays(s, ray_origins, ray_directions)
+        if multiple_hits:
+            index_ray, index_tri, u, v = self._all(s, rays, limit)
+        else:
+            tri, u, v = self._first(s, rays, False)
+            index_ray = np.flatnonzero(tri >= 0).astype(np.int64)
+            index_tri, u, v = tri[index_ray], u[index_ray], v[index_ray]
+        if not return_locations:
+            return index_tri, index_ray
+        locations = np.empty((len(index_ray), 3), np.float64)
+        locations_kernel(s.frame.corners, rays.origins, rays.directions, index_ray, index_tri, u, v, locations)
+        return index_tri, index_ray, locations
+
+    def intersects_location(self, ray_origins, ray_directions, multiple_hits: bool = True,
+                            max_hits: int | None = DEFAULT_MAX_HITS):
+        """``(locations float64 (m, 3), index_ray int64 (m,), index_tri int64 (m,))``: where rays
+        hit the surface (every hit by default), ordered as ``intersects_id``. A location lies on
+        the ray and on its triangle's plane, computed in float64."""
+        index_tri, index_ray, locations = self.intersects_id(ray_origins, ray_directions, multiple_hits,
+                                                             max_hits, True)
+        return locations, index_ray, index_tri
+
+    def intersects_first(self, ray_origins, ray_directions):
+        """int32 (n,): the first triangle each ray hits, -1 for a miss (or a bad ray)."""
+        s = self._structure()
+        rays = self._rays(s, ray_origins, ray_directions)
+        return self._first(s, rays, False)[0].astype(np.int32)
+
+    def intersects_any(self, ray_origins, ray_directions):
+        """bool (n,): whether each ray hits the surface (any hit, early exit)."""
+        s = self._structure()
+        rays = self._rays(s, ray_origins, ray_directions)
+        return self._first(s, rays, True)[0] >= 0
+
+    def contains_points(self, points):
+        """bool (n,): whether each point (n, 3) is inside the mesh, by the parity of the surface
+        crossings along rays from it (see ``engine.query.contains``). Meaningful for watertight
+        meshes; a point on the surface may go either way (as in trimesh). A NaN point is outside."""
+        pts = _points("points", points)
+        s = self._structure()
+        out = np.empty(len(pts), np.bool_)
+        contains_kernel(*self._tree(s), pts, s.frame.center, float(s.frame.scale), s.frame.lo, s.frame.hi,
+                        DIRECTIONS.astype(np.float32), np.float32(MERGE_GAP), out)
+        return out

@@ -1,0 +1,167 @@
+"""The per-ray BVH walk every mesh query shares (one ray, a stack, nearest child first, over
+the 4-wide tree of ``engine.query.wide``).
+
+Modes (integer constants, so one compiled helper serves every kernel and reaches the disk cache):
+
+- ``CLOSEST``: the closest hit (ties to the smaller triangle index, ``engine.core.triangle.closer``);
+  the segment shrinks as hits are found.
+- ``ANY``: stop at the first hit found.
+- ``COLLECT``: every hit on [t_lo, t_hi]; the first ``cap`` are written to the scratch buffers
+  (unsorted) and the total is returned, so a caller can count (cap 0) and then fill.
+
+Triangles are the watertight test's float32 corners in the mesh's local frame, stored in the
+BVH's ``prim`` order (row i is triangle prim[i]), so a leaf's corners are contiguous in memory.
+"""
+import numpy as np
+from numba import njit
+
+from engine.core.triangle import F32_INF, F32_ONE, HUGE_INV, SLAB_SLACK, closer, ray_shear
+from engine.core.triangle import intersect_triangle as _shared_triangle_test
+from engine.query.wide import WIDTH
+from engine.core.types import MAX_BVH_DEPTH
+
+CLOSEST, ANY, COLLECT = 0, 1, 2
+
+# The shared watertight test, compiled again to be inlined into the walk: a call per triangle
+# passes three arrays (reference counts included), which costs as much as the test itself.
+intersect_triangle = njit(inline="always")(_shared_triangle_test.py_func)
+
+#: Entries of the per-thread traversal stack: at most WIDTH - 1 left behind per level.
+STACK_SIZE = WIDTH * MAX_BVH_DEPTH + 2
+
+
+@njit(cache=True, inline="always")
+def safe_inverse1(d):
+    """1/d for one f32 direction component, zero mapped to +-HUGE_INV (as ``safe_inverse``)."""
+    if d == 0:
+        return -HUGE_INV if np.signbit(d) else HUGE_INV
+    return F32_ONE / d
+
+
+@njit(cache=True)
+def new_stack():
+    """Scratch for one thread's walks: (stack i32[STACK_SIZE, 2]: child and size of each entry,
+    stack_t f32[STACK_SIZE + WIDTH]: its entry distance; the last WIDTH hold a node's children's)."""
+    return np.empty((STACK_SIZE, 2), np.int32), np.empty(STACK_SIZE + WIDTH, np.float32)
+
+
+@njit(cache=True)
+def new_hit_buffers(cap):
+    """Scratch for COLLECT walks: (t f32[cap], tri i32[cap], u f32[cap], v f32[cap])."""
+    return (np.empty(cap, np.float32), np.empty(cap, np.int32), np.empty(cap, np.float32),
+            np.empty(cap, np.float32))
+
+
+@njit(cache=True, inline="always")  # inlined: a call per ray costs as much as a short walk
+def walk(lo, hi, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz, t_lo, t_hi, mode, stack, stack_t,
+         buf_t, buf_tri, buf_u, buf_v, cap):
+    """Walk the ray (ox, oy, oz) + t (dx, dy, dz) (f32 scalars, local frame, non-zero direction)
+    over [t_lo, t_hi] through the 4-wide tree (lo, hi, child, size: ``engine.query.wide``).
+
+    v0, v1, v2: f32[P,3] corners in prim order. Returns (n, t, tri, u, v): tri is a mesh face
+    index (prim[i]). For CLOSEST / ANY, n is 1 on a hit and (t, tri, u, v) the hit;
+    for COLLECT, n is the number of hits (all of them, even past ``cap``); the first min(n, cap)
+    are in buf_t, buf_tri, buf_u, buf_v (f32/i32/f32/f32[cap]) in the order found.
+    stack, stack_t: scratch from ``new_stack``.
+    """
+    best_t = F32_INF
+    best_tri = -1
+    best_u = np.float32(0.0)
+    best_v = np.float32(0.0)
+    n = 0
+    ix, iy, iz = safe_inverse1(dx), safe_inverse1(dy), safe_inverse1(dz)
+    kx, ky, kz, sx, sy, sz = ray_shear(dx, dy, dz)
+    okx = ox if kx == 0 else (oy if kx == 1 else oz)
+    oky = ox if ky == 0 else (oy if ky == 1 else oz)
+    okz = ox if kz == 0 else (oy if kz == 1 else oz)
+    near = stack_t[STACK_SIZE:]
+    stack[0, 0] = 0
+    stack[0, 1] = 0
+    stack_t[0] = t_lo
+    top = 1
+    while top > 0:
+        top -= 1
+        if stack_t[top] > t_hi:
+            continue  # CLOSEST: entered beyond the best hit so far
+        node = stack[top, 0]
+        leaf = stack[top, 1]
+        if leaf > 0:
+            for i in range(node, node + leaf):
+                t, u, v = intersect_triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi, v0, v1, v2, i)
+                if t == F32_INF:
+                    continue
+                tri = prim[i]
+                if mode == COLLECT:
+                    if n < cap:
+                        buf_t[n] = t
+                        buf_tri[n] = tri
+                        buf_u[n] = u
+                        buf_v[n] = v
+                    n += 1
+                elif closer(t, tri, best_t, best_tri):
+                    best_t, best_tri, best_u, best_v = t, tri, u, v
+                    n = 1
+                    if mode == ANY:
+                        return n, best_t, best_tri, best_u, best_v
+                    t_hi = t  # CLOSEST: nothing beyond this hit matters any more
+            continue
+        # The four children's slab tests (the arithmetic of engine.core.triangle.slab_test), in a
+        # branch-free loop the compiler vectorises; a missed or empty slot gets inf.
+        for s in range(WIDTH):
+            t0 = (lo[node, 0, s] - ox) * ix
+            t1 = (hi[node, 0, s] - ox) * ix
+            tn = min(t0, t1)
+            tf = max(t0, t1)
+            t0 = (lo[node, 1, s] - oy) * iy
+            t1 = (hi[node, 1, s] - oy) * iy
+            tn = max(tn, min(t0, t1))
+            tf = min(tf, max(t0, t1))
+            t0 = (lo[node, 2, s] - oz) * iz
+            t1 = (hi[node, 2, s] - oz) * iz
+            tn = max(tn, min(t0, t1))
+            tf = min(tf, max(t0, t1))
+            tn = max(tn - abs(tn) * SLAB_SLACK, t_lo)
+            tf = min(tf + abs(tf) * SLAB_SLACK, t_hi)
+            near[s] = tn if tn <= tf else F32_INF
+        base = top
+        for s in range(WIDTH):
+            tn = near[s]
+            if tn < F32_INF and size[node, s] >= 0:
+                # insert, keeping stack[base:top] sorted far (bottom) to near (top)
+                j = top
+                while j > base and stack_t[j - 1] < tn:
+                    stack[j, 0] = stack[j - 1, 0]
+                    stack[j, 1] = stack[j - 1, 1]
+                    stack_t[j] = stack_t[j - 1]
+                    j -= 1
+                stack[j, 0] = child[node, s]
+                stack[j, 1] = size[node, s]
+                stack_t[j] = tn
+                top += 1
+    return n, best_t, best_tri, best_u, best_v
+
+
+@njit(cache=True)
+def sort_hits(buf_t, buf_tri, buf_u, buf_v, n):
+    """Insertion sort of the first n buffered hits by (t, triangle index); n is small."""
+    for i in range(1, n):
+        t, tri, u, v = buf_t[i], buf_tri[i], buf_u[i], buf_v[i]
+        j = i - 1
+        while j >= 0 and closer(t, tri, buf_t[j], buf_tri[j]):
+            buf_t[j + 1], buf_tri[j + 1], buf_u[j + 1], buf_v[j + 1] = buf_t[j], buf_tri[j], buf_u[j], buf_v[j]
+            j -= 1
+        buf_t[j + 1], buf_tri[j + 1], buf_u[j + 1], buf_v[j + 1] = t, tri, u, v
+
+
+@njit(cache=True)
+def merge_crossings(buf_t, buf_tri, buf_u, buf_v, n, gap):
+    """Drop sorted hits closer than ``gap`` (along t) to the previous kept hit: a ray through a
+    shared edge or vertex reports each triangle there, but it crosses the surface once (trimesh
+    steps 1e-6 of the mesh scale past each hit for the same reason). Returns the kept count."""
+    kept = 0
+    for i in range(n):
+        if kept > 0 and buf_t[i] - buf_t[kept - 1] < gap:
+            continue
+        buf_t[kept], buf_tri[kept], buf_u[kept], buf_v[kept] = buf_t[i], buf_tri[i], buf_u[i], buf_v[i]
+        kept += 1
+    return kept

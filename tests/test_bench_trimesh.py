@@ -1,0 +1,46 @@
+"""The trimesh benchmark matrix (engine.bench.trimesh_queries): checked before work, and a tiny
+run on a procedural scene gives one record per query with agreement counted."""
+import json
+from pathlib import Path
+
+import pytest
+
+from engine.bench.trimesh_queries import parse, run
+from engine.core.errors import ConfigError
+from engine.render.config import read_toml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_bundled_trimesh_matrix_parses():
+    spec = parse(read_toml(str(ROOT / "benchmarks" / "trimesh.toml"), "matrix"), "trimesh.toml")
+    assert [m["scene"] for m in spec["mesh"]] == ["bunny", "bart-kitchen"]
+    assert spec["queries"] == ["first", "any", "all", "contains"] and spec["rays"] >= 100000
+
+
+def test_a_tiny_matrix_runs_and_counts_agreement(tmp_path):
+    spec = parse({"kind": "trimesh", "repeat": 1, "rays": 3000, "all_rays": 500, "points": 500,
+                  "render_path": True, "mesh": [{"scene": "whitted", "subdivisions": 2}]}, "tiny.toml")
+    records = run(spec, tmp_path, progress=lambda line: None)
+    assert [(r["rays"], r["query"]) for r in records] == [
+        ("incoherent", "first"), ("incoherent", "any"), ("incoherent", "all"), ("points", "contains"),
+        ("primary", "first"), ("primary", "any"), ("primary", "all")]
+    for r in records:
+        assert r["trimesh_mrays"] > 0 and r["packetrt_mrays"] > 0
+        if r["query"] in ("first", "any", "all"):
+            assert r["agree"] >= 0.99 * r["n"], r
+    assert records[4]["render_path_mrays"] > 0
+    lines = (tmp_path / "results.jsonl").read_text().splitlines()
+    assert [json.loads(line)["query"] for line in lines] == [r["query"] for r in records]
+    assert "| whitted | primary | first |" in (tmp_path / "results.md").read_text()
+
+
+@pytest.mark.parametrize("data,words", [
+    ({"mesh": [{"scene": "bunny"}], "rays": 0}, "rays"),
+    ({"mesh": [{"scene": "bunny"}], "queries": ["closest"]}, "closest"),
+    ({"mesh": []}, "[[mesh]]"),
+    ({"mesh": [{"scene": "bunny"}], "colour": 1}, "colour"),
+])
+def test_mistakes_in_the_matrix_are_named(data, words):
+    with pytest.raises(ConfigError, match=words.replace("[", r"\[").replace("]", r"\]")):
+        parse(dict(data, kind="trimesh"), "m.toml")

@@ -1,0 +1,348 @@
+"""engine.RayMeshIntersector as trimesh's ``mesh.ray``: the same answers as trimesh's default
+(embreex) backend and as geometry, with trimesh's defaults, dtypes and ordering; every hit in
+distance order; contains on watertight meshes; float64 locations far from the origin; answers
+that follow the mesh; bad rays as misses; named errors."""
+import copy
+import pickle
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+from trimesh.ray.ray_pyembree import RayMeshIntersector as EmbreeIntersector
+
+from engine import RayMeshIntersector
+from engine.query.contains import DIRECTIONS
+from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
+
+
+# -- helpers ---------------------------------------------------------------------------------
+def rays_at(mesh, n, seed, spread=2.0):
+    """Incoherent rays from around the mesh, most aimed through it (directions of any length)."""
+    rng = np.random.default_rng(seed)
+    center, size = mesh.bounds.mean(axis=0), mesh.extents.max()
+    origins = center + rng.normal(size=(n, 3)) * spread * size
+    targets = center + rng.uniform(-0.4, 0.4, size=(n, 3)) * mesh.extents
+    directions = (targets - origins) * 10.0 ** rng.uniform(-2, 2, size=(n, 1))
+    return origins, directions
+
+
+def plane_distance(mesh, origins, directions, index_ray, index_tri):
+    """f64[m]: distance along each (unit) ray to its hit triangle's plane, in float64."""
+    unit = directions[index_ray] / np.linalg.norm(directions[index_ray], axis=1, keepdims=True)
+    normal = mesh.face_normals[index_tri]
+    corner = mesh.triangles[index_tri, 0]
+    return np.einsum("ij,ij->i", corner - origins[index_ray], normal) / np.einsum("ij,ij->i", unit, normal)
+
+
+def assert_same_first_hits(mesh, ours, theirs, origins, directions):
+    """Equal triangle indices, except where the two hit points coincide (a ray through an edge)."""
+    assert ours.dtype == theirs.dtype
+    assert np.array_equal(ours >= 0, theirs >= 0)
+    differ = np.flatnonzero((ours != theirs) & (ours >= 0))
+    assert len(differ) <= 0.005 * len(ours)
+    if len(differ):
+        a = plane_distance(mesh, origins, directions, differ, ours[differ])
+        b = plane_distance(mesh, origins, directions, differ, theirs[differ])
+        np.testing.assert_allclose(a, b, atol=1e-5 * mesh.scale)
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return trimesh.creation.icosphere(subdivisions=3, radius=2.0)
+
+
+@pytest.fixture(scope="module")
+def box():
+    return trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+
+
+@pytest.fixture(scope="module")
+def bunny():
+    from conftest import SHARED_SCENES, needs_shared_scenes
+
+    needs_shared_scenes()
+    return trimesh.load(SHARED_SCENES / "stanford-bunny" / "bun_zipper_res2.ply", force="mesh")
+
+
+# -- first and any hit -----------------------------------------------------------------------
+@pytest.mark.parametrize("which,order", [("sphere", "input"), ("bunny", "input"), ("bunny", "morton")])
+def test_first_and_any_hit_equal_trimesh_default_backend(which, order, request):
+    mesh = request.getfixturevalue(which)
+    origins, directions = rays_at(mesh, 20000, seed=1)
+    ours, theirs = RayMeshIntersector(mesh, order=order), EmbreeIntersector(mesh)
+    first = ours.intersects_first(origins, directions)
+    assert_same_first_hits(mesh, first, theirs.intersects_first(origins, directions), origins, directions)
+    assert (first >= 0).sum() > 5000
+    anyhit = ours.intersects_any(origins, directions)
+    assert anyhit.dtype == np.bool_ and np.array_equal(anyhit, theirs.intersects_any(origins, directions))
+    # multiple_hits=False: the first hit per ray, in ray order, as trimesh answers it.
+    index_tri, index_ray = ours.intersects_id(origins, directions, multiple_hits=False)
+    assert np.array_equal(index_ray, np.flatnonzero(first >= 0)) and np.array_equal(index_tri, first[index_ray])
+    assert index_tri.dtype == index_ray.dtype == np.int64
+
+
+# -- every hit -------------------------------------------------------------------------------
+@pytest.mark.parametrize("which,order", [("box", "input"), ("sphere", "morton"), ("bunny", "input"),
+                                         ("bunny", "morton")])
+def test_every_hit_in_distance_order_equals_trimesh(which, order, request):
+    mesh = request.getfixturevalue(which)
+    origins, directions = rays_at(mesh, 5000, seed=2)
+    ours = RayMeshIntersector(mesh, order=order)
+    locations, index_ray, index_tri = ours.intersects_location(origins, directions)  # default: every hit
+    assert locations.dtype == np.float64 and locations.shape == (len(index_ray), 3)
+    assert index_ray.dtype == index_tri.dtype == np.int64
+    assert np.all(np.diff(index_ray) >= 0)  # grouped by ray, in ray order
+    # Within a ray, in distance order.
+    distance = np.linalg.norm(locations - origins[index_ray], axis=1)
+    same_ray = np.diff(index_ray) == 0
+    assert np.all(np.diff(distance)[same_ray] > 0)
+    # The same hits per ray as trimesh's default backend (which re-casts from each hit).
+    their_tri, their_ray, their_loc = EmbreeIntersector(mesh).intersects_id(origins, directions,
+                                                                             return_locations=True)
+    ours_per_ray = np.bincount(index_ray, minlength=len(origins))
+    theirs_per_ray = np.bincount(their_ray, minlength=len(origins))
+    assert (ours_per_ray != theirs_per_ray).sum() <= 0.002 * len(origins)
+    agree = np.flatnonzero(ours_per_ray == theirs_per_ray)
+    mine = np.isin(index_ray, agree)
+    theirs = np.isin(their_ray, agree)
+    key = np.lexsort((np.linalg.norm(their_loc[theirs] - origins[their_ray[theirs]], axis=1), their_ray[theirs]))
+    np.testing.assert_allclose(locations[mine], their_loc[theirs][key], atol=1e-5 * mesh.scale)
+    # Locations lie on their triangle's plane and on the ray.
+    t = plane_distance(mesh, origins, directions, index_ray, index_tri)
+    np.testing.assert_allclose(distance, t, atol=1e-9 * mesh.scale, rtol=1e-9)
+    if which in ("box", "sphere"):  # convex and closed: a ray from outside that hits crosses twice
+        outside = ~mesh.contains(origins)
+        assert set(np.unique(ours_per_ray[outside])) <= {0, 2} and (ours_per_ray == 2).sum() > 1000
+
+
+def test_max_hits_caps_hits_per_ray(sphere):
+    origins, directions = rays_at(sphere, 3000, seed=3)
+    ours = RayMeshIntersector(sphere)
+    all_tri, all_ray = ours.intersects_id(origins, directions, max_hits=None)
+    one_tri, one_ray = ours.intersects_id(origins, directions, max_hits=1)
+    first = ours.intersects_first(origins, directions)
+    assert np.array_equal(one_ray, np.flatnonzero(first >= 0)) and np.array_equal(one_tri, first[one_ray])
+    assert len(all_ray) > len(one_ray)
+
+
+def test_rays_along_and_through_edges_of_a_box(box):
+    """A ray through a shared edge or corner crosses once; rays in a face's plane are trimesh's
+    business too: the count per ray equals trimesh's."""
+    ours, theirs = RayMeshIntersector(box), EmbreeIntersector(box)
+    hx, hy, hz = box.extents / 2
+    origins = np.array([[0, 0, -5], [hx, 0, -5], [hx, hy, -5], [0, hy, -5], [-5, -5, -5],
+                        [hx, -5, 0], [0.1, 0.2, 5]], np.float64)
+    directions = np.array([[0, 0, 1], [0, 0, 1], [0, 0, 1], [0, 0, 1], [1, 1, 1], [0, 1, 0], [0, 0, -1]], float)
+    directions[4] = np.array([hx, hy, hz]) - origins[4]  # through the corner and out of the opposite one
+    _, index_ray = ours.intersects_id(origins, directions)
+    counts = np.bincount(index_ray, minlength=len(origins))
+    assert counts[0] == 2 and counts[6] == 2  # straight through two faces
+    assert counts[4] in (1, 2)  # the corner ray touches the box at one corner point only ...
+    _, their_ray = theirs.intersects_id(origins, directions)
+    assert counts[1] == np.bincount(their_ray, minlength=len(origins))[1] == 2  # ... an edge is one crossing
+
+
+# -- contains --------------------------------------------------------------------------------
+def box_truth(box, points):
+    return np.all(np.abs(points - box.bounds.mean(axis=0)) < box.extents / 2, axis=1)
+
+
+def test_contains_on_a_box_with_points_on_face_planes_and_rays_through_edges(box):
+    rng = np.random.default_rng(4)
+    h = box.extents / 2
+    points = rng.uniform(-1.5 * h, 1.5 * h, size=(4000, 3))
+    # Points on the planes of faces, inside and outside the faces' extent (not on the surface).
+    on_plane = rng.uniform(-1.5 * h, 1.5 * h, size=(600, 3))
+    axis = rng.integers(0, 3, 600)
+    on_plane[np.arange(600), axis] = h[axis] * rng.choice([-1, 1], 600)
+    on_surface = np.all(np.abs(on_plane) <= h, axis=1)
+    # Points inside whose first cast direction runs exactly through an edge or a corner.
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * h
+    edge_mid = (corners[:, None] + corners[None]) / 2
+    targets = np.concatenate([corners, edge_mid.reshape(-1, 3)])
+    through = targets - 0.3 * DIRECTIONS[0]
+    through = through[np.all(np.abs(through) < h, axis=1)]
+    assert len(through) > 0
+    pts = np.concatenate([points, on_plane[~on_surface], through])
+    got = RayMeshIntersector(box).contains_points(pts)
+    assert got.dtype == np.bool_ and got.shape == (len(pts),)
+    assert np.array_equal(got, box_truth(box, pts))
+    assert got.sum() > 500
+
+
+def test_contains_on_a_sphere_and_an_annulus_equals_geometry_and_trimesh(sphere):
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-2.5, 2.5, size=(20000, 3))
+    r = np.linalg.norm(pts, axis=1)
+    clear = (r < 1.95) | (r > 2.001)  # away from the facets of the icosphere
+    got = RayMeshIntersector(sphere).contains_points(pts)
+    assert np.array_equal(got[clear], r[clear] < 2)
+    assert (got == EmbreeIntersector(sphere).contains_points(pts)).mean() > 0.999
+    ring = trimesh.creation.annulus(r_min=1.0, r_max=2.0, height=1.0, sections=64)  # not convex
+    assert ring.is_watertight
+    radial = np.linalg.norm(pts[:, :2], axis=1)
+    inside = (radial > 1.0) & (radial < 2.0) & (np.abs(pts[:, 2]) < 0.5)
+    clear = (np.abs(radial - 1.0) > 0.01) & (np.abs(radial - 2.0) > 0.01) & (np.abs(np.abs(pts[:, 2]) - 0.5) > 1e-6)
+    got = RayMeshIntersector(ring).contains_points(pts)
+    assert np.array_equal(got[clear], inside[clear]) and inside.sum() > 1000
+
+
+# -- as mesh.ray -----------------------------------------------------------------------------
+def test_trimesh_features_use_it_as_mesh_ray(sphere):
+    mesh = sphere.copy()
+    mesh.ray = RayMeshIntersector(mesh)
+    assert mesh.ray.mesh is mesh
+    rng = np.random.default_rng(6)
+    pts = rng.uniform(-2.5, 2.5, size=(3000, 3))
+    r = np.linalg.norm(pts, axis=1)
+    clear = (r < 1.95) | (r > 2.001)
+    assert np.array_equal(mesh.contains(pts)[clear], r[clear] < 2)
+    samples = trimesh.sample.volume_mesh(mesh, 2000, seed=1)  # built on mesh.contains
+    assert len(samples) > 500 and np.linalg.norm(samples, axis=1).max() < 2.0
+    from trimesh.voxel.creation import voxelize_ray  # built on mesh.ray.intersects_location
+
+    ours = voxelize_ray(mesh, pitch=0.25)
+    mesh.ray = EmbreeIntersector(mesh)
+    theirs = voxelize_ray(mesh, pitch=0.25)
+    cells = np.unique(ours.encoding.sparse_indices, axis=0)
+    assert np.array_equal(cells, np.unique(theirs.encoding.sparse_indices, axis=0)) and len(cells) > 100
+
+
+# -- precision -------------------------------------------------------------------------------
+@pytest.mark.parametrize("offset", [1e6, -3e6])
+def test_locations_far_from_the_origin_are_float64_accurate(sphere, offset):
+    far = sphere.copy()
+    shift = np.array([offset, -offset / 2, offset / 3])
+    far.apply_translation(shift)
+    origins, directions = rays_at(sphere, 5000, seed=7)
+    near_loc, near_ray, near_tri = RayMeshIntersector(sphere).intersects_location(origins, directions)
+    far_loc, far_ray, far_tri = RayMeshIntersector(far).intersects_location(origins + shift, directions)
+    assert np.array_equal(near_ray, far_ray) and len(near_ray) > 3000
+    same = near_tri == far_tri
+    assert same.mean() > 0.99
+    np.testing.assert_allclose(far_loc[same] - shift, near_loc[same], atol=1e-6 * sphere.scale, rtol=0)
+    # inside/outside far away: the same answers as near the origin
+    pts = np.random.default_rng(8).uniform(-2.5, 2.5, size=(5000, 3))
+    r = np.linalg.norm(pts, axis=1)
+    clear = (r < 1.95) | (r > 2.001)
+    assert np.array_equal(RayMeshIntersector(far).contains_points(pts + shift)[clear], r[clear] < 2)
+
+
+# -- freshness -------------------------------------------------------------------------------
+def test_answers_follow_moved_vertices_and_new_faces(sphere):
+    mesh = sphere.copy()
+    ours = RayMeshIntersector(mesh)
+    origins, directions = rays_at(sphere, 5000, seed=9)
+    ours.intersects_first(origins, directions)  # builds
+    built = ours._structure()
+    mesh.apply_translation([0.7, 0.0, 0.0])  # vertices move in place: refit
+    mesh.vertices[:, 2] *= 1.3
+    first = ours.intersects_first(origins, directions)
+    assert ours._structure().faces is built.faces  # same triangles, refitted tree
+    assert_same_first_hits(mesh, first, EmbreeIntersector(mesh).intersects_first(origins, directions),
+                           origins, directions)
+    new = trimesh.creation.icosphere(subdivisions=2, radius=1.5)  # new faces: rebuild
+    mesh.vertices, mesh.faces = new.vertices, new.faces
+    first = ours.intersects_first(origins, directions)
+    assert first.max() < len(new.faces)
+    assert_same_first_hits(mesh, first, EmbreeIntersector(mesh).intersects_first(origins, directions),
+                           origins, directions)
+    pts = np.random.default_rng(10).uniform(-2, 2, size=(3000, 3))
+    r = np.linalg.norm(pts, axis=1)
+    clear = (r < 1.45) | (r > 1.501)
+    assert np.array_equal(ours.contains_points(pts)[clear], r[clear] < 1.5)
+
+
+def test_pickle_and_copy_behave_like_trimesh(sphere):
+    ours = RayMeshIntersector(sphere)
+    origins, directions = rays_at(sphere, 2000, seed=11)
+    expected = ours.intersects_first(origins, directions)
+    for other in (pickle.loads(pickle.dumps(ours)), copy.copy(ours), copy.deepcopy(ours)):
+        assert isinstance(other, RayMeshIntersector) and other._structure_cache is None
+        assert np.array_equal(other.intersects_first(origins, directions), expected)
+    assert copy.copy(ours).mesh is sphere
+
+
+# -- bad rays and bad arrays -----------------------------------------------------------------
+def test_bad_rays_are_misses_beside_good_rays(sphere):
+    origins, directions = rays_at(sphere, 1000, seed=12)
+    bad_o, bad_d = origins.copy(), directions.copy()
+    bad_d[3] = np.nan
+    bad_d[5] = 0.0
+    bad_o[7] = [np.inf, 0, 0]
+    bad_d[9] = [1e308, 1e308, 0]  # |d| overflows
+    bad = [3, 5, 7, 9]
+    good = np.setdiff1d(np.arange(1000), bad)
+    ours = RayMeshIntersector(sphere)
+    expected = ours.intersects_first(origins, directions)
+    with pytest.warns(BadRayWarning, match="4 of 1000 rays"):
+        first = ours.intersects_first(bad_o, bad_d)
+    with pytest.warns(BadRayWarning, match="4 of 1000 rays"):  # sorted, bad rays go last: same answers
+        assert np.array_equal(RayMeshIntersector(sphere, order="morton").intersects_first(bad_o, bad_d), first)
+    assert np.all(first[bad] == -1) and np.array_equal(first[good], expected[good])
+    assert (expected[good] >= 0).sum() > 300
+    with pytest.warns(BadRayWarning):
+        assert not ours.intersects_any(bad_o, bad_d)[bad].any()
+    with pytest.warns(BadRayWarning):
+        _, index_ray = ours.intersects_id(bad_o, bad_d)
+    assert not np.isin(index_ray, bad).any()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ours.intersects_first(origins, directions)  # no warning when every ray is fine
+    assert not ours.contains_points([[np.nan, 0, 0]])[0]
+
+
+@pytest.mark.parametrize("call,error,words", [
+    (lambda r: r.intersects_first(np.zeros((4, 2)), np.ones((4, 2))), QueryInputError, ["ray_origins", "(4, 2)"]),
+    (lambda r: r.intersects_id(np.zeros((4, 3)), np.ones((5, 3))), QueryInputError, ["ray_directions", "(5, 3)"]),
+    (lambda r: r.intersects_any([["a", "b", "c"]], np.ones((1, 3))), QueryTypeError, ["ray_origins", "dtype"]),
+    (lambda r: r.intersects_location(np.zeros((1, 3)), np.ones((1, 3)) * 1j), QueryTypeError, ["ray_directions"]),
+    (lambda r: r.intersects_id(np.zeros((1, 3)), np.ones((1, 3)), max_hits=-1), QueryInputError, ["max_hits", "-1"]),
+    (lambda r: r.intersects_id(np.zeros((1, 3)), np.ones((1, 3)), max_hits=2.5), QueryTypeError, ["max_hits"]),
+    (lambda r: r.contains_points(np.zeros((3, 4))), QueryInputError, ["points", "(3, 4)"]),
+    (lambda r: r.contains_points([[object(), 1, 2]]), QueryTypeError, ["points"]),
+    (lambda r: RayMeshIntersector("mesh"), QueryTypeError, ["vertices", "faces"]),
+    (lambda r: RayMeshIntersector(r.mesh, order="random"), QueryInputError, ["order", "morton"]),
+])
+def test_malformed_arrays_raise_one_line_naming_the_argument(sphere, call, error, words):
+    with pytest.raises(error) as info:
+        call(RayMeshIntersector(sphere))
+    assert isinstance(info.value, ValueError) and "\n" not in str(info.value)
+    if error is QueryTypeError:
+        assert isinstance(info.value, TypeError)
+    for word in words:
+        assert word in str(info.value)
+
+
+def test_empty_batches_answer_empty(sphere):
+    ours = RayMeshIntersector(sphere)
+    assert ours.intersects_first(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0,)
+    loc, ray, tri = ours.intersects_location([], [])
+    assert loc.shape == (0, 3) and ray.shape == tri.shape == (0,)
+    assert ours.contains_points(np.zeros((0, 3))).shape == (0,)
+
+
+def test_rays_with_many_hits_take_the_exact_path_and_keep_distance_order():
+    """More hits per ray than the one-walk kernel's slot (engine.query.intersector.SLOT): a stack of
+    boxes crossed by every ray; the same hits as trimesh, the nearest ones under max_hits."""
+    boxes = [trimesh.creation.box(extents=(1, 1, 0.5)).apply_translation([0, 0, z]) for z in range(12)]
+    stack = trimesh.util.concatenate(boxes)
+    rng = np.random.default_rng(13)
+    origins = np.column_stack([rng.uniform(-0.4, 0.4, (300, 2)), np.full(300, -3.0)])
+    directions = np.column_stack([rng.uniform(-0.01, 0.01, (300, 2)), np.ones(300)])
+    origins[::3, 2] = 20.0  # every third ray from above, some mixed in with few hits
+    directions[::3, 2] = -1.0
+    directions[1::3] = [1, 0, 0]  # sideways: misses or crosses one box
+    ours = RayMeshIntersector(stack)
+    locations, index_ray, index_tri = ours.intersects_location(origins, directions, max_hits=None)
+    counts = np.bincount(index_ray, minlength=300)
+    assert counts.max() == 24
+    their_loc, their_ray, _ = EmbreeIntersector(stack).intersects_location(origins, directions)
+    assert np.array_equal(counts, np.bincount(their_ray, minlength=300))
+    key = np.lexsort((np.linalg.norm(their_loc - origins[their_ray], axis=1), their_ray))
+    np.testing.assert_allclose(locations, their_loc[key], atol=1e-6 * stack.scale)
+    near, near_ray, _ = ours.intersects_location(origins, directions, max_hits=10)
+    assert np.bincount(near_ray, minlength=300).max() == 10
+    first10 = np.concatenate([np.flatnonzero(index_ray == r)[:10] for r in range(300)])
+    np.testing.assert_array_equal(near, locations[first10])
