@@ -311,6 +311,7 @@ def test_dynamic_matrix_runs_every_policy_and_tables_the_path(tmp_path, scene_fi
         [[variant]]
         label = "auto"
         accel = "auto"
+        budget = 0.0
         [[variant]]
         label = "rs"
         traversal = "rayspace"
@@ -324,9 +325,11 @@ def test_dynamic_matrix_runs_every_policy_and_tables_the_path(tmp_path, scene_fi
     assert all(len(r["path"]["frames"]) == 3 for r in records)
     table = (out / "dynamic.md").read_text()
     assert table.count("| moving |") == 3 and (out / "dynamic.png").is_file()
-    # auto's trace compared frame by frame with the rebuild cell's fresh trees
+    # auto's refitted frames traced again against a fresh tree, right after the frame
     auto_row = next(line for line in table.splitlines() if "| auto |" in line)
     assert auto_row.rstrip(" |").split("|")[-1].strip() != "–"
+    refitted = [f for f in records[1]["path"]["frames"] if f["accel"]["policy"] == "refit"]
+    assert refitted and all(f["fresh_tree"]["trace_ratio"] > 0 for f in refitted)
     # resume: nothing left to run; without it, the folder is refused
     assert main(["bench", str(matrix), "--out", str(out), "--resume"]) == 0
     assert len((out / "results.jsonl").read_text().splitlines()) == 3

@@ -40,9 +40,12 @@ def hit_points(tris, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarr
 
 def triangle_magnitudes(tris) -> np.ndarray:
     """Largest |coordinate| among each triangle's corners -> f32[T] (computed once per scene)."""
-    m = np.abs(tris.v0).max(axis=1)
-    for corner in (tris.v1, tris.v2):
-        m = np.maximum(m, np.abs(corner).max(axis=1))
+    # Column by column: numpy's reduction along the short last axis of an (N, 3) array is slow
+    # (12 ms for the kitchen, paid every animation frame); maxima are exact either way.
+    m = np.abs(tris.v0[:, 0])
+    for corner in (tris.v0, tris.v1, tris.v2):
+        for axis in range(3):
+            np.maximum(m, np.abs(corner[:, axis]), out=m)
     return m.astype(np.float32)
 
 

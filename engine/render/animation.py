@@ -19,6 +19,7 @@ import time
 from dataclasses import dataclass
 
 from engine.core.errors import ConfigError
+from engine.core.bvh import build_bvh
 from engine.render.accel import BVHKeeper
 from engine.render.plugins import uses_bvh
 from engine.render.whitted import RenderResult, WhittedRenderer
@@ -134,6 +135,29 @@ class AnimationRenderer:
                             "sah_ratio": accel["sah_ratio"]},
                   "rays": dict(result.rays)}
         return Frame(index, time_, result, record)
+
+    def compare_with_fresh_tree(self, frame: Frame, repeat: int = 2) -> dict:
+        """Trace the frame just rendered again, with the kept tree and with one freshly built for
+        it, interleaved, ``repeat`` times each; the fastest of each compared (the same moment,
+        so machine noise hits both). Adds and returns frame.record["fresh_tree"] = {"kept",
+        "fresh" (trace seconds), "trace_ratio" (kept / fresh)}. Not part of the frame's time."""
+        scene, kept = self.renderer.scene, self.renderer.bvh
+        r = self.config.render
+        fresh = build_bvh(scene.triangles, leaf_size=r.leaf_size, bins=r.bins)
+        observer, self.renderer.observer = self.renderer.observer, None
+        times = {"kept": [], "fresh": []}
+        try:
+            for _ in range(repeat):
+                for name, bvh in (("kept", kept), ("fresh", fresh)):
+                    self.renderer.set_scene(scene, bvh)
+                    times[name].append(sum(self.renderer.render().seconds["trace"].values()))
+        finally:
+            self.renderer.set_scene(scene, kept)
+            self.renderer.observer = observer
+        best = {name: min(values) for name, values in times.items()}
+        best["trace_ratio"] = best["kept"] / best["fresh"] if best["fresh"] > 0 else None
+        frame.record["fresh_tree"] = best
+        return best
 
     def restart(self) -> None:
         """Forget the kept tree (the next frame builds afresh), e.g. after frames were skipped."""
