@@ -9,9 +9,9 @@
   last build and rebuild past ``degrade`` times that (Wald, Boulos and Shirley 2007 rebuild a
   dynamic BVH when its quality has degraded; Lauterbach et al. 2006 use the same SAH test).
   Both tests are needed: the SAH cost assumes rays spread evenly over the scene, so it misses a
-  tree that loosens where the camera looks (BART Museum's flying triangles: SAH +4%, trace
-  +60%), and there a rebuild is cheap; where a rebuild is dear (the kitchen) the SAH test holds
-  the line.
+  tree that loosens where the camera looks (BART Museum's flying triangles: SAH +3.5%, trace
+  +50%), and there a rebuild is cheap (5-6% of a frame); where a rebuild is dear (the kitchen's,
+  a quarter of a frame) the SAH test holds the line.
 
 One ``BVHKeeper`` per animation render: it holds the last tree, the cost that tree had when it
 was built and the refit's level order, and nothing outside it.
@@ -33,7 +33,7 @@ NO_TREE = "none"
 #: ``auto`` rebuilds once the refitted tree's SAH cost exceeds this times the last build's.
 DEFAULT_DEGRADE = 1.2
 #: ``auto`` rebuilds every frame while the last build took at most this share of the last frame.
-DEFAULT_BUDGET = 0.05
+DEFAULT_BUDGET = 0.10
 
 
 class BVHKeeper:

@@ -13,7 +13,7 @@
     [plugins]    load_entry_points = false
     [accel]      update = "rebuild"      # per animation frame: "rebuild" | "refit" | "auto"
                  degrade = 1.2           # auto: rebuild past this SAH cost over the last build's
-                 budget = 0.05           # auto: rebuild while a build takes <= this share of a frame
+                 budget = 0.1            # auto: rebuild while a build takes <= this share of a frame
     [options.rayspace]  pair_budget = 4194304   # per-plugin options, checked by the plugin
 
 An unknown section, key or plugin name is a ConfigError that says what is allowed.
@@ -94,7 +94,7 @@ class AccelConfig:
 
     update: str = "rebuild"
     degrade: float = 1.2
-    budget: float = 0.05
+    budget: float = 0.1
 
 
 def _defaults(table: dict) -> dict:
