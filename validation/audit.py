@@ -81,6 +81,7 @@ class _Tally:
         self.max_abs_t_err = 0.0
         self.examples: list = []
         self.pixels: list = []
+        self.tie_pixels: set = set()   # pixels of rays whose answers tie (both valid, they differ)
 
     def add(self, kind, rays, result, example):
         """Count ``result`` (a Comparison) for a batch; ``example(i)`` is the record of ray i."""
@@ -92,6 +93,7 @@ class _Tally:
         self.max_abs_t_err = max(self.max_abs_t_err, result.max_abs_t_err)
         bad = np.flatnonzero(result.mismatch)
         self.pixels.extend(rays.pixel[bad].tolist())
+        self.tie_pixels.update(rays.pixel[np.flatnonzero(result.tie)].tolist())
         for i in bad[: max(0, MISMATCHES_KEPT - len(self.examples))]:
             self.examples.append(example(i))
 
@@ -139,6 +141,11 @@ class AuditObserver:
     @property
     def mismatch_pixels(self):
         return self.combined.pixels
+
+    @property
+    def tie_pixels(self) -> set:
+        """Pixels (y * width + x) with a ray whose answer ties the oracle's."""
+        return self.combined.tie_pixels
 
     def __call__(self, kind, query, rays, packets, answer):
         if query == "intersect":

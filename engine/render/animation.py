@@ -136,6 +136,22 @@ class AnimationRenderer:
                   "rays": dict(result.rays)}
         return Frame(index, time_, result, record)
 
+    def render_with_fresh_tree(self, observer_for=None) -> RenderResult:
+        """The frame just rendered, again, over a tree freshly built for it (``observer_for(scene,
+        bvh)`` makes the observer of that render, or None); the kept tree is put back."""
+        scene, kept = self.renderer.scene, self.renderer.bvh
+        r = self.config.render
+        fresh = build_bvh(scene.triangles, leaf_size=r.leaf_size, bins=r.bins)
+        observer = self.renderer.observer
+        try:
+            self.renderer.set_scene(scene, fresh)
+            self.renderer.observer = observer_for(scene, fresh) if observer_for else None
+            return self.renderer.render()
+        finally:
+            self.fresh_observer = self.renderer.observer
+            self.renderer.set_scene(scene, kept)
+            self.renderer.observer = observer
+
     def compare_with_fresh_tree(self, frame: Frame, repeat: int = 2) -> dict:
         """Trace the frame just rendered again, with the kept tree and with one freshly built for
         it, interleaved, ``repeat`` times each; the fastest of each compared (the same moment,
