@@ -34,6 +34,21 @@ def inverse_component(d):
 
 
 @njit(cache=True, inline="always")
+def write_dead_lane(out, origin, org, dirs, inv, tmin, tmax, pixel, weight):
+    """Lane ``out`` made a dead lane (tmax < tmin, pixel -1, zero weight) that pads a packet to
+    whole 2x2 SIMD rays: it starts at ``origin`` (f32[3], a live lane's, so it shares the
+    packet's frustum) and points along +z."""
+    for a in range(3):
+        org[out, a] = origin[a]
+        dirs[out, a] = np.float32(1.0 if a == 2 else 0.0)
+        inv[out, a] = inverse_component(dirs[out, a])
+        weight[out, a] = np.float32(0.0)
+    tmin[out] = np.float32(1.0)
+    tmax[out] = np.float32(0.0)
+    pixel[out] = -1
+
+
+@njit(cache=True, inline="always")
 def position_in_tile(pixel, width, n):
     """Where pixel ``pixel`` sits in its n x n tile's packet order (0 .. n*n-1): 2x2 blocks row
     by row, lanes (0,0), (1,0), (0,1), (1,1) inside a block."""
@@ -175,14 +190,7 @@ def fill_packets(n, width, tile_packet, counts, starts, offsets_t, pixel_t, flag
             cursor[best] = next_flagged(flag_t[best], i + 1, end[best])
         first = starts[t]
         while out % 4:
-            for a in range(3):
-                org[out, a] = org[first, a]
-                dirs[out, a] = np.float32(1.0 if a == 2 else 0.0)
-                inv[out, a] = inverse_component(dirs[out, a])
-                weight[out, a] = np.float32(0.0)
-            tmin[out] = np.float32(1.0)
-            tmax[out] = np.float32(0.0)
-            pix[out] = -1
+            write_dead_lane(out, org[first], org, dirs, inv, tmin, tmax, pix, weight)
             source[out] = -1
             lane[out] = -1
             out += 1

@@ -15,7 +15,7 @@ from numba import njit, prange
 
 from engine.core.scene import Scene
 from engine.core.types import Packets, RayBatch
-from engine.packet.compact import inverse_component, new_array
+from engine.packet.compact import inverse_component, new_array, write_dead_lane
 
 
 def image_plane(scene: Scene, width: int, height: int):
@@ -88,14 +88,7 @@ def fill_camera_packets(eye, forward, right, up, half_w, half_h, width, height, 
             pixel[out] = y * width + x
             out += 1
         while out < offsets[t + 1]:  # dead padding to whole 2x2 SIMD rays
-            for a in range(3):
-                org[out, a] = eye[a]
-                dirs[out, a] = np.float32(1.0 if a == 2 else 0.0)
-                inv[out, a] = inverse_component(dirs[out, a])
-                weight[out, a] = np.float32(0.0)
-            tmin[out] = np.float32(1.0)
-            tmax[out] = np.float32(0.0)
-            pixel[out] = -1
+            write_dead_lane(out, eye, org, dirs, inv, tmin, tmax, pixel, weight)
             out += 1
 
 
