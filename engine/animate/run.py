@@ -83,7 +83,7 @@ def _against_fresh_tree(animator, frame, kept_observer, observer_for) -> dict:
     the images differ with no tie]}. A refit bounds the same triangles, so only a tie (two
     valid answers) may change a pixel."""
     fresh = animator.render_with_fresh_tree(observer_for)
-    height, width = frame.result.image.shape[:2]
+    width = frame.result.image.shape[1]
     differing = np.flatnonzero(np.any(frame.result.image.reshape(-1, 3) != fresh.image.reshape(-1, 3), axis=1))
     tied = kept_observer.tie_pixels | animator.fresh_observer.tie_pixels
     unexplained = [int(p) for p in differing if int(p) not in tied]
@@ -94,7 +94,8 @@ def _against_fresh_tree(animator, frame, kept_observer, observer_for) -> dict:
 def run_animation(config, out: str, *, frames=None, fps=None, start=None, end=None, stats=None,
                   resume: bool = False, audit: bool = False, progress=None) -> int:
     """Render the animation path of ``config``'s scene into folder ``out`` (see the module
-    doc); returns the exit code (1 when an audited frame had a mismatch)."""
+    doc); returns the exit code (1 when an audited frame had a mismatch, or a refitted frame a
+    pixel that differs from its fresh-tree render without a tie)."""
     from scenes.catalog import open_path
     from tqdm import tqdm
 

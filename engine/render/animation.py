@@ -89,6 +89,7 @@ class AnimationRenderer:
         self.keeper = self._new_keeper()
         self.renderer = None
         self.last_frame_seconds = None   # auto's rebuild budget is a share of it
+        self.fresh_observer = None       # the observer of the last render_with_fresh_tree
 
     def _new_keeper(self) -> BVHKeeper:
         r, a = self.config.render, self.config.accel
