@@ -19,12 +19,13 @@ from typing import Optional
 
 import numpy as np
 
+from engine.core.checked import COORDINATE_LIMIT
 from engine.core.errors import ConfigError, SceneError
 from engine.core.scene import PointLight, SceneBuilder, make_triangles, recentring
 from engine.core.types import Triangles
 
 from .aff import Loader, _camera_from, _face_normals, _floats, _transform, check_params
-from .aff_placement import MovingRows
+from .aff_placement import MovingRows, write_triangle_rows
 from .catalog import scene_animator, scene_loader
 
 
@@ -126,7 +127,13 @@ class AffAnimation:
         fresh = [a.copy() for a in self._base]
         rows = self._moving_rows
         if rows.size:
-            moved = self._triangles(*self._placed(time, world, moving_only=True))
+            corners, normals, uvs, material = self._placed(time, world, moving_only=True)
+            origin = np.zeros(3) if self.origin is None else np.asarray(self.origin, np.float64)
+            none3, none2 = np.zeros((0, 3, 3)), np.zeros((0, 3, 2))
+            if write_triangle_rows(rows, corners, none3 if normals is None else normals,
+                                   none2 if uvs is None else uvs, material, origin, COORDINATE_LIMIT, *fresh):
+                return Triangles(*fresh)
+            moved = self._triangles(corners, normals, uvs, material)   # says which corner is bad
             for array, new in zip(fresh, moved):
                 if array.shape[0]:            # normals / uvs may be absent: shape (0, ...)
                     array[rows] = new

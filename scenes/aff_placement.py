@@ -130,3 +130,51 @@ class MovingRows:
                 normals[~given] = _face_normals(placed[~given])
         uvs = np.concatenate([self.uvs, np.zeros((len(self.tpa_node), 3, 2))]) if self.has_uvs else None
         return placed, normals, uvs, np.concatenate([self.material, self.tpa_material])
+
+
+@njit(cache=True, parallel=True)
+def write_triangle_rows(rows, corners, normals, uvs, material, origin, limit, v0, e1, e2, ng, v1, v2,
+                        out_material, out_normals, out_uvs):
+    """Rows ``rows`` (i64[R]) of a scene's triangle arrays from placed rows, as
+    ``engine.core.scene.make_triangles`` computes them, operation for operation (corners rounded
+    to float32 after ``origin`` is taken off, edges in float32, the normal's cross product and
+    length in float64): corners f64[R,3,3], normals f64[R,3,3] (or 0 rows: none), uvs f64[R,3,2]
+    (or 0 rows), material i32[R]. Returns False, writing nothing more, when a corner is not
+    finite or beyond ``limit``: the caller then goes through make_triangles, which says why."""
+    n = rows.shape[0]
+    for r in range(n):
+        for c in range(3):
+            for a in range(3):
+                x = corners[r, c, a] - origin[a]
+                if not np.isfinite(x) or abs(x) > limit:
+                    return False
+    for r in prange(n):
+        row = rows[r]
+        for a in range(3):
+            p0 = np.float32(corners[r, 0, a] - origin[a])
+            p1 = np.float32(corners[r, 1, a] - origin[a])
+            p2 = np.float32(corners[r, 2, a] - origin[a])
+            v0[row, a], v1[row, a], v2[row, a] = p0, p1, p2
+            e1[row, a] = p1 - p0
+            e2[row, a] = p2 - p0
+        a0, a1, a2 = np.float64(e1[row, 0]), np.float64(e1[row, 1]), np.float64(e1[row, 2])
+        b0, b1, b2 = np.float64(e2[row, 0]), np.float64(e2[row, 1]), np.float64(e2[row, 2])
+        c0 = a1 * b2 - a2 * b1
+        c1 = a2 * b0 - a0 * b2
+        c2 = a0 * b1 - a1 * b0
+        length = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        if length > 0:
+            ng[row, 0], ng[row, 1], ng[row, 2] = np.float32(c0 / length), np.float32(c1 / length), np.float32(c2 / length)
+        else:
+            ng[row, 0], ng[row, 1], ng[row, 2] = np.float32(0.0), np.float32(0.0), np.float32(0.0)
+        out_material[row] = material[r]
+        if normals.shape[0]:
+            for c in range(3):
+                for a in range(3):
+                    x = np.float32(normals[r, c, a])
+                    out_normals[row, c, a] = x if np.isfinite(x) else np.float32(0.0)
+        if uvs.shape[0]:
+            for c in range(3):
+                for a in range(2):
+                    out_uvs[row, c, a] = np.float32(uvs[r, c, a])
+    return True
