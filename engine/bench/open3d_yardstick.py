@@ -35,6 +35,7 @@ import numba
 import numpy as np
 from numba import njit
 
+from engine.bench.yardstick import replay_once
 from engine.core.types import RAY_KINDS, RayBatch, check_answer_arrays, empty_hits
 
 #: Segment classes of a ray (``segment_class``).
@@ -231,16 +232,8 @@ class Open3DYardstick:
     def seconds(self, renderer, recorder, repeat: int, timed_replays) -> tuple:
         """(``repeat`` dicts {kind: seconds}, last answers) of Open3D on exactly the recorded
         batches; ``timed_replays(batches, tracer, repeat)`` is the runner's timing loop."""
-        digest = recorder.digest()
-        if digest != self.digest:
-            tracer = self.tracer(renderer)
-            if recorder.batches:  # one untimed query: Open3D commits (builds) its scene lazily
-                kind, query, rays, packets = recorder.batches[0]
-                tracer.trace(kind, query, rays, packets)
-            self.digest, self.runs, self.answers = None, None, None  # one batch set alive at a time
-            self.runs, self.answers = timed_replays(recorder.batches, tracer, repeat)
-            self.digest = digest
-        return self.runs, self.answers
+        # The untimed first query also lets Open3D commit (build) its scene, which it does lazily.
+        return replay_once(self, renderer, recorder, repeat, timed_replays)
 
     def close(self) -> None:
         self.traversal = None

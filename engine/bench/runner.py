@@ -49,6 +49,7 @@ from engine.bench.floor import floor_tracer, uses_packet_traversals
 from engine.bench.machine import machine_info
 from engine.bench.matrix import Cell, Matrix, load_matrix
 from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require_open3d
+from engine.bench.yardstick import replay_once
 from engine.core.atomic import output_folder
 from engine.core.errors import PacketrtError
 from engine.core.types import RAY_KINDS
@@ -175,16 +176,7 @@ class EmbreeYardstick:
 
     def seconds(self, renderer, recorder: BatchRecorder, repeat: int) -> tuple:
         """(``repeat`` dicts {kind: seconds}, last answers) of Embree on exactly the recorded batches."""
-        digest = recorder.digest()
-        if digest != self.digest:
-            tracer = self.tracer(renderer)
-            if recorder.batches:  # one untimed query: thread pool and first-touch costs
-                kind, query, rays, packets = recorder.batches[0]
-                tracer.trace(kind, query, rays, packets)
-            self.digest, self.runs, self.answers = None, None, None  # one batch set alive at a time
-            self.runs, self.answers = timed_replays(recorder.batches, tracer, repeat)
-            self.digest = digest
-        return self.runs, self.answers
+        return replay_once(self, renderer, recorder, repeat, timed_replays)
 
     def close(self) -> None:
         for scene in self.scenes.values():
