@@ -1,0 +1,31 @@
+"""One definition of the per-ray math, compiled for the CPU and for the device.
+
+The CPU kernels call small ``@njit(cache=True, inline="always")`` helpers (the watertight
+triangle test, the slab test, the shading of one lane). ``device_twin(helper, **calls)`` makes
+the same Python function a CUDA device function: it re-binds the helper's code to globals in
+which the helpers *it* calls are replaced by their own twins (``calls``), then hands it to
+``cuda.jit(device=True)``. Nothing is written twice, so the GPU image and the CPU image come
+from the same expressions in the same order and precision.
+
+Why not call the ``@njit`` dispatchers from device code directly: numba's simulator (the test
+suite's GPU, ``NUMBA_ENABLE_CUDASIM=1``) hands kernels fake device arrays that CPU dispatchers
+cannot unbox, and the re-bound Python function runs on both.
+"""
+from __future__ import annotations
+
+import types
+
+from engine.gpu.device import require_cuda
+
+
+def device_twin(helper, **calls):
+    """The CUDA device function of ``helper`` (an ``@njit`` dispatcher or a plain function),
+    with each global name in ``calls`` bound to the given device function instead."""
+    cuda = require_cuda()
+    function = getattr(helper, "py_func", helper)
+    scope = dict(function.__globals__)
+    scope.update(calls)
+    clone = types.FunctionType(function.__code__, scope, function.__name__, function.__defaults__,
+                               function.__closure__)
+    clone.__doc__ = function.__doc__
+    return cuda.jit(device=True)(clone)
