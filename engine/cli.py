@@ -88,6 +88,8 @@ def _add_selectors(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", help="image size WxH")
     p.add_argument("--depth", type=int, help="max recursion depth")
     p.add_argument("--threads", type=int, help="threads (0 = all cores)")
+    p.add_argument("--device", choices=["cpu", "cuda"],
+                   help="where frames are rendered: cpu (numba on every core) or cuda (the GPU wavefront)")
     p.add_argument("--override", choices=["none", "reflective", "refractive"],
                    help="make every material reflective or refractive (Overbeck et al. Sec. 5)")
     p.add_argument("--strict", action="store_true",
@@ -104,6 +106,14 @@ def _seconds(text: str) -> float:
         raise argparse.ArgumentTypeError(str(exc).removeprefix("--time ")) from None
 
 
+def _cpu_only(config, command: str):
+    """``config`` unchanged, or a ConfigError for a command that draws CPU packets or paths only."""
+    if config.render.device != "cpu":
+        raise ConfigError(f"packetrt {command}: device {config.render.device!r} is not supported here "
+                          f"(it works on the CPU only; render, audit and bench take --device cuda)")
+    return config
+
+
 def _config_from(args):
     from engine.render import config as cfg
 
@@ -111,7 +121,7 @@ def _config_from(args):
     config = cfg.with_overrides(
         base, scene=args.scene, traversal=args.traversal, frustum=args.frustum, packet=args.packet,
         size=cfg.parse_size(args.size) if args.size else None, depth=args.depth, threads=args.threads,
-        scene_params=[_scene_param(p) for p in args.param])
+        scene_params=[_scene_param(p) for p in args.param], device=getattr(args, "device", None))
     if args.time is not None:
         config = replace(config, scene=replace(config.scene, time=args.time))
     if args.override is not None:
@@ -141,14 +151,14 @@ def _write_json(path: str, data: dict) -> None:
 
 
 def cmd_render(args) -> int:
+    from engine.gpu.choose import new_renderer
     from engine.render.image import save_png
-    from engine.render.whitted import WhittedRenderer
 
     config = _config_from(args)
     scene = _load_scene(config, args.strict)
     if args.audit:
         return _run_audit(scene, config, args.output, None, None, args.stats)
-    renderer = WhittedRenderer(scene, config)
+    renderer = new_renderer(scene, config)
     compile_seconds = renderer.warm_up()  # JIT compile or cache load, out of every frame time
     result = renderer.render()
     save_png(result.image, args.output)
@@ -172,7 +182,7 @@ def cmd_animate(args) -> int:
     from engine.animate.run import run_animation
     from engine.render.config import validate
 
-    config = _config_from(args)
+    config = _cpu_only(_config_from(args), "animate")
     if args.accel is not None:
         config = validate(replace(config, accel=replace(config.accel, update=args.accel)))
     return run_animation(config, args.output, frames=args.frames, fps=args.fps, start=args.start, end=args.end,
@@ -196,7 +206,7 @@ def cmd_show(args) -> int:
     size = parse_size(args.picture) if getattr(args, "picture", None) else PICTURE_SIZE
     if not (64 <= size[0] <= 4096 and 64 <= size[1] <= 4096):
         raise ConfigError(f"--picture must be between 64x64 and 4096x4096, got {size[0]}x{size[1]}")
-    config = _config_from(args)
+    config = _cpu_only(_config_from(args), "show")
     scene = _load_scene(config, args.strict)
     summary = write_show(scene, config, args.kind, args.packet_index, args.output, size)
     detail = ", ".join(f"{k} {v}" for k, v in summary.items() if k not in ("packet", "packets"))
@@ -211,7 +221,7 @@ def cmd_view(args) -> int:
     problem = display_problem()
     if problem:
         raise PacketrtError(problem)
-    config = _config_from(args)
+    config = _cpu_only(_config_from(args), "view")
     if args.size is None:
         config = validate(replace(config, render=replace(config.render, width=VIEW_SIZE[0], height=VIEW_SIZE[1])))
     run_viewer(_load_scene(config, args.strict), config, status_file=getattr(args, "status_file", None),
@@ -362,6 +372,8 @@ def _add_bench_parser(sub) -> None:
     p.add_argument("--out", help="output folder (default: out/bench-<matrix name>)")
     p.add_argument("--repeat", type=int, help="timed repeats per cell (default: the matrix's, else 5)")
     p.add_argument("--resume", action="store_true", help="skip cells already in DIR/results.jsonl")
+    p.add_argument("--device", choices=["cpu", "cuda"],
+                   help="cuda: run a kind = \"gpu\" matrix on the GPU (default: the matrix's device)")
     p.set_defaults(run=_delegate("engine.bench.runner", "cmd_bench"))
 
 

@@ -7,6 +7,7 @@ lower rank (lazy imports inside functions count too: they are dependencies all t
     1  engine.packet, engine.rayspace, engine.query the two papers' support code; mesh queries
     2  traversals, frusta, scenes                   plugins and scene loaders
     3  engine.render                                tracer, Whitted loop, plugin composition
+    3.5 engine.gpu                                  the CUDA device: its frame reuses render's lane math
     4  validation                                   audits against the oracles
     5  engine.bench, engine.debug, engine.animate   benchmark runner, debug pictures, animation paths
     6  engine (its __init__), engine.api, engine.cli  the public faces
@@ -25,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCE_PACKAGES = ("engine", "traversals", "frusta", "scenes", "validation")
 RANKS = {
     "engine.core": 0, "engine.packet": 1, "engine.rayspace": 1, "engine.query": 1, "traversals": 2, "frusta": 2,
-    "scenes": 2, "engine.render": 3, "validation": 4, "engine.bench": 5, "engine.debug": 5, "engine.animate": 5,
+    "scenes": 2, "engine.render": 3, "engine.gpu": 3.5, "validation": 4, "engine.bench": 5, "engine.debug": 5, "engine.animate": 5,
     "engine": 6,  # engine/__init__.py, engine/api.py, engine/cli.py: one layer of public faces
 }
 

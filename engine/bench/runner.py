@@ -481,6 +481,19 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
 def cmd_bench(args) -> int:
     """The CLI entry: validate the whole matrix, then run it."""
     data = read_toml(args.matrix, "matrix")
+    device = getattr(args, "device", None) or data.get("device", "cpu")
+    if data.get("kind") == "gpu" or device == "cuda":  # rays and frames on the CUDA device
+        from engine.bench.gpu import run_gpu
+
+        if data.get("kind") != "gpu":
+            raise ConfigError(f"{args.matrix}: --device cuda runs matrices of kind = \"gpu\" (rays and frames on "
+                              f"the GPU, e.g. benchmarks/gpu.toml); this matrix runs on the CPU")
+        if device != "cuda":
+            raise ConfigError(f"{args.matrix}: a kind = \"gpu\" matrix runs on device 'cuda', not {device!r}")
+        out = Path(args.out) if args.out else Path("out") / f"bench-{data.get('name', Path(args.matrix).stem)}"
+        run_gpu({**data, "device": "cuda"}, args.matrix, out)
+        print(f"{data.get('name', Path(args.matrix).stem)}: wrote {out / 'gpu.json'}, {out / 'gpu.md'}")
+        return 0
     if data.get("kind") == "dynamic":   # whole animation paths
         from engine.bench.dynamic import run_dynamic
 

@@ -37,6 +37,20 @@ def camera_rays(scene: Scene, width: int, height: int):
     return np.tile(eye.astype(np.float32), (width * height, 1)), d
 
 
+@njit(cache=True, inline="always")
+def camera_direction(x, y, width, height, forward, right, up, half_w, half_h):
+    """The unit direction (3 f32) through pixel (x, y)'s centre: the expressions of
+    ``camera_rays`` in the same order, in double, rounded once. forward, right, up: f64[3].
+    Shared by the CPU camera and its device twin (``engine.gpu.frame``)."""
+    px = ((x + 0.5) / width * 2 - 1) * half_w
+    py = (1 - (y + 0.5) / height * 2) * half_h
+    dx = forward[0] + px * right[0] + py * up[0]
+    dy = forward[1] + px * right[1] + py * up[1]
+    dz = forward[2] + px * right[2] + py * up[2]
+    norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+    return np.float32(dx / norm), np.float32(dy / norm), np.float32(dz / norm)
+
+
 @njit(cache=True)
 def camera_packet_offsets(width, height, n):
     """i32[K+1]: one packet per n x n tile, row by row, each padded to whole 2x2 SIMD rays."""
@@ -70,14 +84,7 @@ def fill_camera_packets(eye, forward, right, up, half_w, half_h, width, height, 
             x = tx * n + (block % half) * 2 + corner % 2
             if y >= height or x >= width:
                 continue
-            # The expressions of camera_rays, in the same order (float64, rounded once).
-            px = ((x + 0.5) / width * 2 - 1) * half_w
-            py = (1 - (y + 0.5) / height * 2) * half_h
-            dx = forward[0] + px * right[0] + py * up[0]
-            dy = forward[1] + px * right[1] + py * up[1]
-            dz = forward[2] + px * right[2] + py * up[2]
-            norm = math.sqrt(dx * dx + dy * dy + dz * dz)
-            d = (np.float32(dx / norm), np.float32(dy / norm), np.float32(dz / norm))
+            d = camera_direction(x, y, width, height, forward, right, up, half_w, half_h)
             for a in range(3):
                 org[out, a] = eye[a]
                 dirs[out, a] = d[a]

@@ -4,7 +4,7 @@
 
     [scene]      name = "whitted"        # or path = "my.obj"; time = 0.0; other keys are the
                                          # scene's own parameters (e.g. lod = 2 for "bunny")
-    [render]     width = 512  height = 512  max_depth = 5  packet = 16  threads = 0
+    [render]     width = 512  height = 512  max_depth = 5  packet = 16  threads = 0  device = "cpu"
                  leaf_size = 4  bins = 16
                  max_reflection_depth = 64   # mirror reflections only off hits of depth < this
     [traversal]  primary = "ranged"  shadow = "partition"  reflection = "partition"  refraction = "partition"
@@ -35,6 +35,7 @@ PAPER_TRAVERSAL = {"primary": "ranged", "shadow": "partition", "reflection": "pa
 PAPER_FRUSTUM = {"primary": "pinhole", "shadow": "pointlight", "reflection": "general", "refraction": "general"}
 MAX_IMAGE_SIDE = 16384
 MAX_DEPTH = 64
+DEVICES = ("cpu", "cuda")
 #: Animation times in seconds: any finite time within a day either way.
 MAX_TIME = 86400.0
 #: The allowed range of each integer of [render] (threads 0 = all cores; leaf_size and bins
@@ -86,6 +87,8 @@ class RenderConfig:
     # Mirror reflections spawn only off hits at depth < this (and < max_depth): the papers'
     # "1-bounce reflections, 4-deep refractions" is max_depth = 4, max_reflection_depth = 1.
     max_reflection_depth: int = MAX_DEPTH
+    # "cpu" (numba kernels on every core) or "cuda" (``engine.gpu``: the wavefront frame on a GPU).
+    device: str = "cpu"
 
 
 @dataclass(frozen=True)
@@ -179,6 +182,8 @@ def validate(config: Config) -> Config:
         raise ConfigError(f"render size {r.width}x{r.height} needs about {needed / 2**30:.1f} GiB for its ray "
                           f"batches, more than this machine's {free / 2**30:.1f} GiB of memory available now; render smaller")
     checked.to_float(config.scene.time, "scene.time", -MAX_TIME, MAX_TIME)
+    if r.device not in DEVICES:
+        raise ConfigError(f"render.device must be one of {', '.join(DEVICES)}, got {r.device!r}")
     if r.packet not in PACKET_SIZES:
         raise ConfigError(f"render.packet must be one of {', '.join(map(str, PACKET_SIZES))}, got {r.packet}")
     if config.accel.update not in ("rebuild", "refit", "auto"):
@@ -193,6 +198,14 @@ def validate(config: Config) -> Config:
 
     if config.load_entry_points:
         load_entry_points()
+    if r.device == "cuda":
+        # Device traversals are chosen by name too (``engine.gpu.traversals``): check the names
+        # here without importing CUDA; whether a GPU is there is asked when rendering starts.
+        from engine.render.device_names import device_traversal_name
+
+        for kind in RAY_KINDS:
+            device_traversal_name(config.traversal.get(kind), kind)
+        return config
     # Throwaway instances: building them checks names, keys and values; nothing is kept.
     configured(config)
     for name, options in config.options:
@@ -278,7 +291,7 @@ def load(path: str) -> Config:
 
 
 def with_overrides(config: Config, *, scene=None, traversal=(), frustum=(), packet=None, size=None,
-                   depth=None, threads=None, scene_params=()) -> Config:
+                   depth=None, threads=None, scene_params=(), device=None) -> Config:
     """Apply command-line selectors. traversal/frustum: "NAME" (every kind) or "KIND=NAME"."""
     def apply(per_kind: PerKind, specs, what):
         values = {k: per_kind.get(k) for k in RAY_KINDS}
@@ -301,6 +314,8 @@ def with_overrides(config: Config, *, scene=None, traversal=(), frustum=(), pack
         render = replace(render, max_depth=depth)
     if threads is not None:
         render = replace(render, threads=threads)
+    if device is not None:
+        render = replace(render, device=device)
     scene_config = config.scene
     if scene is not None:
         is_file = Path(scene).suffix.lower() in (".obj", ".ply", ".stl", ".off", ".aff", ".glb", ".gltf")

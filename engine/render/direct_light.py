@@ -20,6 +20,24 @@ _TWO = np.float32(2.0)
 SHADOW_TMAX_SCALE = np.float32(1.0 - 1e-4)
 
 
+@njit(cache=True)
+def light_direction_lane(i, leave, ns, ng, light, to_light, dist, ndotl, lit, shadow_tmax):
+    """Row ``i`` of ``light_directions`` for a lane that hit (shared by the CPU kernel and the
+    device twin in ``engine.gpu.frame``)."""
+    x = light[0] - leave[i, 0]
+    y = light[1] - leave[i, 1]
+    z = light[2] - leave[i, 2]
+    length = np.float32(math.sqrt(x * x + y * y + z * z))
+    scale = max(length, _TINY)
+    x, y, z = x / scale, y / scale, z / scale
+    to_light[i, 0], to_light[i, 1], to_light[i, 2] = x, y, z
+    dist[i] = length
+    shadow_tmax[i] = length * SHADOW_TMAX_SCALE
+    cos_s = ns[i, 0] * x + ns[i, 1] * y + ns[i, 2] * z
+    ndotl[i] = cos_s
+    lit[i] = cos_s > _ZERO and ng[i, 0] * x + ng[i, 1] * y + ng[i, 2] * z > _ZERO
+
+
 @njit(cache=True, parallel=True)
 def light_directions(hit, leave, ns, ng, light, to_light, dist, ndotl, lit, shadow_tmax):
     """For the lanes with ``hit`` (bool[R]) leaving from ``leave`` (f32[R,3], already off the
@@ -32,18 +50,21 @@ def light_directions(hit, leave, ns, ng, light, to_light, dist, ndotl, lit, shad
         if not hit[i]:
             lit[i] = False
             continue
-        x = light[0] - leave[i, 0]
-        y = light[1] - leave[i, 1]
-        z = light[2] - leave[i, 2]
-        length = np.float32(math.sqrt(x * x + y * y + z * z))
-        scale = max(length, _TINY)
-        x, y, z = x / scale, y / scale, z / scale
-        to_light[i, 0], to_light[i, 1], to_light[i, 2] = x, y, z
-        dist[i] = length
-        shadow_tmax[i] = length * SHADOW_TMAX_SCALE
-        cos_s = ns[i, 0] * x + ns[i, 1] * y + ns[i, 2] * z
-        ndotl[i] = cos_s
-        lit[i] = cos_s > _ZERO and ng[i, 0] * x + ng[i, 1] * y + ng[i, 2] * z > _ZERO
+        light_direction_lane(i, leave, ns, ng, light, to_light, dist, ndotl, lit, shadow_tmax)
+
+
+@njit(cache=True)
+def add_light_lane(i, color, ns, to_light, ndotl, view, mat, diffuse, specular, shininess, texel, light_color):
+    """color[i] += the diffuse + Phong term of one unshadowed light (see ``add_light``)."""
+    cos_s = ndotl[i]
+    rx = _TWO * cos_s * ns[i, 0] - to_light[i, 0]
+    ry = _TWO * cos_s * ns[i, 1] - to_light[i, 1]
+    rz = _TWO * cos_s * ns[i, 2] - to_light[i, 2]
+    highlight = max(-(rx * view[i, 0] + ry * view[i, 1] + rz * view[i, 2]), _ZERO)
+    k = mat[i]
+    spec = highlight ** shininess[k]
+    for c in range(3):
+        color[i, c] += light_color[c] * (diffuse[k, c] * texel[i, c] * cos_s + specular[k, c] * spec)
 
 
 @njit(cache=True, parallel=True)
@@ -59,12 +80,4 @@ def add_light(color, lane, occluded, ns, to_light, ndotl, view, mat, diffuse, sp
         i = lane[j]
         if i < 0 or occluded[j]:
             continue
-        cos_s = ndotl[i]
-        rx = _TWO * cos_s * ns[i, 0] - to_light[i, 0]
-        ry = _TWO * cos_s * ns[i, 1] - to_light[i, 1]
-        rz = _TWO * cos_s * ns[i, 2] - to_light[i, 2]
-        highlight = max(-(rx * view[i, 0] + ry * view[i, 1] + rz * view[i, 2]), _ZERO)
-        k = mat[i]
-        spec = highlight ** shininess[k]
-        for c in range(3):
-            color[i, c] += light_color[c] * (diffuse[k, c] * texel[i, c] * cos_s + specular[k, c] * spec)
+        add_light_lane(i, color, ns, to_light, ndotl, view, mat, diffuse, specular, shininess, texel, light_color)

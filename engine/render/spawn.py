@@ -60,6 +60,55 @@ def new_children(r: int, allocate=new_array) -> Children:
     return Children(*(allocate(name, r, tail, dtype) for name, (tail, dtype) in CHILDREN_FIELDS.items()))
 
 
+@njit(cache=True)
+def spawn_lane(i, weight, point, magnitude, view, normal, facing, entering, material, reflectance, transmission,
+               ior, reflect, mirror, total_internal, refract, reflect_dir, refract_dir, reflect_weight,
+               transmit_weight, enter):
+    """The children row ``i`` of a hit lane (flags already False; see ``gather_and_spawn``).
+    Shared by the CPU kernel and the device twin in ``engine.gpu.frame``."""
+    one = np.float32(1.0)
+    two = np.float32(2.0)
+    zero = np.float32(0.0)
+    d, ns, ng = view[i], normal[i], facing[i]
+    m = material[i]
+    # Mirror direction about the shading normal; about the geometric one when that
+    # would send the ray into the surface.
+    cos_i = -dot3(d, ns)
+    for a in range(3):
+        reflect_dir[i, a] = d[a] + two * cos_i * ns[a]
+    if dot3(reflect_dir[i], ng) <= zero:
+        cos_g = -dot3(d, ng)
+        for a in range(3):
+            reflect_dir[i, a] = d[a] + two * cos_g * ng[a]
+    strongest = zero
+    for c in range(3):
+        reflect_weight[i, c] = weight[i, c] * reflectance[m, c]
+        strongest = max(strongest, reflect_weight[i, c])
+    mirror[i] = reflect and strongest > MIN_WEIGHT
+
+    trans = transmission[m]
+    heaviest = max(weight[i, 0], weight[i, 1], weight[i, 2])
+    if not (trans > zero and heaviest * trans > MIN_WEIGHT):
+        return
+    for c in range(3):
+        transmit_weight[i, c] = weight[i, c] * trans
+    eta = one / ior[m] if entering[i] else ior[m]
+    root = one - eta * eta * (one - cos_i * cos_i)
+    if root < zero:
+        total_internal[i] = True
+        return
+    refract[i] = True
+    bend = eta * cos_i - np.float32(math.sqrt(max(root, zero)))
+    for a in range(3):
+        refract_dir[i, a] = eta * d[a] + bend * ns[a]
+    if dot3(refract_dir[i], ng) >= zero:  # grazing smooth-normal case: straight through
+        for a in range(3):
+            refract_dir[i, a] = d[a]
+    step = OFFSET_SCALE * max(magnitude[i], MIN_MAGNITUDE)
+    for a in range(3):
+        enter[i, a] = point[i, a] + step * -ng[a]
+
+
 @njit(cache=True, parallel=True)
 def gather_and_spawn(offsets, pixel, weight, hit, point, magnitude, view, normal, facing, entering, material,
                      color, reflectance, transmission, ior, image, spawn, reflect,
@@ -73,9 +122,6 @@ def gather_and_spawn(offsets, pixel, weight, hit, point, magnitude, view, normal
     color, see ``engine.render.surface.Surface``); materials reflectance f32[M,3], transmission,
     ior f32[M].
     """
-    one = np.float32(1.0)
-    two = np.float32(2.0)
-    zero = np.float32(0.0)
     for k in prange(offsets.shape[0] - 1):
         for i in range(offsets[k], offsets[k + 1]):
             mirror[i] = False
@@ -85,43 +131,7 @@ def gather_and_spawn(offsets, pixel, weight, hit, point, magnitude, view, normal
                 continue
             for c in range(3):
                 image[pixel[i], c] += weight[i, c] * color[i, c]
-            if not spawn:
-                continue
-            d, ns, ng = view[i], normal[i], facing[i]
-            m = material[i]
-            # Mirror direction about the shading normal; about the geometric one when that
-            # would send the ray into the surface.
-            cos_i = -dot3(d, ns)
-            for a in range(3):
-                reflect_dir[i, a] = d[a] + two * cos_i * ns[a]
-            if dot3(reflect_dir[i], ng) <= zero:
-                cos_g = -dot3(d, ng)
-                for a in range(3):
-                    reflect_dir[i, a] = d[a] + two * cos_g * ng[a]
-            strongest = zero
-            for c in range(3):
-                reflect_weight[i, c] = weight[i, c] * reflectance[m, c]
-                strongest = max(strongest, reflect_weight[i, c])
-            mirror[i] = reflect and strongest > MIN_WEIGHT
-
-            trans = transmission[m]
-            heaviest = max(weight[i, 0], weight[i, 1], weight[i, 2])
-            if not (trans > zero and heaviest * trans > MIN_WEIGHT):
-                continue
-            for c in range(3):
-                transmit_weight[i, c] = weight[i, c] * trans
-            eta = one / ior[m] if entering[i] else ior[m]
-            root = one - eta * eta * (one - cos_i * cos_i)
-            if root < zero:
-                total_internal[i] = True
-                continue
-            refract[i] = True
-            bend = eta * cos_i - np.float32(math.sqrt(max(root, zero)))
-            for a in range(3):
-                refract_dir[i, a] = eta * d[a] + bend * ns[a]
-            if dot3(refract_dir[i], ng) >= zero:  # grazing smooth-normal case: straight through
-                for a in range(3):
-                    refract_dir[i, a] = d[a]
-            step = OFFSET_SCALE * max(magnitude[i], MIN_MAGNITUDE)
-            for a in range(3):
-                enter[i, a] = point[i, a] + step * -ng[a]
+            if spawn:
+                spawn_lane(i, weight, point, magnitude, view, normal, facing, entering, material, reflectance,
+                           transmission, ior, reflect, mirror, total_internal, refract, reflect_dir, refract_dir,
+                           reflect_weight, transmit_weight, enter)

@@ -79,8 +79,9 @@ def unit_wrap(s):
 def texel_at(texels, start, width, height, s, t):
     """Index into ``texels`` of the nearest texel, wrapping, of the texture at ``start``
     (width x height) at (s, t)."""
-    x = math.floor(unit_wrap(s) * np.float32(width))
-    y = math.floor((np.float32(1.0) - unit_wrap(t)) * np.float32(height))
+    # int(): math.floor gives an integer on the CPU target but a float on CUDA.
+    x = int(math.floor(unit_wrap(s) * np.float32(width)))
+    y = int(math.floor((np.float32(1.0) - unit_wrap(t)) * np.float32(height)))
     # x lies in [0, width] and y in [0, height] (the product may round up to the edge): the
     # wrap of the edge is the integer modulo, without its division.
     if x >= width:
@@ -88,6 +89,66 @@ def texel_at(texels, start, width, height, s, t):
     if y >= height:
         y -= height
     return start + y * width + x
+
+
+@njit(cache=True)
+def fill_surface_lane(i, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
+                      has_normals, has_uvs, ambient, texture_start, texture_width, texture_height, texels,
+                      ambient_light, point, magnitude, view, normal, facing, entering, material, texel, color,
+                      leave):
+    """Row ``i`` of a Surface (point .. leave) for a ray along dirs[i] that hit triangle ``p``
+    at barycentrics u[i], v[i]. The per-lane shading of both targets: ``shade_surface`` calls it
+    on the CPU and ``engine.gpu.frame`` compiles its device twin (``engine.gpu.twin``)."""
+    one = np.float32(1.0)
+    length = np.float32(math.sqrt(dot3(dirs[i], dirs[i])))
+    for a in range(3):
+        view[i, a] = dirs[i, a] / length
+    # The hit point from the exact corners in double, rounded once.
+    u64, v64 = np.float64(u[i]), np.float64(v[i])
+    w64 = 1.0 - u64 - v64
+    largest = np.float32(0.0)
+    for a in range(3):
+        x = np.float32(w64 * np.float64(v0[p, a]) + u64 * np.float64(v1[p, a]) + v64 * np.float64(v2[p, a]))
+        point[i, a] = x
+        largest = max(largest, abs(x))
+    magnitude[i] = max(largest, corner_magnitude[p])
+    front = dot3(ng[p], view[i]) < 0
+    entering[i] = front
+    for a in range(3):
+        facing[i, a] = ng[p, a] if front else -ng[p, a]
+    w = one - u[i] - v[i]
+    if has_normals:
+        nx = w * normals[p, 0, 0] + u[i] * normals[p, 1, 0] + v[i] * normals[p, 2, 0]
+        ny = w * normals[p, 0, 1] + u[i] * normals[p, 1, 1] + v[i] * normals[p, 2, 1]
+        nz = w * normals[p, 0, 2] + u[i] * normals[p, 1, 2] + v[i] * normals[p, 2, 2]
+        size = np.float32(math.sqrt(nx * nx + ny * ny + nz * nz))
+        if size > 0:
+            nx, ny, nz = nx / size, ny / size, nz / size
+        else:  # degenerate interpolation: the geometric normal (then turned to the ray)
+            nx, ny, nz = ng[p, 0], ng[p, 1], ng[p, 2]
+        if nx * facing[i, 0] + ny * facing[i, 1] + nz * facing[i, 2] < 0:
+            nx, ny, nz = -nx, -ny, -nz
+        normal[i, 0], normal[i, 1], normal[i, 2] = nx, ny, nz
+    else:
+        for a in range(3):
+            normal[i, a] = facing[i, a]
+    m = tri_material[p]
+    material[i] = m
+    start = texture_start[m]
+    if has_uvs and start >= 0:
+        s = w * uvs[p, 0, 0] + u[i] * uvs[p, 1, 0] + v[i] * uvs[p, 2, 0]
+        t = w * uvs[p, 0, 1] + u[i] * uvs[p, 1, 1] + v[i] * uvs[p, 2, 1]
+        j = texel_at(texels, start, texture_width[m], texture_height[m], s, t)
+        for c in range(3):
+            texel[i, c] = texels[j, c]
+    else:
+        for c in range(3):
+            texel[i, c] = one
+    for c in range(3):
+        color[i, c] = ambient_light[c] * ambient[m, c] * texel[i, c]
+    step = OFFSET_SCALE * max(magnitude[i], MIN_MAGNITUDE)
+    for a in range(3):
+        leave[i, a] = point[i, a] + step * facing[i, a]
 
 
 @njit(cache=True, parallel=True)
@@ -107,7 +168,6 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
     """
     has_normals = normals.shape[0] > 0
     has_uvs = uvs.shape[0] > 0
-    one = np.float32(1.0)
     for k in prange(offsets.shape[0] - 1):
         for i in range(offsets[k], offsets[k + 1]):
             hit[i] = False
@@ -119,52 +179,7 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
                     image[pixel[i], c] += weight[i, c] * background[c]
                 continue
             hit[i] = True
-            length = np.float32(math.sqrt(dot3(dirs[i], dirs[i])))
-            for a in range(3):
-                view[i, a] = dirs[i, a] / length
-            # The hit point from the exact corners in double, rounded once.
-            u64, v64 = np.float64(u[i]), np.float64(v[i])
-            w64 = 1.0 - u64 - v64
-            largest = np.float32(0.0)
-            for a in range(3):
-                x = np.float32(w64 * np.float64(v0[p, a]) + u64 * v1[p, a] + v64 * v2[p, a])
-                point[i, a] = x
-                largest = max(largest, abs(x))
-            magnitude[i] = max(largest, corner_magnitude[p])
-            front = dot3(ng[p], view[i]) < 0
-            entering[i] = front
-            for a in range(3):
-                facing[i, a] = ng[p, a] if front else -ng[p, a]
-            w = one - u[i] - v[i]
-            if has_normals:
-                nx = w * normals[p, 0, 0] + u[i] * normals[p, 1, 0] + v[i] * normals[p, 2, 0]
-                ny = w * normals[p, 0, 1] + u[i] * normals[p, 1, 1] + v[i] * normals[p, 2, 1]
-                nz = w * normals[p, 0, 2] + u[i] * normals[p, 1, 2] + v[i] * normals[p, 2, 2]
-                size = np.float32(math.sqrt(nx * nx + ny * ny + nz * nz))
-                if size > 0:
-                    nx, ny, nz = nx / size, ny / size, nz / size
-                else:  # degenerate interpolation: the geometric normal (then turned to the ray)
-                    nx, ny, nz = ng[p, 0], ng[p, 1], ng[p, 2]
-                if nx * facing[i, 0] + ny * facing[i, 1] + nz * facing[i, 2] < 0:
-                    nx, ny, nz = -nx, -ny, -nz
-                normal[i, 0], normal[i, 1], normal[i, 2] = nx, ny, nz
-            else:
-                for a in range(3):
-                    normal[i, a] = facing[i, a]
-            m = tri_material[p]
-            material[i] = m
-            start = texture_start[m]
-            if has_uvs and start >= 0:
-                s = w * uvs[p, 0, 0] + u[i] * uvs[p, 1, 0] + v[i] * uvs[p, 2, 0]
-                t = w * uvs[p, 0, 1] + u[i] * uvs[p, 1, 1] + v[i] * uvs[p, 2, 1]
-                j = texel_at(texels, start, texture_width[m], texture_height[m], s, t)
-                for c in range(3):
-                    texel[i, c] = texels[j, c]
-            else:
-                for c in range(3):
-                    texel[i, c] = one
-            for c in range(3):
-                color[i, c] = ambient_light[c] * ambient[m, c] * texel[i, c]
-            step = OFFSET_SCALE * max(magnitude[i], MIN_MAGNITUDE)
-            for a in range(3):
-                leave[i, a] = point[i, a] + step * facing[i, a]
+            fill_surface_lane(i, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
+                              has_normals, has_uvs, ambient, texture_start, texture_width, texture_height, texels,
+                              ambient_light, point, magnitude, view, normal, facing, entering, material, texel,
+                              color, leave)

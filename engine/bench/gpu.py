@@ -1,0 +1,294 @@
+"""The GPU benchmark (``kind = "gpu"`` matrices): rays and whole frames on the CUDA device.
+
+For each scene of the matrix, on the lent GPU, in one process:
+
+1. **Ray sets** (``gpu_rays``): the scene's camera rays and rays spawned at their hits (shadow
+   rays to the first light and to every light, mirror reflections, cosine-distributed bounces),
+   each traced by every device traversal of the matrix -- median of ``repeat_rays`` warm calls,
+   kernels compiled apart -- and, when Mitsuba 3 is importable, by its ``cuda_ad_rgb`` variant
+   on the very same rays (``engine.bench.mitsuba_yardstick``). Every answer is checked against
+   Embree with the audit's tie-aware rules.
+2. **Frames**: the scene's recursion preset rendered by ``GpuWhittedRenderer`` with each
+   traversal: compile time apart, median of ``repeat_frames`` frames, FPS.
+3. **The image check**: the GPU frame against the CPU renderer's, pixel by pixel; every pixel
+   off by more than 1/255 is listed with its reason: a tie (an audit of the GPU frame found a
+   ray of that pixel whose answer ties Embree's at a shared edge) or unexplained.
+4. **The audit**: every ray of a GPU frame against Embree, per traversal.
+
+Results go to ``OUT/gpu.json`` (everything) and ``OUT/gpu.md`` (the README's tables), both
+through the atomic writer.
+"""
+from __future__ import annotations
+
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+from engine.bench.dynamic import cell_config
+from engine.bench.gpu_rays import RAY_SETS, ray_sets
+from engine.core import atomic
+from engine.core.errors import ConfigError
+
+TOP_KEYS = {"kind", "name", "description", "device", "resolution", "repeat_rays", "repeat_frames", "scene",
+            "variant", "audit", "image_check"}
+SCENE_KEYS = {"name", "path", "params", "recursion", "rays", "resolution", "ray_resolutions"}
+VARIANT_KEYS = {"label", "traversal"}
+
+
+def _fail(source: str, where: str, message: str):
+    raise ConfigError(f"{source}: {where}: {message}")
+
+
+def check_matrix(data: dict, source: str) -> None:
+    """Keys and names of a gpu matrix; mistakes name the file and key."""
+    unknown = set(data) - TOP_KEYS
+    if unknown:
+        _fail(source, "top level", f"unknown key(s) {sorted(unknown)}; allowed: {', '.join(sorted(TOP_KEYS))}")
+    if data.get("device", "cuda") != "cuda":
+        _fail(source, "device", f"a gpu matrix runs on device 'cuda', got {data.get('device')!r}")
+    for i, scene in enumerate(data.get("scene", [])):
+        if set(scene) - SCENE_KEYS:
+            _fail(source, f"scene {i + 1}", f"unknown key(s) {sorted(set(scene) - SCENE_KEYS)}; allowed: "
+                  f"{', '.join(sorted(SCENE_KEYS))}")
+        for name in scene.get("rays", []):
+            if name not in RAY_SETS:
+                _fail(source, f"scene {i + 1} rays", f"unknown ray set {name!r}; allowed: {', '.join(RAY_SETS)}")
+    if not data.get("scene") or not data.get("variant"):
+        _fail(source, "top level", "needs at least one [[scene]] and one [[variant]]")
+    for i, variant in enumerate(data["variant"]):
+        if set(variant) - VARIANT_KEYS or "traversal" not in variant:
+            _fail(source, f"variant {i + 1}", f"needs label and traversal (bvh or rayspace), got {sorted(variant)}")
+
+
+def _median_seconds(launch, repeat: int, cuda) -> float:
+    """Median over ``repeat`` calls of ``launch()`` timed by CUDA events (one warm call first)."""
+    launch()
+    cuda.synchronize()
+    times = []
+    for _ in range(repeat):
+        begin, end = cuda.event(), cuda.event()
+        begin.record()
+        launch()
+        end.record()
+        end.synchronize()
+        times.append(begin.elapsed_time(end) / 1e3)
+    return statistics.median(times)
+
+
+def time_ray_set(traversal, query: str, rays, repeat: int, cuda) -> tuple[float, object]:
+    """(median seconds, host answer) of a device traversal on one host RayBatch: Hits for
+    "closest", bool[R] for "occluded". Rays go to the device once, outside the timing."""
+    from engine.core.types import Hits
+    from engine.gpu.scene_upload import upload
+
+    n = rays.org.shape[0]
+    org, dirs, tmin, tmax, pixel = (upload(a) for a in (rays.org, rays.dir, rays.tmin, rays.tmax, rays.pixel))
+    if query == "closest":
+        out = (cuda.device_array(n, np.float32), cuda.device_array(n, np.int32), cuda.device_array(n, np.float32),
+               cuda.device_array(n, np.float32))
+        seconds = _median_seconds(lambda: traversal.closest(org, dirs, tmin, tmax, pixel, n, *rays.screen, *out),
+                                  repeat, cuda)
+        return seconds, Hits(*(a.copy_to_host() for a in out))
+    flags = cuda.device_array(n, np.uint8)
+    seconds = _median_seconds(lambda: traversal.occluded(org, dirs, tmin, tmax, pixel, n, *rays.screen, flags),
+                              repeat, cuda)
+    return seconds, flags.copy_to_host().astype(bool)
+
+
+def _checked(rays, query, answer, oracle, tris, closest_ours=None) -> dict:
+    """{"checked", "ties", "mismatches"} of an answer against Embree's (tie-aware); an occlusion
+    answer also needs our closest hits of the same rays (``closest_ours``) to classify ties."""
+    from validation.compare import compare_hits, compare_occlusion
+
+    if query == "closest":
+        result = compare_hits(rays.batch, answer, oracle.intersect(rays.batch), tris)
+    else:
+        result = compare_occlusion(rays.batch, answer, oracle.occluded(rays.batch), tris, closest_ours,
+                                   oracle.intersect(rays.batch))
+    return {"checked": int(rays.org.shape[0]), "ties": int(result.tie.sum()), "mismatches": int(result.mismatch.sum())}
+
+
+def _mitsuba(scene):
+    """(yardstick module, MitsubaScene or None, why not) for Mitsuba 3's cuda_ad_rgb variant."""
+    try:
+        from engine.bench import mitsuba_yardstick as yardstick
+    except ImportError as error:
+        return None, None, f"no yardstick module ({error})"
+    problem = yardstick.mitsuba_available("cuda_ad_rgb")
+    if problem:
+        return yardstick, None, problem
+    t = scene.triangles
+    return yardstick, yardstick.MitsubaScene(t.v0, t.v1, t.v2, "cuda_ad_rgb"), None
+
+
+def _scene_rays(scene_table, scene, bvh, variants, matrix, cuda, tris_device, bvh_device) -> list:
+    """Rows of the ray-set table of one scene."""
+    from engine.gpu.traversals import make_device_traversal
+    from validation.audit import make_oracle
+
+    rows = []
+    oracle = make_oracle("embree", scene.triangles)
+    sides = scene_table.get("ray_resolutions", [matrix.get("resolution", 1024)])
+    wanted = scene_table.get("rays", ["primary"])
+    yardstick, mitsuba, mitsuba_problem = _mitsuba(scene)
+    for side in sides:
+        for name, (query, rays) in ray_sets(scene, bvh, side, side, [w for w in wanted if
+                                                                      side == sides[0] or w == "primary"]).items():
+            row = {"scene": scene.name, "rays": name, "resolution": side, "count": int(rays.org.shape[0]),
+                   "query": query}
+            for variant in variants:
+                traversal = make_device_traversal(variant["traversal"], bvh_device, tris_device, scene.triangles)
+                seconds, answer = time_ray_set(traversal, query, rays, matrix.get("repeat_rays", 10), cuda)
+                closest = time_ray_set(traversal, "closest", rays, 1, cuda)[1] if query == "occluded" else None
+                row[variant["label"]] = {"seconds": seconds, "grays_per_s": rays.org.shape[0] / seconds / 1e9,
+                                         "embree": _checked(rays, query, answer, oracle, scene.triangles,
+                                                            closest)}
+            if mitsuba is not None:
+                timing = yardstick.time_queries(mitsuba, rays.org, rays.dir, rays.tmin, rays.tmax,
+                                                "closest" if query == "closest" else "occluded",
+                                                repeats=matrix.get("repeat_rays", 10))
+                row["mitsuba"] = {"seconds": timing["median_seconds"], "grays_per_s": timing["grays_per_s"]}
+            else:
+                row["mitsuba"] = {"skipped": mitsuba_problem}
+            rows.append(row)
+            print(f"  rays {name} {side}: " + ", ".join(
+                f"{k} {v['grays_per_s']:.2f} Grays/s" for k, v in row.items() if isinstance(v, dict) and
+                "grays_per_s" in v), flush=True)
+    return rows
+
+
+def _frames(scene_table, variants, matrix, source) -> tuple[list, list, list]:
+    """(frame rows, image-check rows, audit rows) of one scene's recursion preset."""
+    from dataclasses import replace
+
+    from engine.gpu.frame import GpuWhittedRenderer
+    from engine.render.whitted import WhittedRenderer
+    from scenes.catalog import scene_from_config
+    from validation.audit import AuditObserver, make_oracle
+
+    frames, images, audits = [], [], []
+    repeat = matrix.get("repeat_frames", 20)
+    cpu_image = None
+    for variant in variants:
+        config = cell_config({"resolution": scene_table.get("resolution", matrix.get("resolution", 1024))},
+                             scene_table, {"label": variant["label"]}, source)
+        config = replace(config, render=replace(config.render, device="cuda"),
+                         traversal=replace(config.traversal, **{k: variant["traversal"] for k in
+                                                                ("primary", "shadow", "reflection", "refraction")}))
+        scene = scene_from_config(config.scene, config.override)
+        renderer = GpuWhittedRenderer(scene, config)
+        compile_seconds = renderer.warm_up()
+        results = [renderer.render() for _ in range(repeat)]
+        totals = [r.seconds["total"] for r in results]
+        median = statistics.median(totals)
+        last = results[-1]
+        frames.append({"scene": scene.name, "recursion": scene_table.get("recursion"), "variant": variant["label"],
+                       "resolution": [config.render.width, config.render.height], "frames": repeat,
+                       "median_seconds": median, "fps": 1 / median, "compile_seconds": compile_seconds,
+                       "trace_seconds": last.seconds["trace"], "rays": last.rays,
+                       "upload_seconds": renderer.prepare_seconds})
+        print(f"  frame {scene.name} {variant['label']}: {median * 1e3:.2f} ms = {1 / median:.1f} FPS "
+              f"(median of {repeat}; compile {compile_seconds:.1f} s apart)", flush=True)
+        if matrix.get("audit", True) or matrix.get("image_check", True):
+            oracle = make_oracle("embree", scene.triangles)
+            observer = AuditObserver(scene, renderer.bvh, [oracle])
+            renderer.observer = observer
+            audited = renderer.render()
+            renderer.observer = None
+            report = observer.report()
+            audits.append({"scene": scene.name, "variant": variant["label"], "checked": report["rays_checked"],
+                           "by_kind": report["by_kind"], "mismatches": report["mismatch_count"],
+                           "examples": report["mismatches"][:5]})
+            print(f"  audit {scene.name} {variant['label']}: {report['rays_checked']:,} rays, "
+                  f"{report['mismatch_count']} mismatches", flush=True)
+            if matrix.get("image_check", True):
+                if cpu_image is None:
+                    cpu_config = replace(config, render=replace(config.render, device="cpu"),
+                                         traversal=replace(config.traversal, **{k: "single" for k in (
+                                             "primary", "shadow", "reflection", "refraction")}),
+                                         frustum=replace(config.frustum, **{k: "none" for k in (
+                                             "primary", "shadow", "reflection", "refraction")}))
+                    cpu_image = WhittedRenderer(scene, cpu_config).render().image
+                images.append(image_check(scene.name, variant["label"], cpu_image, audited.image,
+                                          observer.tie_pixels, config.render.width))
+    return frames, images, audits
+
+
+def image_check(scene: str, variant: str, cpu: np.ndarray, gpu: np.ndarray, tie_pixels: set, width: int) -> dict:
+    """The pixels where the GPU image differs from the CPU one by more than 1/255, each with its
+    reason ("tie": a ray of that pixel ties Embree's answer; else "unexplained")."""
+    difference = np.abs(cpu - gpu).max(axis=2)
+    ys, xs = np.nonzero(difference > 1 / 255)
+    listed = [{"x": int(x), "y": int(y), "difference": float(difference[y, x]),
+               "reason": "tie" if int(y) * width + int(x) in tie_pixels else "unexplained"} for y, x in zip(ys, xs)]
+    unexplained = sum(1 for p in listed if p["reason"] != "tie")
+    return {"scene": scene, "variant": variant, "pixels": int(difference.size), "over_1_255": len(listed),
+            "share": len(listed) / difference.size, "unexplained": unexplained,
+            "max_difference": float(difference.max()), "listed": listed[:200]}
+
+
+def table(result: dict) -> str:
+    """The README's GPU tables (markdown) of a gpu.json result."""
+    lines = [f"GPU: {result['device']}; {result['date']}", "",
+             "| scene | rays | count | " + " | ".join(result["labels"]) + " | Mitsuba 3 cuda_ad_rgb | ours / Mitsuba |",
+             "|---|---|---:|" + "---:|" * (len(result["labels"]) + 2)]
+    for row in result["rays"]:
+        cells = []
+        for label in result["labels"]:
+            v = row.get(label, {})
+            cells.append(f"{v['grays_per_s']:.2f} Grays/s ({v['seconds'] * 1e3:.2f} ms; "
+                         f"{v['embree']['mismatches']} mismatches)" if "grays_per_s" in v else "-")
+        mitsuba = row.get("mitsuba", {})
+        best = max((row[l]["grays_per_s"] for l in result["labels"] if "grays_per_s" in row.get(l, {})), default=0)
+        ratio = f"{best / mitsuba['grays_per_s']:.2f}x" if "grays_per_s" in mitsuba else "-"
+        m = f"{mitsuba['grays_per_s']:.2f} Grays/s ({mitsuba['seconds'] * 1e3:.2f} ms)" if "grays_per_s" in mitsuba \
+            else f"skipped: {mitsuba.get('skipped', '?')}"
+        lines.append(f"| {row['scene']} | {row['rays']} {row['resolution']}² | {row['count']:,} | "
+                     + " | ".join(cells) + f" | {m} | {ratio} |")
+    lines += ["", "| scene | recursion | traversal | size | frame (median) | FPS | compile (apart) |",
+              "|---|---|---|---|---:|---:|---:|"]
+    for f in result["frames"]:
+        lines.append(f"| {f['scene']} | {f['recursion']} | {f['variant']} | {f['resolution'][0]}x{f['resolution'][1]} "
+                     f"| {f['median_seconds'] * 1e3:.2f} ms | {f['fps']:.1f} | {f['compile_seconds']:.1f} s |")
+    lines += ["", "| scene | traversal | rays audited | mismatches | pixels > 1/255 vs CPU | unexplained |",
+              "|---|---|---:|---:|---:|---:|"]
+    images = {(i["scene"], i["variant"]): i for i in result["images"]}
+    for a in result["audits"]:
+        i = images.get((a["scene"], a["variant"]), {})
+        lines.append(f"| {a['scene']} | {a['variant']} | {a['checked']:,} | {a['mismatches']} | "
+                     f"{i.get('over_1_255', '-')} ({100 * i.get('share', 0):.4f}%) | {i.get('unexplained', '-')} |")
+    return "\n".join(lines) + "\n"
+
+
+def run_gpu(data: dict, source: str, out: Path) -> dict:
+    """Run a gpu matrix into ``out`` (gpu.json, gpu.md); returns the result."""
+    from engine.core.bvh import build_bvh
+    from engine.core.offset import triangle_magnitudes
+    from engine.gpu.device import device_name, require_cuda
+    from engine.gpu.scene_upload import DeviceBVH, DeviceTriangles
+    from scenes.catalog import load_named
+
+    check_matrix(data, source)
+    cuda = require_cuda()
+    result = {"matrix": data.get("name", Path(source).stem), "device": device_name(),
+              "date": time.strftime("%Y-%m-%d"), "labels": [v["label"] for v in data["variant"]],
+              "rays": [], "frames": [], "images": [], "audits": []}
+    out.mkdir(parents=True, exist_ok=True)
+    for scene_table in data["scene"]:
+        print(f"{scene_table['name']}:", flush=True)
+        if scene_table.get("rays"):
+            scene = load_named(scene_table["name"], dict(scene_table.get("params", {})))
+            bvh = build_bvh(scene.triangles)
+            tris_device = DeviceTriangles.from_host(scene.triangles, triangle_magnitudes(scene.triangles))
+            result["rays"] += _scene_rays(scene_table, scene, bvh, data["variant"], data, cuda, tris_device,
+                                          DeviceBVH.from_host(bvh))
+        if scene_table.get("recursion"):
+            frames, images, audits = _frames(scene_table, data["variant"], data, source)
+            result["frames"] += frames
+            result["images"] += images
+            result["audits"] += audits
+        atomic.write_json(out / "gpu.json", result)  # after every scene: a cut-off run keeps its part
+    atomic.write_text(out / "gpu.md", table(result))
+    return result

@@ -1,0 +1,32 @@
+"""The device traversal instances of a config, one per name (``engine.render.device_names``
+says which name selects which)."""
+from __future__ import annotations
+
+from engine.core.types import RAY_KINDS
+from engine.render.device_names import device_traversal_name
+
+
+def device_traversals(config, device_bvh, device_tris, host_tris) -> dict:
+    """{ray kind: device traversal instance} for ``config``; kinds that name the same traversal
+    share one instance."""
+    made = {}
+    chosen = {}
+    for kind in RAY_KINDS:
+        name = device_traversal_name(config.traversal.get(kind), kind)
+        if name not in made:
+            options = dict(dict(config.options).get("rayspace", ())) if name == "rayspace" else None
+            made[name] = make_device_traversal(name, device_bvh, device_tris, host_tris, options)
+        chosen[kind] = made[name]
+    return chosen
+
+
+def make_device_traversal(name: str, device_bvh, device_tris, host_tris, options: dict | None = None):
+    """One device traversal by name ("bvh", "rayspace", or a CPU BVH traversal name)."""
+    name = device_traversal_name(name)
+    if name == "bvh":
+        from engine.gpu.bvh_trace import DeviceBVHTraversal
+
+        return DeviceBVHTraversal(device_bvh, device_tris)
+    from engine.gpu.rayspace import DeviceRaySpace
+
+    return DeviceRaySpace(device_tris, host_tris, **(options or {}))

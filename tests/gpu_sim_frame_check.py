@@ -1,0 +1,46 @@
+"""Run under numba's CUDA simulator (``NUMBA_ENABLE_CUDASIM=1``, in its own process): the GPU
+frame of a tiny scene against the CPU renderer, and every ray it casts against Embree.
+
+Prints one JSON object; ``tests/test_gpu_frame.py`` runs it and checks the numbers. Usage:
+``python -m tests.gpu_sim_frame_check WIDTH HEIGHT TRAVERSAL [MAX_DEPTH]``.
+"""
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+
+
+def main(width: int, height: int, traversal: str, depth: int) -> dict:
+    from engine.gpu.frame import GpuWhittedRenderer
+    from engine.render.config import Config, RenderConfig, PerKind
+    from engine.render.whitted import WhittedRenderer
+    from scenes.catalog import load_named
+    from validation.audit import AuditObserver, make_oracle
+
+    scene = load_named("whitted", {"checks": 2, "subdivisions": 0})
+    render = RenderConfig(width=width, height=height, max_depth=depth, packet=4)
+    cpu_config = Config(render=render, traversal=PerKind("single", "single", "single", "single"),
+                        frustum=PerKind("none", "none", "none", "none"))
+    cpu = WhittedRenderer(scene, cpu_config).render()
+    gpu_config = Config(render=RenderConfig(width=width, height=height, max_depth=depth, packet=4, device="cuda"),
+                        traversal=PerKind(*[traversal] * 4), frustum=PerKind("none", "none", "none", "none"))
+    gpu_renderer = GpuWhittedRenderer(scene, gpu_config)
+    observer = AuditObserver(scene, gpu_renderer.bvh, [make_oracle("embree", scene.triangles)])
+    gpu_renderer.observer = observer
+    gpu = gpu_renderer.render()
+    report = observer.report()
+    difference = np.abs(cpu.image - gpu.image)
+    return {"triangles": scene.n_triangles, "rays_cpu": cpu.rays, "rays_gpu": gpu.rays,
+            "max_abs_difference": float(difference.max()),
+            "pixels_over_1_255": int((difference.max(axis=2) > 1 / 255).sum()),
+            "image_nonzero": int((gpu.image.max(axis=2) > 0).sum()),
+            "audit_checked": report["rays_checked"], "audit_mismatches": report["mismatch_count"],
+            "audit_by_kind": report["by_kind"], "traversal": gpu.extra["device"]["traversal"]}
+
+
+if __name__ == "__main__":
+    args = sys.argv[1:]
+    result = main(int(args[0]), int(args[1]), args[2], int(args[3]) if len(args) > 3 else 3)
+    print(json.dumps(result))
