@@ -184,7 +184,17 @@ def _frames(scene_table, variants, matrix, source) -> tuple[list, list, list]:
         totals = [r.seconds["total"] for r in results]
         median = statistics.median(totals)
         last = results[-1]
-        frames.append({"scene": scene.name, "recursion": scene_table.get("recursion"), "variant": variant["label"],
+        # One more frame with every launch timed alone (host cost, and launch to finish).
+        renderer.profile = {}
+        enqueue_start = time.perf_counter()
+        renderer.render()
+        profiled_total = time.perf_counter() - enqueue_start
+        profile = {name: {"host_ms": row[0] * 1e3, "to_finish_ms": row[1] * 1e3, "launches": row[2]}
+                   for name, row in renderer.profile.items()}
+        renderer.profile = None
+        print("  profile (host ms / launch-to-finish ms / launches): " + "; ".join(
+            f"{k} {v['host_ms']:.2f}/{v['to_finish_ms']:.2f}/{v['launches']}" for k, v in profile.items()), flush=True)
+        frames.append({"profile": profile, "profiled_frame_seconds": profiled_total, "scene": scene.name, "recursion": scene_table.get("recursion"), "variant": variant["label"],
                        "resolution": [config.render.width, config.render.height], "frames": repeat,
                        "median_seconds": median, "fps": 1 / median, "compile_seconds": compile_seconds,
                        "trace_seconds": last.seconds["trace"], "rays": last.rays,

@@ -15,7 +15,7 @@ import numpy as np
 
 from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear, slab_test
 from engine.core.types import MAX_BVH_DEPTH
-from engine.gpu.device import BLOCK, blocks, require_cuda
+from engine.gpu.device import BLOCK, require_cuda
 from engine.gpu.twin import device_twin
 from engine.packet.compact import inverse_component
 
@@ -27,6 +27,8 @@ _closer = device_twin(closer)
 _slab = device_twin(slab_test)
 _inverse = device_twin(inverse_component)
 
+#: Most blocks of a grid-stride launch (enough to fill any current GPU).
+MAX_BLOCKS = 8192
 #: Stack entries per thread: the tree's depth bounds the far children waiting at once.
 STACK = MAX_BVH_DEPTH + 2
 
@@ -85,12 +87,13 @@ def _walk(org, dirs, tmin, tmax, r, any_hit, bmin, bmax, first, count, prim, v0,
 
 
 @cuda.jit
-def closest_kernel(org, dirs, tmin, tmax, n, bmin, bmax, first, count, prim, v0, v1, v2,
+def closest_kernel(org, dirs, tmin, tmax, count, bmin, bmax, first, count_in_leaf, prim, v0, v1, v2,
                    t_out, prim_out, u_out, v_out):
-    """Closest hit of rays [0, n): t, prim (-1 on a miss), barycentrics u, v."""
-    r = cuda.grid(1)
-    if r < n:
-        t, p, u, v = _walk(org, dirs, tmin, tmax, r, False, bmin, bmax, first, count, prim, v0, v1, v2)
+    """Closest hit of rays [0, count[0]): t, prim (-1 on a miss), barycentrics u, v. count is a
+    device i32[1] (a queue's length, written by an earlier kernel); grid-stride over it."""
+    n = min(count[0], org.shape[0])
+    for r in range(cuda.grid(1), n, cuda.gridsize(1)):
+        t, p, u, v = _walk(org, dirs, tmin, tmax, r, False, bmin, bmax, first, count_in_leaf, prim, v0, v1, v2)
         t_out[r] = t
         prim_out[r] = p
         u_out[r] = u
@@ -98,16 +101,25 @@ def closest_kernel(org, dirs, tmin, tmax, n, bmin, bmax, first, count, prim, v0,
 
 
 @cuda.jit
-def occluded_kernel(org, dirs, tmin, tmax, n, bmin, bmax, first, count, prim, v0, v1, v2, occluded):
-    """occluded[r] = 1 when ray r hits anything in [tmin, tmax], else 0 (u8[C])."""
-    r = cuda.grid(1)
-    if r < n:
-        t, p, u, v = _walk(org, dirs, tmin, tmax, r, True, bmin, bmax, first, count, prim, v0, v1, v2)
+def occluded_kernel(org, dirs, tmin, tmax, count, bmin, bmax, first, count_in_leaf, prim, v0, v1, v2, occluded):
+    """occluded[r] = 1 when ray r < count[0] hits anything in [tmin, tmax], else 0 (u8[C])."""
+    n = min(count[0], org.shape[0])
+    for r in range(cuda.grid(1), n, cuda.gridsize(1)):
+        t, p, u, v = _walk(org, dirs, tmin, tmax, r, True, bmin, bmax, first, count_in_leaf, prim, v0, v1, v2)
         occluded[r] = 1 if p >= 0 else 0
 
 
+def launch_grid(bound: int) -> int:
+    """Blocks of a grid-stride launch over at most ``bound`` rays."""
+    return max(1, min(MAX_BLOCKS, -(-int(bound) // BLOCK)))
+
+
 class DeviceBVHTraversal:
-    """The device ``bvh`` traversal over an uploaded ``DeviceBVH`` and ``DeviceTriangles``."""
+    """The device ``bvh`` traversal over an uploaded ``DeviceBVH`` and ``DeviceTriangles``.
+
+    ``closest_queue`` / ``occluded_queue`` take a queue's length as a device counter (the frame
+    never waits for the GPU); ``closest`` / ``occluded`` take a host count (the API, the bench).
+    """
 
     name = "bvh"
     uses_bvh = True
@@ -115,19 +127,28 @@ class DeviceBVHTraversal:
     def __init__(self, bvh, tris):
         self.bvh, self.tris = bvh, tris
 
-    def closest(self, org, dirs, tmin, tmax, pixel, n, width, height, t_out, prim_out, u_out, v_out) -> None:
-        """Closest hits of the first n rays into t_out, prim_out (-1: miss), u_out, v_out.
+    def closest_queue(self, org, dirs, tmin, tmax, pixel, count, bound, width, height, t_out, prim_out, u_out,
+                      v_out) -> None:
+        """Closest hits of the first count[0] (device i32[1], at most ``bound``) rays.
         pixel, width, height: unused here (the ray-space hierarchy indexes rays by pixel)."""
-        if n <= 0:
-            return
         b, t = self.bvh, self.tris
-        closest_kernel[blocks(n), BLOCK](org, dirs, tmin, tmax, n, b.bmin, b.bmax, b.first, b.count, b.prim,
-                                         t.v0, t.v1, t.v2, t_out, prim_out, u_out, v_out)
+        closest_kernel[launch_grid(bound), BLOCK](org, dirs, tmin, tmax, count, b.bmin, b.bmax, b.first, b.count,
+                                                  b.prim, t.v0, t.v1, t.v2, t_out, prim_out, u_out, v_out)
+
+    def occluded_queue(self, org, dirs, tmin, tmax, pixel, count, bound, width, height, out) -> None:
+        """out[r] = 1 where ray r < count[0] is blocked within [tmin, tmax], else 0 (u8)."""
+        b, t = self.bvh, self.tris
+        occluded_kernel[launch_grid(bound), BLOCK](org, dirs, tmin, tmax, count, b.bmin, b.bmax, b.first, b.count,
+                                                   b.prim, t.v0, t.v1, t.v2, out)
+
+    def closest(self, org, dirs, tmin, tmax, pixel, n, width, height, t_out, prim_out, u_out, v_out) -> None:
+        """Closest hits of the first n rays (host int) into t_out, prim_out (-1: miss), u_out, v_out."""
+        if n > 0:
+            self.closest_queue(org, dirs, tmin, tmax, pixel, cuda.to_device(np.array([n], np.int32)), n, width,
+                               height, t_out, prim_out, u_out, v_out)
 
     def occluded(self, org, dirs, tmin, tmax, pixel, n, width, height, out) -> None:
-        """out[r] = 1 where ray r (< n) is blocked within [tmin, tmax], else 0 (u8)."""
-        if n <= 0:
-            return
-        b, t = self.bvh, self.tris
-        occluded_kernel[blocks(n), BLOCK](org, dirs, tmin, tmax, n, b.bmin, b.bmax, b.first, b.count, b.prim,
-                                          t.v0, t.v1, t.v2, out)
+        """out[r] = 1 where ray r (< n, host int) is blocked within [tmin, tmax], else 0 (u8)."""
+        if n > 0:
+            self.occluded_queue(org, dirs, tmin, tmax, pixel, cuda.to_device(np.array([n], np.int32)), n, width,
+                                height, out)

@@ -1,29 +1,33 @@
 """The Whitted frame on the GPU: a wavefront of kernels over compacted ray queues.
 
 One generation of rays (the camera rays first, then each generation of reflections and
-refractions) is one queue of n rays in device memory, and goes through:
+refractions) is one queue in device memory, and goes through four kernels:
 
-1. ``trace.closest``                 the configured device traversal (``bvh`` or ``rayspace``);
-2. ``_shade``                        misses add the background; hits fill their Surface row and,
-                                     per light, the light's direction and whether it faces it;
-3. a prefix sum of the lit flags     -> the shadow queue, in (light, lane) order;
-4. ``trace.occluded``                over the shadow queue;
-5. ``_light_and_spawn``              the unshadowed lights into the lane's colour, the colour into
-                                     the image, and the lane's children (mirror, total internal
-                                     reflection, refraction) flagged;
-6. a prefix sum of the child flags   -> the next generation's queue, in parent order.
+1. ``trace``            closest hits, by the configured device traversal (``bvh``/``rayspace``);
+2. ``_shade``           misses add the background; hits fill their Surface row, the ambient
+                        term and, per light, the light's direction; each lit (lane, light) pair
+                        appends its shadow ray to the generation's shadow queue;
+3. ``trace``            any hit over the shadow queue;
+4. ``_light_and_spawn`` the unshadowed lights into the lane's colour (lights in file order), the
+                        colour into the image, and the lane's children (mirror reflection, total
+                        internal reflection, refraction) appended to the next generation's queue.
 
-Steps 2 and 5 call the CPU renderer's own per-lane functions (``fill_surface_lane``,
+Queues are compacted as they are written: a thread appends with an atomic counter that stays on
+the device, and every kernel loops over its queue up to that counter (grid-stride), so the host
+enqueues a whole frame without waiting for the GPU once; the image is copied back at the end.
+Queue capacities are fixed per frame size; a generation that would overflow is detected from
+the counters at the end of the frame, and the frame is rendered again with room for it.
+
+Steps 2 and 4 call the CPU renderer's own per-lane functions (``fill_surface_lane``,
 ``light_direction_lane``, ``add_light_lane``, ``spawn_lane``, ``camera_direction``) compiled
-for the device (``engine.gpu.twin``): one shading definition, two targets, the same float32
-and float64 expressions in the same order, so the two images differ only where floating-point
-sums reach a pixel in another order (the GPU adds a pixel's contributions with atomics).
-Queues are compacted by stable prefix sums (``engine.gpu.scan``), so rays keep their parents'
-pixel order: warps stay coherent and the frame is deterministic up to that summation order.
-The image is copied back once per frame.
+for the device (``engine.gpu.twin``): one shading definition, two targets. Pixels receive their
+contributions through atomic adds, in whatever order the device runs them.
 
-With an ``observer`` (the audit), every traced queue and its answers are copied to the host and
-handed over as a ``RayBatch`` in one packet, exactly as the CPU loop does with its batches.
+Arrays travel to kernels packed in a few stacks (``(k, C, 3)`` and ``(k, C)``), unpacked inside:
+a numba launch costs a few microseconds per array argument.
+
+With an ``observer`` (the audit), each traced queue and its answers are copied to the host and
+handed over as ``RayBatch``es per ray kind, as the CPU loop hands over its batches.
 """
 from __future__ import annotations
 
@@ -35,16 +39,15 @@ from engine.core.bvh import build_bvh
 from engine.core.offset import triangle_magnitudes
 from engine.core.triangle import safe_inverse
 from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch
-from engine.gpu.device import BLOCK, blocks, device_name, require_cuda
-from engine.gpu.scan import Scanner
+from engine.gpu.device import BLOCK, device_name, require_cuda
 from engine.gpu.scene_upload import DeviceBVH, DeviceTriangles, upload
 from engine.gpu.traversals import device_traversals
 from engine.gpu.twin import device_twin
 from engine.render.camera import camera_direction, image_plane
 from engine.render.direct_light import add_light_lane, light_direction_lane
 from engine.render.materials import MaterialTable
-from engine.render.spawn import CHILDREN_FIELDS as _CHILDREN, spawn_lane
-from engine.render.surface import SURFACE_FIELDS as _SURFACE, dot3, fill_surface_lane, texel_at, unit_wrap
+from engine.render.spawn import spawn_lane
+from engine.render.surface import dot3, fill_surface_lane, texel_at, unit_wrap
 from engine.render.whitted import RenderResult
 
 cuda = require_cuda()
@@ -57,193 +60,197 @@ _add_light = device_twin(add_light_lane)
 _spawn = device_twin(spawn_lane, dot3=_dot3)
 _camera_direction = device_twin(camera_direction)
 
-#: Queue kinds, as stored in a queue's ``kind`` array (index into RAY_KINDS order below).
+#: Queue kinds, as stored in a queue's ``kind`` array.
 PRIMARY, REFLECTION, REFRACTION = 0, 1, 2
 KIND_NAMES = ("primary", "reflection", "refraction")
 #: Camera rays are issued in square tiles of this many pixels a side, so a warp's 32 rays are
 #: two rows of 16 neighbouring pixels.
 TILE = 16
-#: Children a lane may spawn: mirror reflection, total internal reflection, refraction.
-CHILD_SLOTS = 3
+#: Secondary queues hold this many rays per pixel before a frame is rendered again bigger.
+SECONDARY_PER_PIXEL = 2
+#: Most blocks a grid-stride kernel is launched with (enough to fill any current GPU).
+MAX_BLOCKS = 8192
+# Rows of the packed stacks.
+Q_ORG, Q_DIR, Q_WEIGHT = 0, 1, 2                      # queue vectors f32[3, C, 3]
+Q_TMIN, Q_TMAX = 0, 1                                 # queue scalars f32[2, C]
+S_POINT, S_VIEW, S_NORMAL, S_FACING, S_TEXEL, S_COLOR, S_LEAVE = range(7)   # surface vectors
+C_REFLECT_DIR, C_REFRACT_DIR, C_REFLECT_WEIGHT, C_TRANSMIT_WEIGHT, C_ENTER = range(5)  # children
+L_DIST, L_NDOTL, L_SHADOW_TMAX = 0, 1, 2              # per-light scalars f32[3, L, C]
+
+
+def grid(bound: int) -> int:
+    """Blocks of a grid-stride launch over at most ``bound`` items."""
+    return max(1, min(MAX_BLOCKS, -(-int(bound) // BLOCK)))
 
 
 @cuda.jit
-def _camera(eye, forward, right, up, half_w, half_h, width, height, org, dirs, tmin, tmax, pixel, weight, kind):
-    """The camera queue: rays tile by tile (TILE x TILE, row by row), row by row in a tile."""
-    r = cuda.grid(1)
-    if r >= width * height:
-        return
-    # Whole bands of TILE rows lie above; inside a band, tiles are TILE wide (the last narrower)
-    # and as tall as the band (the last band shorter).
-    bands = (height + TILE - 1) // TILE
-    band = min(r // (TILE * width), bands - 1)
-    in_band = r - band * TILE * width
-    band_h = min(TILE, height - band * TILE)
-    tiles_x = (width + TILE - 1) // TILE
-    tx = min(in_band // (TILE * band_h), tiles_x - 1)
-    local = in_band - tx * TILE * band_h
-    tile_w = min(TILE, width - tx * TILE)
-    y = band * TILE + local // tile_w
-    x = tx * TILE + local % tile_w
-    dx, dy, dz = _camera_direction(x, y, width, height, forward, right, up, half_w, half_h)
-    org[r, 0], org[r, 1], org[r, 2] = eye[0], eye[1], eye[2]
-    dirs[r, 0], dirs[r, 1], dirs[r, 2] = dx, dy, dz
-    tmin[r] = np.float32(0.0)
-    tmax[r] = np.float32(np.inf)
-    pixel[r] = y * width + x
-    for c in range(3):
-        weight[r, c] = np.float32(1.0)
-    kind[r] = PRIMARY
+def _camera(eye, basis, half_w, half_h, width, height, q_vec, q_scalar, q_pixel, q_kind, counts):
+    """The camera queue: rays tile by tile (TILE x TILE, row by row), row by row in a tile.
+    basis: f64[3,3] forward, right, up."""
+    if cuda.grid(1) == 0:
+        counts[0] = width * height
+    for r in range(cuda.grid(1), width * height, cuda.gridsize(1)):
+        # Whole bands of TILE rows lie above; inside a band, tiles are TILE wide (the last
+        # narrower) and as tall as the band (the last band shorter).
+        bands = (height + TILE - 1) // TILE
+        band = min(r // (TILE * width), bands - 1)
+        in_band = r - band * TILE * width
+        band_h = min(TILE, height - band * TILE)
+        tiles_x = (width + TILE - 1) // TILE
+        tx = min(in_band // (TILE * band_h), tiles_x - 1)
+        local = in_band - tx * TILE * band_h
+        tile_w = min(TILE, width - tx * TILE)
+        y = band * TILE + local // tile_w
+        x = tx * TILE + local % tile_w
+        dx, dy, dz = _camera_direction(x, y, width, height, basis[0], basis[1], basis[2], half_w, half_h)
+        for a in range(3):
+            q_vec[Q_ORG, r, a] = eye[a]
+            q_vec[Q_WEIGHT, r, a] = np.float32(1.0)
+        q_vec[Q_DIR, r, 0], q_vec[Q_DIR, r, 1], q_vec[Q_DIR, r, 2] = dx, dy, dz
+        q_scalar[Q_TMIN, r] = np.float32(0.0)
+        q_scalar[Q_TMAX, r] = np.float32(np.inf)
+        q_pixel[r] = y * width + x
+        q_kind[r] = PRIMARY
 
 
 @cuda.jit
-def _shade(n, dirs, pixel, weight, prim, u, v,
-           v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude, has_normals, has_uvs,
-           ambient, texture_start, texture_width, texture_height, texels, ambient_light, background, image,
-           hit, point, magnitude, view, normal, facing, entering, material, texel, color, leave,
-           n_lights, lights, to_light, dist, ndotl, lit, shadow_tmax, shadow_flag):
-    """Surface rows of the hits of queue [0, n), background of its misses, and per light l the
-    lit flag of lane i in shadow_flag[l * n + i] (i32, for the shadow queue's prefix sum)."""
-    i = cuda.grid(1)
-    if i >= n:
-        return
-    hit[i] = False
-    for light in range(n_lights):
-        shadow_flag[light * n + i] = 0
-    p = prim[i]
-    if p < 0:
-        for c in range(3):
-            cuda.atomic.add(image, (pixel[i], c), weight[i, c] * background[c])
-        return
-    hit[i] = True
-    _surface(i, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude, has_normals, has_uvs,
-             ambient, texture_start, texture_width, texture_height, texels, ambient_light, point, magnitude, view,
-             normal, facing, entering, material, texel, color, leave)
-    for light in range(n_lights):
-        _light_direction(i, leave, normal, facing, lights[light], to_light[light], dist[light], ndotl[light],
-                         lit[light], shadow_tmax[light])
-        shadow_flag[light * n + i] = 1 if lit[light, i] else 0
-
-
-@cuda.jit
-def _shadow_queue(n_flags, n, shadow_flag, offsets, leave, to_light, shadow_tmax, pixel,
-                  s_org, s_dir, s_tmin, s_tmax, s_pixel):
-    """Shadow ray of every lit (light, lane) pair j = light * n + lane at slot offsets[j]."""
-    j = cuda.grid(1)
-    if j >= n_flags or shadow_flag[j] == 0:
-        return
-    light, i = j // n, j % n
-    s = offsets[j]
-    for a in range(3):
-        s_org[s, a] = leave[i, a]
-        s_dir[s, a] = to_light[light, i, a]
-    s_tmin[s] = np.float32(0.0)
-    s_tmax[s] = shadow_tmax[light, i]
-    s_pixel[s] = pixel[i]
-
-
-@cuda.jit
-def _light_and_spawn(n, pixel, weight, hit, point, magnitude, view, normal, facing, entering, material, texel,
-                     color, diffuse, specular, shininess, reflectance, transmission, ior, n_lights, light_colors,
-                     to_light,
-                     ndotl, shadow_flag, shadow_offsets, occluded, image, spawn, reflect,
-                     mirror, total_internal, refract, reflect_dir, refract_dir, reflect_weight, transmit_weight,
-                     enter, child_flag):
-    """Lights in file order into each hit lane's colour, the colour into the image, and the
-    children flags child_flag[CHILD_SLOTS * i + (0 mirror, 1 total internal, 2 refraction)]."""
-    i = cuda.grid(1)
-    if i >= n:
-        return
-    mirror[i] = False
-    total_internal[i] = False
-    refract[i] = False
-    if hit[i]:
+def _shade(counts, gen, q_vec, q_pixel, hit_tuv, hit_prim, tri_vec, normals, uvs, tri_material, corner_magnitude,
+           has_normals, has_uvs, mat_vec, mat_texture, texels, ambient_light, background, image,
+           surf_vec, surf_magnitude, surf_flags, surf_material, n_lights, lights, light_dir, light_scalar, lit,
+           shadow_slot, s_vec, s_scalar, s_pixel, s_capacity):
+    """Surface rows of the hits of queue ``gen``, the background of its misses, and a shadow ray
+    per lit (lane, light) appended to the shadow queue (its slot in shadow_slot[light, lane],
+    -1 when none; the count in counts[2 gen + 1])."""
+    n = min(counts[2 * gen], q_pixel.shape[0])
+    dirs, weight = q_vec[Q_DIR], q_vec[Q_WEIGHT]
+    t_u, t_v = hit_tuv[1], hit_tuv[2]
+    hit, entering = surf_flags[0], surf_flags[1]
+    for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+        hit[i] = False
         for light in range(n_lights):
-            j = light * n + i
-            if shadow_flag[j] != 0 and occluded[shadow_offsets[j]] == 0:
-                _add_light(i, color, normal, to_light[light], ndotl[light], view, material, diffuse, specular,
-                           shininess, texel, light_colors[light])
-        for c in range(3):
-            cuda.atomic.add(image, (pixel[i], c), weight[i, c] * color[i, c])
-        if spawn:
-            _spawn(i, weight, point, magnitude, view, normal, facing, entering, material, reflectance, transmission,
-                   ior, reflect, mirror, total_internal, refract, reflect_dir, refract_dir, reflect_weight,
-                   transmit_weight, enter)
-    child_flag[CHILD_SLOTS * i] = 1 if mirror[i] else 0
-    child_flag[CHILD_SLOTS * i + 1] = 1 if total_internal[i] else 0
-    child_flag[CHILD_SLOTS * i + 2] = 1 if refract[i] else 0
+            shadow_slot[light, i] = -1
+        p = hit_prim[i]
+        if p < 0:
+            for c in range(3):
+                cuda.atomic.add(image, (q_pixel[i], c), weight[i, c] * background[c])
+            continue
+        hit[i] = True
+        _surface(i, p, dirs, t_u, t_v, tri_vec[0], tri_vec[1], tri_vec[2], tri_vec[3], normals, uvs, tri_material,
+                 corner_magnitude, has_normals, has_uvs, mat_vec[0], mat_texture[0], mat_texture[1],
+                 mat_texture[2], texels, ambient_light, surf_vec[S_POINT], surf_magnitude, surf_vec[S_VIEW],
+                 surf_vec[S_NORMAL], surf_vec[S_FACING], entering, surf_material, surf_vec[S_TEXEL],
+                 surf_vec[S_COLOR], surf_vec[S_LEAVE])
+        for light in range(n_lights):
+            _light_direction(i, surf_vec[S_LEAVE], surf_vec[S_NORMAL], surf_vec[S_FACING], lights[light],
+                             light_dir[light], light_scalar[L_DIST, light], light_scalar[L_NDOTL, light],
+                             lit[light], light_scalar[L_SHADOW_TMAX, light])
+            if lit[light, i]:
+                s = cuda.atomic.add(counts, 2 * gen + 1, 1)
+                if s < s_capacity:
+                    shadow_slot[light, i] = s
+                    for a in range(3):
+                        s_vec[0, s, a] = surf_vec[S_LEAVE, i, a]
+                        s_vec[1, s, a] = light_dir[light, i, a]
+                    s_scalar[0, s] = np.float32(0.0)
+                    s_scalar[1, s] = light_scalar[L_SHADOW_TMAX, light, i]
+                    s_pixel[s] = q_pixel[i]
 
 
 @cuda.jit
-def _next_queue(n_flags, child_flag, offsets, pixel, leave, enter, reflect_dir, refract_dir, reflect_weight,
-                transmit_weight, org, dirs, tmin, tmax, c_pixel, c_weight, c_kind, kind_count):
-    """Child j = CHILD_SLOTS * lane + slot at offsets[j] of the next queue; counts per kind."""
-    j = cuda.grid(1)
-    if j >= n_flags or child_flag[j] == 0:
-        return
-    i, slot = j // CHILD_SLOTS, j % CHILD_SLOTS
-    s = offsets[j]
-    for a in range(3):
-        if slot == 2:
-            org[s, a] = enter[i, a]
-            dirs[s, a] = refract_dir[i, a]
-            c_weight[s, a] = transmit_weight[i, a]
-        else:
-            org[s, a] = leave[i, a]
-            dirs[s, a] = reflect_dir[i, a]
-            c_weight[s, a] = reflect_weight[i, a] if slot == 0 else transmit_weight[i, a]
-    tmin[s] = np.float32(0.0)
-    tmax[s] = np.float32(np.inf)
-    c_pixel[s] = pixel[i]
-    kind = REFRACTION if slot == 2 else REFLECTION
-    c_kind[s] = kind
-    cuda.atomic.add(kind_count, kind, 1)
+def _light_and_spawn(counts, gen, q_vec, q_pixel, surf_vec, surf_magnitude, surf_flags, surf_material, mat_vec,
+                     mat_scalar, n_lights, light_colors, light_dir, light_scalar, shadow_slot, occluded, image,
+                     spawn, reflect, child_flags, child_vec, n_vec, n_scalar, n_pixel, n_kind, kind_count):
+    """Lights into each hit lane's colour, the colour into the image and, with ``spawn``, the
+    lane's children appended to the next queue (count in counts[2 gen + 2]; ``reflect``
+    False: no mirror reflections)."""
+    n = min(counts[2 * gen], q_pixel.shape[0])
+    capacity = n_pixel.shape[0]
+    weight = q_vec[Q_WEIGHT]
+    hit = surf_flags[0]
+    mirror, total_internal, refract = child_flags[0], child_flags[1], child_flags[2]
+    for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+        mirror[i] = False
+        total_internal[i] = False
+        refract[i] = False
+        if not hit[i]:
+            continue
+        for light in range(n_lights):
+            s = shadow_slot[light, i]
+            if s >= 0 and occluded[s] == 0:
+                _add_light(i, surf_vec[S_COLOR], surf_vec[S_NORMAL], light_dir[light], light_scalar[L_NDOTL, light],
+                           surf_vec[S_VIEW], surf_material, mat_vec[1], mat_vec[2], mat_scalar[0],
+                           surf_vec[S_TEXEL], light_colors[light])
+        for c in range(3):
+            cuda.atomic.add(image, (q_pixel[i], c), weight[i, c] * surf_vec[S_COLOR, i, c])
+        if not spawn:
+            continue
+        _spawn(i, weight, surf_vec[S_POINT], surf_magnitude, surf_vec[S_VIEW], surf_vec[S_NORMAL],
+               surf_vec[S_FACING], surf_flags[1], surf_material, mat_vec[3], mat_scalar[1], mat_scalar[2], reflect,
+               mirror, total_internal, refract, child_vec[C_REFLECT_DIR], child_vec[C_REFRACT_DIR],
+               child_vec[C_REFLECT_WEIGHT], child_vec[C_TRANSMIT_WEIGHT], child_vec[C_ENTER])
+        for slot in range(3):
+            if not (mirror[i] if slot == 0 else (total_internal[i] if slot == 1 else refract[i])):
+                continue
+            s = cuda.atomic.add(counts, 2 * gen + 2, 1)
+            kind = REFRACTION if slot == 2 else REFLECTION
+            cuda.atomic.add(kind_count, kind, 1)
+            if s >= capacity:
+                continue  # counted: the frame is rendered again with room for it
+            for a in range(3):
+                if slot == 2:
+                    n_vec[Q_ORG, s, a] = child_vec[C_ENTER, i, a]
+                    n_vec[Q_DIR, s, a] = child_vec[C_REFRACT_DIR, i, a]
+                    n_vec[Q_WEIGHT, s, a] = child_vec[C_TRANSMIT_WEIGHT, i, a]
+                else:
+                    n_vec[Q_ORG, s, a] = surf_vec[S_LEAVE, i, a]
+                    n_vec[Q_DIR, s, a] = child_vec[C_REFLECT_DIR, i, a]
+                    n_vec[Q_WEIGHT, s, a] = child_vec[C_REFLECT_WEIGHT if slot == 0 else C_TRANSMIT_WEIGHT, i, a]
+            n_scalar[Q_TMIN, s] = np.float32(0.0)
+            n_scalar[Q_TMAX, s] = np.float32(np.inf)
+            n_pixel[s] = q_pixel[i]
+            n_kind[s] = kind
 
 
-class _Buffers:
-    """Device arrays grown on demand and reused from frame to frame (allocation is slow)."""
-
-    def __init__(self):
-        self.arrays = {}
-
-    def take(self, name, rows, tail=(), dtype=np.float32):
-        """A device array of at least ``rows`` rows (shape (capacity,) + tail), reused."""
-        held = self.arrays.get(name)
-        if held is None or held.shape[0] < rows or held.shape[1:] != tuple(tail) or held.dtype != dtype:
-            capacity = max(int(rows), 1)
-            if held is not None:
-                capacity = max(capacity, held.shape[0] * 3 // 2)
-            held = cuda.device_array((capacity,) + tuple(tail), dtype)
-            self.arrays[name] = held
-        return held
+@cuda.jit
+def _clear(image, rows, counts, kind_count):
+    """Zero the image's first ``rows`` rows and every counter."""
+    start = cuda.grid(1)
+    if start < counts.shape[0]:
+        counts[start] = 0
+    if start < kind_count.shape[0]:
+        kind_count[start] = 0
+    for i in range(start, rows, cuda.gridsize(1)):
+        for c in range(3):
+            image[i, c] = np.float32(0.0)
 
 
-class _Queue:
-    """A generation's rays on the device: org, dirs f32[C,3], tmin, tmax f32[C], pixel i32[C],
-    weight f32[C,3], kind i8[C]; the first ``n`` are live."""
+class FrameArrays:
+    """Every device array of a frame of ``pixels`` pixels and ``lights`` lights, allocated once
+    and reused (allocation is slow). Secondary queues hold ``secondary`` rays; shadow queues
+    ``lights`` times the largest queue."""
 
-    FIELDS = {"org": ((3,), np.float32), "dirs": ((3,), np.float32), "tmin": ((), np.float32),
-              "tmax": ((), np.float32), "pixel": ((), np.int32), "weight": ((3,), np.float32),
-              "kind": ((), np.int8)}
-
-    def __init__(self, buffers: _Buffers, slot: int, rows: int):
-        for name, (tail, dtype) in self.FIELDS.items():
-            setattr(self, name, buffers.take(f"queue{slot}.{name}", rows, tail, dtype))
-        self.n = 0
-
-    def to_host(self, n: int):
-        return {name: getattr(self, name)[:n].copy_to_host() for name in self.FIELDS}
-
-
-def host_batch(kind: str, fields: dict) -> tuple:
-    """(RayBatch, Packets) on the host of one kind's rays from a copied queue (one packet)."""
-    org = np.ascontiguousarray(fields["org"], np.float32)
-    dirs = np.ascontiguousarray(fields["dirs"], np.float32)
-    r = org.shape[0]
-    rays = RayBatch(org, dirs, safe_inverse(dirs), np.ascontiguousarray(fields["tmin"]),
-                    np.ascontiguousarray(fields["tmax"]), np.ascontiguousarray(fields["pixel"], np.int32),
-                    np.ascontiguousarray(fields["weight"], np.float32), kind)
-    return rays, Packets(np.array([0, r], np.int32), 2, 1, 1)
+    def __init__(self, pixels: int, lights: int, depth: int, secondary: int):
+        self.pixels, self.lights, self.secondary = pixels, lights, secondary
+        c = max(pixels, secondary)
+        rows = max(lights, 1)
+        self.capacity = c
+        self.shadow_capacity = c * lights
+        a = cuda.device_array
+        self.image = a((pixels, 3), np.float32)
+        self.queues = [(a((3, c, 3), np.float32), a((2, c), np.float32), a(c, np.int32), a(c, np.int8))
+                       for _ in range(2)]
+        self.hit_tuv, self.hit_prim = a((3, c), np.float32), a(c, np.int32)
+        self.surf_vec, self.surf_magnitude = a((7, c, 3), np.float32), a(c, np.float32)
+        self.surf_flags, self.surf_material = a((2, c), np.bool_), a(c, np.int32)
+        self.light_dir, self.light_scalar = a((rows, c, 3), np.float32), a((3, rows, c), np.float32)
+        self.lit, self.shadow_slot = a((rows, c), np.bool_), a((rows, c), np.int32)
+        s = max(self.shadow_capacity, 1)
+        self.shadow = (a((2, s, 3), np.float32), a((2, s), np.float32), a(s, np.int32))
+        self.occluded = a(s, np.uint8)
+        self.child_flags, self.child_vec = a((3, c), np.bool_), a((5, c, 3), np.float32)
+        # counts[2 g]: rays of generation g; counts[2 g + 1]: its shadow rays.
+        self.counts = a(2 * (depth + 2), np.int32)
+        self.kind_count = a(3, np.int32)
 
 
 class GpuWhittedRenderer:
@@ -259,9 +266,12 @@ class GpuWhittedRenderer:
         self.config = config
         self.observer = observer
         self.count = count
-        self.buffers = _Buffers()
-        self.scanner = Scanner()
         self.device_name = device_name()
+        self.arrays = None
+        self.secondary_per_pixel = SECONDARY_PER_PIXEL
+        #: None, or {launch name: [host seconds, launch-to-finish seconds, calls]} filled by
+        #: frames rendered while it is set (each launch then waits for the GPU: profile only).
+        self.profile = None
         self.scene = None
         self.set_scene(scene, bvh)
 
@@ -272,9 +282,10 @@ class GpuWhittedRenderer:
         cfg = self.config.render
         if self.scene is None or [id(m) for m in scene.materials] != [id(m) for m in self.scene.materials]:
             table = MaterialTable(scene.materials)
-            self.materials = {name: upload(getattr(table, name)) for name in (
-                "ambient", "diffuse", "specular", "reflectance", "shininess", "transmission", "ior",
-                "texture_start", "texture_width", "texture_height", "texels")}
+            self.mat_vec = upload(np.stack([table.ambient, table.diffuse, table.specular, table.reflectance]))
+            self.mat_scalar = upload(np.stack([table.shininess, table.transmission, table.ior]))
+            self.mat_texture = upload(np.stack([table.texture_start, table.texture_width, table.texture_height]))
+            self.texels = upload(table.texels)
         self.scene = scene
         self.tris = scene.triangles
         self.bvh = bvh if bvh is not None else build_bvh(self.tris, leaf_size=cfg.leaf_size, bins=cfg.bins)
@@ -300,40 +311,38 @@ class GpuWhittedRenderer:
             self.observer = observer
         return time.perf_counter() - start
 
+    def _frame_arrays(self, pixels: int) -> FrameArrays:
+        depth = self.config.render.max_depth
+        held = self.arrays
+        if held is None or held.pixels != pixels or held.lights != self.n_lights or \
+                held.counts.shape[0] < 2 * (depth + 2) or held.secondary < self.secondary_per_pixel * pixels:
+            self.arrays = FrameArrays(pixels, self.n_lights, depth, self.secondary_per_pixel * pixels)
+        return self.arrays
+
     # -- the frame ----------------------------------------------------------------------------
     def render(self, size: tuple | None = None) -> RenderResult:
         """One frame on the device; ``size`` (width, height) overrides the config's."""
         cfg = self.config.render
         width, height = size or (cfg.width, cfg.height)
-        start = time.perf_counter()
-        take = self.buffers.take
         pixels = width * height
-        image = take("image", pixels, (3,))
-        _clear(image, pixels)
-        kind_count = take("kind_count", 3, (), np.int32)
-        kind_count.copy_to_device(np.zeros(kind_count.shape[0], np.int32))
-        trace_events = []
-        rays = dict.fromkeys(RAY_KINDS, 0)
-        rays["primary"] = pixels
-
-        queue = _Queue(self.buffers, 0, pixels)
-        eye, forward, right, up, half_w, half_h = image_plane(self.scene, width, height)
-        _camera[blocks(pixels), BLOCK](upload(eye.astype(np.float32)), upload(forward), upload(right), upload(up),
-                                       half_w, half_h, width, height, queue.org, queue.dirs, queue.tmin, queue.tmax,
-                                       queue.pixel, queue.weight, queue.kind)
-        queue.n = pixels
-        for depth in range(cfg.max_depth + 1):
-            spawn = depth < cfg.max_depth
-            queue = self._generation(queue, depth, spawn, depth < cfg.max_reflection_depth, image, width, height,
-                                     trace_events, rays, kind_count)
-            if queue is None:
+        start = time.perf_counter()
+        while True:
+            f = self._frame_arrays(pixels)
+            events = self._enqueue_frame(f, width, height)
+            host_image = f.image.copy_to_host()  # synchronises: the frame is done
+            counts = f.counts.copy_to_host()
+            generations = counts[0::2]
+            if generations.max() <= f.capacity and counts[1::2].max() <= f.shadow_capacity:
                 break
-        host_image = image[:pixels].copy_to_host()  # synchronises: the frame is done
-        counts = kind_count.copy_to_host()
-        rays["reflection"], rays["refraction"] = int(counts[REFLECTION]), int(counts[REFRACTION])
+            # A generation outgrew its queue: make room and render the frame again.
+            self.secondary_per_pixel = int(np.ceil(generations.max() / pixels)) + 1
+            start = time.perf_counter()
+        kinds = f.kind_count.copy_to_host()
+        rays = {"primary": pixels, "shadow": int(counts[1::2].sum()), "reflection": int(kinds[REFLECTION]),
+                "refraction": int(kinds[REFRACTION])}
         total = time.perf_counter() - start
         trace_seconds = dict.fromkeys(RAY_KINDS, 0.0)
-        for kind, begin, end in trace_events:
+        for kind, begin, end in events:
             trace_seconds[kind] += begin.elapsed_time(end) / 1e3
         seconds = {"bvh": self.bvh.build_seconds, "trace": trace_seconds,
                    "shade": max(total - sum(trace_seconds.values()), 0.0), "total": total,
@@ -342,112 +351,126 @@ class GpuWhittedRenderer:
                             {"device": {"name": self.device_name, "traversal": {
                                 k: self.traversal[k].name for k in RAY_KINDS}}})
 
+    def _enqueue_frame(self, f: FrameArrays, width: int, height: int) -> list:
+        """Launch a whole frame into ``f``; returns the (kind, begin, end) trace events."""
+        cfg = self.config.render
+        pixels = width * height
+        self._launch("clear", lambda: _clear[grid(pixels), BLOCK](f.image, pixels, f.counts, f.kind_count))
+        eye, forward, right, up, half_w, half_h = image_plane(self.scene, width, height)
+        queue = f.queues[0]
+        eye, basis = upload(eye.astype(np.float32)), upload(np.stack([forward, right, up]))
+        self._launch("camera", lambda: _camera[grid(pixels), BLOCK](eye, basis, half_w, half_h, width, height,
+                                                                    *queue, f.counts))
+        events = []
+        bound = pixels
+        for gen in range(cfg.max_depth + 1):
+            spawn = gen < cfg.max_depth
+            nxt = f.queues[(gen + 1) % 2]
+            self._generation(f, gen, queue, nxt, bound, spawn, gen < cfg.max_reflection_depth, width, height, events)
+            if not spawn:
+                break
+            queue = nxt
+            bound = min(3 * bound, f.capacity)
+        return events
+
     def _timed(self, events, kind, launch) -> None:
         """Run ``launch()`` between two CUDA events, kept for the trace time of ``kind``."""
         begin, end = cuda.event(), cuda.event()
         begin.record()
-        launch()
+        self._launch(f"trace {kind}", launch)
         end.record()
         events.append((kind, begin, end))
 
-    def _generation(self, queue, depth, spawn, reflect, image, width, height, events, rays, kind_count):
-        """Trace and shade one queue; returns the next generation's queue (None: no children)."""
-        n, take, m, t = queue.n, self.buffers.take, self.materials, self.device_tris
-        # Primary rays are all of one kind; a secondary queue mixes reflections and refractions
-        # and is traced by the reflection traversal unless the config gives refraction another.
-        kind = "primary" if depth == 0 else "reflection"
+    def _launch(self, name: str, launch) -> None:
+        """``launch()``; while profiling, timed on the host alone and to the GPU's finish."""
+        if self.profile is None:
+            launch()
+            return
+        cuda.synchronize()
+        start = time.perf_counter()
+        launch()
+        host = time.perf_counter() - start
+        cuda.synchronize()
+        row = self.profile.setdefault(name, [0.0, 0.0, 0])
+        row[0] += host
+        row[1] += time.perf_counter() - start
+        row[2] += 1
+
+    def _generation(self, f, gen, queue, nxt, bound, spawn, reflect, width, height, events) -> None:
+        """Enqueue one generation: trace ``queue`` (at most ``bound`` rays), shade it, trace its
+        shadow rays, light it and write its children into ``nxt``."""
+        q_vec, q_scalar, q_pixel, q_kind = queue
+        t = self.device_tris
+        # A secondary queue mixes reflections and refractions; it is traced by the reflection
+        # traversal (the config's refraction entry applies when both kinds name the same one).
+        kind = "primary" if gen == 0 else "reflection"
         trace = self.traversal[kind]
-        hits = Hits(take("t", n), take("prim", n, (), np.int32), take("u", n), take("v", n))
-        self._timed(events, kind, lambda: trace.closest(queue.org, queue.dirs, queue.tmin, queue.tmax, queue.pixel,
-                                                         n, width, height, hits.t, hits.prim, hits.u, hits.v))
+        count = f.counts[2 * gen:2 * gen + 1]
+        self._timed(events, kind, lambda: trace.closest_queue(
+            q_vec[Q_ORG], q_vec[Q_DIR], q_scalar[Q_TMIN], q_scalar[Q_TMAX], q_pixel, count, bound, width, height,
+            f.hit_tuv[0], f.hit_prim, f.hit_tuv[1], f.hit_tuv[2]))
         if self.observer is not None:
-            self._observe_closest(queue, n, hits)
-        surface = {name: take(f"surface.{name}", n, tail, dtype) for name, (tail, dtype) in _SURFACE.items()}
-        lights = max(self.n_lights, 1)
-        to_light, dist = take("to_light", lights * n, (3,)), take("dist", lights * n)
-        ndotl, lit, shadow_tmax = take("ndotl", lights * n), take("lit", lights * n, (), np.bool_), \
-            take("shadow_tmax", lights * n)
-        per_light = [a[:lights * n].reshape((lights, n) + a.shape[1:]) for a in (to_light, dist, ndotl, lit,
-                                                                                   shadow_tmax)]
-        shadow_flag = take("shadow_flag", lights * n, (), np.int32)
-        _shade[blocks(n), BLOCK](n, queue.dirs, queue.pixel, queue.weight, hits.prim, hits.u, hits.v,
-                                 t.v0, t.v1, t.v2, t.ng, t.normals, t.uvs, t.material, t.magnitude, t.has_normals,
-                                 t.has_uvs, m["ambient"], m["texture_start"], m["texture_width"],
-                                 m["texture_height"], m["texels"], self.ambient_light, self.background, image,
-                                 *surface.values(), self.n_lights, self.lights, *per_light, shadow_flag)
-        n_flags = self.n_lights * n
-        shadow_offsets = take("shadow_offsets", n_flags + 1, (), np.int32)
-        n_shadow = self.scanner.exclusive_scan(shadow_flag, n_flags, shadow_offsets)
-        occluded = take("occluded", n_shadow, (), np.uint8)
-        if n_shadow:
-            s = {name: take(f"shadow.{name}", n_shadow, tail, dtype) for name, (tail, dtype) in _Queue.FIELDS.items()
-                 if name not in ("weight", "kind")}
-            _shadow_queue[blocks(n_flags), BLOCK](n_flags, n, shadow_flag, shadow_offsets, surface["leave"],
-                                                  per_light[0], per_light[4], queue.pixel, s["org"], s["dirs"],
-                                                  s["tmin"], s["tmax"], s["pixel"])
+            self._observe_closest(f, gen, queue)
+        self._launch("shade", lambda: _shade[grid(bound), BLOCK](
+            f.counts, gen, q_vec, q_pixel, f.hit_tuv, f.hit_prim, t.vec, t.normals, t.uvs, t.material, t.magnitude,
+            t.has_normals, t.has_uvs, self.mat_vec, self.mat_texture, self.texels, self.ambient_light,
+            self.background, f.image, f.surf_vec, f.surf_magnitude, f.surf_flags, f.surf_material, self.n_lights,
+            self.lights, f.light_dir, f.light_scalar, f.lit, f.shadow_slot, *f.shadow, f.shadow_capacity))
+        if self.n_lights:
+            s_vec, s_scalar, s_pixel = f.shadow
             shadow = self.traversal["shadow"]
-            self._timed(events, "shadow", lambda: shadow.occluded(s["org"], s["dirs"], s["tmin"], s["tmax"],
-                                                                  s["pixel"], n_shadow, width, height, occluded))
-            rays["shadow"] += n_shadow
+            s_count = f.counts[2 * gen + 1:2 * gen + 2]
+            self._timed(events, "shadow", lambda: shadow.occluded_queue(
+                s_vec[0], s_vec[1], s_scalar[0], s_scalar[1], s_pixel, s_count, bound * self.n_lights, width, height,
+                f.occluded))
             if self.observer is not None:
-                self._observe_shadow(s, n_shadow, occluded)
-        children = {name: take(f"child.{name}", n, tail, dtype) for name, (tail, dtype) in _CHILDREN.items()}
-        child_flag = take("child_flag", CHILD_SLOTS * n, (), np.int32)
-        _light_and_spawn[blocks(n), BLOCK](n, queue.pixel, queue.weight, surface["hit"], surface["point"],
-                                           surface["magnitude"], surface["view"], surface["normal"],
-                                           surface["facing"], surface["entering"], surface["material"],
-                                           surface["texel"], surface["color"], m["diffuse"], m["specular"],
-                                           m["shininess"], m["reflectance"], m["transmission"], m["ior"],
-                                           self.n_lights, self.light_colors, per_light[0], per_light[2], shadow_flag,
-                                           shadow_offsets, occluded, image, spawn, reflect, *children.values(),
-                                           child_flag)
-        if not spawn:
-            return None
-        child_offsets = take("child_offsets", CHILD_SLOTS * n + 1, (), np.int32)
-        n_next = self.scanner.exclusive_scan(child_flag, CHILD_SLOTS * n, child_offsets)
-        if n_next == 0:
-            return None
-        nxt = _Queue(self.buffers, (depth + 1) % 2, n_next)
-        _next_queue[blocks(CHILD_SLOTS * n), BLOCK](CHILD_SLOTS * n, child_flag, child_offsets, queue.pixel,
-                                                    surface["leave"], children["enter"], children["reflect_dir"],
-                                                    children["refract_dir"], children["reflect_weight"],
-                                                    children["transmit_weight"], nxt.org, nxt.dirs, nxt.tmin,
-                                                    nxt.tmax, nxt.pixel, nxt.weight, nxt.kind, kind_count)
-        nxt.n = n_next
-        return nxt
+                self._observe_shadow(f, gen)
+        n_vec, n_scalar, n_pixel, n_kind = nxt
+        self._launch("light and spawn", lambda: _light_and_spawn[grid(bound), BLOCK](
+            f.counts, gen, q_vec, q_pixel, f.surf_vec, f.surf_magnitude, f.surf_flags, f.surf_material, self.mat_vec,
+            self.mat_scalar, self.n_lights, self.light_colors, f.light_dir, f.light_scalar, f.shadow_slot,
+            f.occluded, f.image, spawn, reflect, f.child_flags, f.child_vec, n_vec, n_scalar, n_pixel, n_kind,
+            f.kind_count))
 
     # -- the audit's view ---------------------------------------------------------------------
-    def _observe_closest(self, queue, n, hits) -> None:
+    def _observe_closest(self, f, gen, queue) -> None:
         """Hand each kind's rays of a traced queue, with their hits, to the observer."""
-        fields = queue.to_host(n)
-        answer = Hits(hits.t[:n].copy_to_host(), hits.prim[:n].copy_to_host(), hits.u[:n].copy_to_host(),
-                      hits.v[:n].copy_to_host())
+        n = min(int(f.counts[2 * gen:2 * gen + 1].copy_to_host()[0]), f.capacity)
+        q_vec, q_scalar, q_pixel, q_kind = (a.copy_to_host() for a in queue)
+        tuv, prim = f.hit_tuv.copy_to_host(), f.hit_prim.copy_to_host()
+        kinds = q_kind[:n]
         for code, kind in enumerate(KIND_NAMES):
-            chosen = np.flatnonzero(fields["kind"] == code)
+            chosen = np.flatnonzero(kinds == code)
             if chosen.size == 0:
                 continue
-            rays, packets = host_batch(kind, {k: v[chosen] for k, v in fields.items()})
-            self.observer(kind, "intersect", rays, packets, Hits(*(np.ascontiguousarray(a[chosen]) for a in answer)))
+            rays = host_batch(kind, q_vec[Q_ORG][chosen], q_vec[Q_DIR][chosen], q_scalar[Q_TMIN][chosen],
+                              q_scalar[Q_TMAX][chosen], q_pixel[chosen], q_vec[Q_WEIGHT][chosen])
+            hits = Hits(*(np.ascontiguousarray(a) for a in (tuv[0][chosen], prim[chosen], tuv[1][chosen],
+                                                            tuv[2][chosen])))
+            self.observer(kind, "intersect", rays, _one_packet(chosen.size), hits)
 
-    def _observe_shadow(self, s, n, occluded) -> None:
-        fields = {name: s[name][:n].copy_to_host() for name in s}
-        fields["weight"] = np.ones((n, 3), np.float32)
-        rays, packets = host_batch("shadow", fields)
-        self.observer("shadow", "occluded", rays, packets, occluded[:n].copy_to_host().astype(bool))
+    def _observe_shadow(self, f, gen) -> None:
+        n = min(int(f.counts[2 * gen + 1:2 * gen + 2].copy_to_host()[0]), f.shadow_capacity)
+        if n == 0:
+            return
+        s_vec, s_scalar, s_pixel = (a.copy_to_host() for a in f.shadow)
+        rays = host_batch("shadow", s_vec[0][:n], s_vec[1][:n], s_scalar[0][:n], s_scalar[1][:n], s_pixel[:n],
+                          np.ones((n, 3), np.float32))
+        self.observer("shadow", "occluded", rays, _one_packet(n), f.occluded[:n].copy_to_host().astype(bool))
 
     def with_counters(self, result: RenderResult) -> RenderResult:
         """The device kernels keep no traversal counters: ``result`` as it is."""
         return result
 
 
-@cuda.jit
-def _zero_rows(image, rows):
-    i = cuda.grid(1)
-    if i < rows:
-        for c in range(3):
-            image[i, c] = np.float32(0.0)
+def host_batch(kind: str, org, dirs, tmin, tmax, pixel, weight) -> RayBatch:
+    """A host RayBatch of one kind's rays copied from a queue."""
+    dirs = np.ascontiguousarray(dirs, np.float32)
+    return RayBatch(np.ascontiguousarray(org, np.float32), dirs, safe_inverse(dirs), np.ascontiguousarray(tmin),
+                    np.ascontiguousarray(tmax), np.ascontiguousarray(pixel, np.int32),
+                    np.ascontiguousarray(weight, np.float32), kind)
 
 
-def _clear(image, rows: int) -> None:
-    _zero_rows[blocks(rows), BLOCK](image, rows)
-
+def _one_packet(r: int) -> Packets:
+    """The whole batch as one packet (the oracles and the reference traversal ignore packets)."""
+    return Packets(np.array([0, r], np.int32), 2, 1, 1)

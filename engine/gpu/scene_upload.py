@@ -26,14 +26,12 @@ def upload(array: np.ndarray, dtype=None):
 
 @dataclass
 class DeviceTriangles:
-    """T triangles on the device. v0, v1, v2, ng: f32[T,3]; material: i32[T]; normals
+    """T triangles on the device. vec: f32[4,T,3] the stack of v0, v1, v2, ng (f32[T,3] views of
+    it: one argument carries all four to a kernel); material: i32[T]; normals
     f32[T,3,3] and uvs f32[T,3,2] (one zero row when the scene has none: ``has_normals`` and
     ``has_uvs`` say); magnitude f32[T] (``engine.core.offset.triangle_magnitudes``)."""
 
-    v0: object
-    v1: object
-    v2: object
-    ng: object
+    vec: object
     material: object
     normals: object
     uvs: object
@@ -44,10 +42,14 @@ class DeviceTriangles:
 
     @classmethod
     def from_host(cls, tris, magnitude: np.ndarray) -> "DeviceTriangles":
-        return cls(upload(tris.v0, np.float32), upload(tris.v1, np.float32), upload(tris.v2, np.float32),
-                   upload(tris.ng, np.float32), upload(tris.material, np.int32), upload(tris.normals, np.float32),
+        vec = upload(np.stack([tris.v0, tris.v1, tris.v2, tris.ng]).astype(np.float32))
+        return cls(vec, upload(tris.material, np.int32), upload(tris.normals, np.float32),
                    upload(tris.uvs, np.float32), upload(magnitude, np.float32), int(tris.v0.shape[0]),
                    bool(tris.normals.shape[0] > 0), bool(tris.uvs.shape[0] > 0))
+
+    def __post_init__(self):
+        # Views of the stack, made once (a view made per launch costs host time every frame).
+        self.v0, self.v1, self.v2, self.ng = (self.vec[k] for k in range(4))
 
 
 @dataclass

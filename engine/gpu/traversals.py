@@ -20,6 +20,33 @@ def device_traversals(config, device_bvh, device_tris, host_tris) -> dict:
     return chosen
 
 
+class HostCounted:
+    """A traversal that needs its ray count on the host (the ray-space hierarchy sizes its
+    levels and streams from it), given the frame's device-counted queue interface: it reads the
+    count back (one wait for the GPU per queue) and calls ``closest`` / ``occluded``."""
+
+    def __init__(self, traversal):
+        self.traversal = traversal
+        self.name = traversal.name
+
+    def __getattr__(self, attribute):
+        return getattr(self.traversal, attribute)
+
+    @staticmethod
+    def _n(count, bound) -> int:
+        return min(int(count.copy_to_host()[0]), bound)
+
+    def closest_queue(self, org, dirs, tmin, tmax, pixel, count, bound, width, height, *out) -> None:
+        n = self._n(count, min(bound, org.shape[0]))
+        if n > 0:
+            self.traversal.closest(org, dirs, tmin, tmax, pixel, n, width, height, *out)
+
+    def occluded_queue(self, org, dirs, tmin, tmax, pixel, count, bound, width, height, out) -> None:
+        n = self._n(count, min(bound, org.shape[0]))
+        if n > 0:
+            self.traversal.occluded(org, dirs, tmin, tmax, pixel, n, width, height, out)
+
+
 def make_device_traversal(name: str, device_bvh, device_tris, host_tris, options: dict | None = None):
     """One device traversal by name ("bvh", "rayspace", or a CPU BVH traversal name)."""
     name = device_traversal_name(name)
@@ -29,4 +56,4 @@ def make_device_traversal(name: str, device_bvh, device_tris, host_tris, options
         return DeviceBVHTraversal(device_bvh, device_tris)
     from engine.gpu.rayspace import DeviceRaySpace
 
-    return DeviceRaySpace(device_tris, host_tris, **(options or {}))
+    return HostCounted(DeviceRaySpace(device_tris, host_tris, **(options or {})))
