@@ -22,7 +22,7 @@ from engine.core.errors import ConfigError
 from engine.render.plugins import make_traversal
 from engine.render.tracer import Tracer
 from engine.core.types import RAY_KINDS
-from engine.render.whitted import WhittedRenderer
+from engine.gpu.choose import new_renderer
 
 from .compare import compare_hits, compare_occlusion
 
@@ -222,7 +222,7 @@ def audit(scene, config, oracle: str = "embree") -> tuple[dict, object, list]:
     names = ["embree", "open3d"] if oracle == "both" else [oracle]
     # Build the oracles first: a missing Open3D is reported before any rendering.
     oracles = [make_oracle(name, scene.triangles) for name in names]
-    renderer = WhittedRenderer(scene, config)
+    renderer = new_renderer(scene, config)  # the GPU frame for device = "cuda": same rays, same checks
     observer = AuditObserver(scene, renderer.bvh, oracles)
     renderer.observer = observer
     result = renderer.render()
