@@ -62,39 +62,55 @@ def check_matrix(data: dict, source: str) -> None:
             _fail(source, f"variant {i + 1}", f"needs label and traversal (bvh or rayspace), got {sorted(variant)}")
 
 
-def _median_seconds(launch, repeat: int, cuda) -> float:
-    """Median over ``repeat`` calls of ``launch()`` timed by CUDA events (one warm call first)."""
+def _median_call_seconds(launch, repeat: int, cuda) -> float:
+    """Median wall time of ``repeat`` calls of ``launch()`` each followed by a wait for the GPU,
+    after one warm call: what a Python caller pays per call, measured as Mitsuba's calls are."""
     launch()
     cuda.synchronize()
     times = []
     for _ in range(repeat):
-        begin, end = cuda.event(), cuda.event()
-        begin.record()
+        start = time.perf_counter()
         launch()
-        end.record()
-        end.synchronize()
-        times.append(begin.elapsed_time(end) / 1e3)
+        cuda.synchronize()
+        times.append(time.perf_counter() - start)
     return statistics.median(times)
 
 
-def time_ray_set(traversal, query: str, rays, repeat: int, cuda) -> tuple[float, object]:
-    """(median seconds, host answer) of a device traversal on one host RayBatch: Hits for
-    "closest", bool[R] for "occluded". Rays go to the device once, outside the timing."""
+def _kernel_seconds(launch, repeat: int, cuda) -> float:
+    """GPU time per call of ``launch()``: ``repeat`` calls back to back between two CUDA events,
+    so the host's launch cost overlaps the GPU's work (the kernels alone)."""
+    launch()
+    begin, end = cuda.event(), cuda.event()
+    begin.record()
+    for _ in range(repeat):
+        launch()
+    end.record()
+    end.synchronize()
+    return begin.elapsed_time(end) / 1e3 / repeat
+
+
+def time_ray_set(traversal, query: str, rays, repeat: int, cuda) -> tuple[dict, object]:
+    """({"seconds": median call, "kernel_seconds"}, host answer) of a device traversal on one
+    host RaySet: Hits for "closest", bool[R] for "occluded". Rays and their count go to the
+    device once, outside the timing."""
     from engine.core.types import Hits
     from engine.gpu.scene_upload import upload
 
     n = rays.org.shape[0]
     org, dirs, tmin, tmax, pixel = (upload(a) for a in (rays.org, rays.dir, rays.tmin, rays.tmax, rays.pixel))
+    count = upload(np.array([n], np.int32))
+    width, height = rays.screen
     if query == "closest":
         out = (cuda.device_array(n, np.float32), cuda.device_array(n, np.int32), cuda.device_array(n, np.float32),
                cuda.device_array(n, np.float32))
-        seconds = _median_seconds(lambda: traversal.closest(org, dirs, tmin, tmax, pixel, n, *rays.screen, *out),
-                                  repeat, cuda)
-        return seconds, Hits(*(a.copy_to_host() for a in out))
-    flags = cuda.device_array(n, np.uint8)
-    seconds = _median_seconds(lambda: traversal.occluded(org, dirs, tmin, tmax, pixel, n, *rays.screen, flags),
-                              repeat, cuda)
-    return seconds, flags.copy_to_host().astype(bool)
+        launch = lambda: traversal.closest_queue(org, dirs, tmin, tmax, pixel, count, n, width, height, *out)  # noqa: E731
+    else:
+        flags = cuda.device_array(n, np.uint8)
+        launch = lambda: traversal.occluded_queue(org, dirs, tmin, tmax, pixel, count, n, width, height, flags)  # noqa: E731
+    timing = {"seconds": _median_call_seconds(launch, repeat, cuda), "kernel_seconds": _kernel_seconds(launch, repeat, cuda)}
+    if query == "closest":
+        return timing, Hits(*(a.copy_to_host() for a in out))
+    return timing, flags.copy_to_host().astype(bool)
 
 
 def _checked(rays, query, answer, oracle, tris, closest_ours=None) -> dict:
@@ -140,9 +156,10 @@ def _scene_rays(scene_table, scene, bvh, variants, matrix, cuda, tris_device, bv
                    "query": query}
             for variant in variants:
                 traversal = make_device_traversal(variant["traversal"], bvh_device, tris_device, scene.triangles)
-                seconds, answer = time_ray_set(traversal, query, rays, matrix.get("repeat_rays", 10), cuda)
+                timing, answer = time_ray_set(traversal, query, rays, matrix.get("repeat_rays", 10), cuda)
                 closest = time_ray_set(traversal, "closest", rays, 1, cuda)[1] if query == "occluded" else None
-                row[variant["label"]] = {"seconds": seconds, "grays_per_s": rays.org.shape[0] / seconds / 1e9,
+                row[variant["label"]] = {**timing, "grays_per_s": rays.org.shape[0] / timing["seconds"] / 1e9,
+                                         "kernel_grays_per_s": rays.org.shape[0] / timing["kernel_seconds"] / 1e9,
                                          "embree": _checked(rays, query, answer, oracle, scene.triangles,
                                                             closest)}
             if mitsuba is not None:
@@ -248,8 +265,9 @@ def table(result: dict) -> str:
         cells = []
         for label in result["labels"]:
             v = row.get(label, {})
-            cells.append(f"{v['grays_per_s']:.2f} Grays/s ({v['seconds'] * 1e3:.2f} ms; "
-                         f"{v['embree']['mismatches']} mismatches)" if "grays_per_s" in v else "-")
+            cells.append(f"{v['grays_per_s']:.2f} Grays/s ({v['seconds'] * 1e3:.2f} ms a call; kernel "
+                         f"{v['kernel_grays_per_s']:.2f}; {v['embree']['mismatches']} mismatches, "
+                         f"{v['embree']['ties']} ties)" if "grays_per_s" in v else "-")
         mitsuba = row.get("mitsuba", {})
         best = max((row[l]["grays_per_s"] for l in result["labels"] if "grays_per_s" in row.get(l, {})), default=0)
         ratio = f"{best / mitsuba['grays_per_s']:.2f}x" if "grays_per_s" in mitsuba else "-"
