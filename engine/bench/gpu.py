@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.bench.dynamic import cell_config
+from engine.bench.gpu_pixels import PixelRecorder, explain
 from engine.bench.gpu_rays import RAY_SETS, ray_sets
 from engine.core import atomic
 from engine.core.errors import ConfigError
@@ -123,7 +124,15 @@ def _checked(rays, query, answer, oracle, tris, closest_ours=None) -> dict:
     else:
         result = compare_occlusion(rays.batch, answer, oracle.occluded(rays.batch), tris, closest_ours,
                                    oracle.intersect(rays.batch))
-    return {"checked": int(rays.org.shape[0]), "ties": int(result.tie.sum()), "mismatches": int(result.mismatch.sum())}
+    examples = []
+    theirs = oracle.intersect(rays.batch)
+    for i in np.flatnonzero(result.mismatch)[:5]:
+        ours = answer if query == "closest" else closest_ours
+        examples.append({"org": rays.org[i].tolist(), "dir": rays.dir[i].tolist(), "tmax": float(rays.tmax[i]),
+                         "ours": {"prim": int(ours.prim[i]), "t": float(ours.t[i])},
+                         "embree": {"prim": int(theirs.prim[i]), "t": float(theirs.t[i])}})
+    return {"checked": int(rays.org.shape[0]), "ties": int(result.tie.sum()), "mismatches": int(result.mismatch.sum()),
+            "examples": examples}
 
 
 def _mitsuba(scene):
@@ -221,7 +230,8 @@ def _frames(scene_table, variants, matrix, source) -> tuple[list, list, list]:
         if matrix.get("audit", True) or matrix.get("image_check", True):
             oracle = make_oracle("embree", scene.triangles)
             observer = AuditObserver(scene, renderer.bvh, [oracle])
-            renderer.observer = observer
+            gpu_rays = PixelRecorder(observer)
+            renderer.observer = gpu_rays
             audited = renderer.render()
             renderer.observer = None
             report = observer.report()
@@ -232,26 +242,36 @@ def _frames(scene_table, variants, matrix, source) -> tuple[list, list, list]:
                   f"{report['mismatch_count']} mismatches", flush=True)
             if matrix.get("image_check", True):
                 if cpu_image is None:
+                    cpu_rays = PixelRecorder()
                     cpu_config = replace(config, render=replace(config.render, device="cpu"),
                                          traversal=replace(config.traversal, **{k: "single" for k in (
                                              "primary", "shadow", "reflection", "refraction")}),
                                          frustum=replace(config.frustum, **{k: "none" for k in (
                                              "primary", "shadow", "reflection", "refraction")}))
-                    cpu_image = WhittedRenderer(scene, cpu_config).render().image
+                    cpu_image = WhittedRenderer(scene, cpu_config, observer=cpu_rays).render().image
                 images.append(image_check(scene.name, variant["label"], cpu_image, audited.image,
-                                          observer.tie_pixels, config.render.width))
+                                          observer.tie_pixels, config.render.width, cpu_rays, gpu_rays))
     return frames, images, audits
 
 
-def image_check(scene: str, variant: str, cpu: np.ndarray, gpu: np.ndarray, tie_pixels: set, width: int) -> dict:
+def image_check(scene: str, variant: str, cpu: np.ndarray, gpu: np.ndarray, tie_pixels: set, width: int,
+                cpu_rays=None, gpu_rays=None) -> dict:
     """The pixels where the GPU image differs from the CPU one by more than 1/255, each with its
-    reason ("tie": a ray of that pixel ties Embree's answer; else "unexplained")."""
+    reason: the first ray of the pixel whose rays or answers differ between the two renders
+    (``engine.bench.gpu_pixels``), and whether a ray of the pixel ties Embree's answer."""
     difference = np.abs(cpu - gpu).max(axis=2)
     ys, xs = np.nonzero(difference > 1 / 255)
+    reasons = explain(list(zip(xs.tolist(), ys.tolist())), width, cpu_rays, gpu_rays) \
+        if cpu_rays is not None and len(xs) <= 5000 else {}
     listed = [{"x": int(x), "y": int(y), "difference": float(difference[y, x]),
-               "reason": "tie" if int(y) * width + int(x) in tie_pixels else "unexplained"} for y, x in zip(ys, xs)]
-    unexplained = sum(1 for p in listed if p["reason"] != "tie")
+               "reason": reasons.get(int(y) * width + int(x), "not examined"),
+               "tie_with_embree": int(y) * width + int(x) in tie_pixels} for y, x in zip(ys, xs)]
+    unexplained = sum(1 for p in listed if not p["tie_with_embree"])
+    summary = {}
+    for p in listed:
+        summary[p["reason"].split(":")[0].split(" (")[0]] = summary.get(p["reason"].split(":")[0].split(" (")[0], 0) + 1
     return {"scene": scene, "variant": variant, "pixels": int(difference.size), "over_1_255": len(listed),
+            "reasons": summary,
             "share": len(listed) / difference.size, "unexplained": unexplained,
             "max_difference": float(difference.max()), "listed": listed[:200]}
 
@@ -311,7 +331,7 @@ def run_gpu(data: dict, source: str, out: Path) -> dict:
             bvh = build_bvh(scene.triangles)
             tris_device = DeviceTriangles.from_host(scene.triangles, triangle_magnitudes(scene.triangles))
             result["rays"] += _scene_rays(scene_table, scene, bvh, data["variant"], data, cuda, tris_device,
-                                          DeviceBVH.from_host(bvh))
+                                          DeviceBVH.from_host(bvh, scene.triangles))
         if scene_table.get("recursion"):
             frames, images, audits = _frames(scene_table, data["variant"], data, source)
             result["frames"] += frames

@@ -1,11 +1,12 @@
 """``bvh`` on the device: one thread per ray, a per-ray stack over the shared BVH.
 
-The structure is Aila and Laine's (2009) while-while loop in its simplest form: a thread pops a
-node, tests a leaf's triangles or both children's boxes, and pushes the far child under the near
-one. The node layout is the CPU's (``engine.core.types.BVH``), read through the read-only cache;
-the box test, the watertight triangle test and the tie rule are the CPU's own functions compiled
-for the device (``engine.gpu.twin``), so every hit equals ``single``'s bit for bit: the box test
-is conservative, and the closest hit under the tie rule does not depend on the visiting order.
+The loop is Aila and Laine's (2009) in its simplest form: a thread pops a node, tests a leaf's
+triangles or both children's boxes, and pushes the far child under the near one. The tree is the
+CPU's, laid out as they suggest (``engine.gpu.scene_upload.DeviceBVH``): a node's row holds both
+children's boxes, and triangles are stored in leaf order. The watertight triangle test and the
+tie rule are the CPU's own functions compiled for the device (``engine.gpu.twin``) and the box
+test is the CPU's term for term, so every hit equals ``single``'s bit for bit: the box test is
+conservative, and the closest hit under the tie rule does not depend on the visiting order.
 
 Rays: org, dirs f32[C,3], tmin, tmax f32[C], the first n live (dead lanes have tmax < tmin).
 """
@@ -13,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear, slab_test
+from engine.core.triangle import F32_INF, SLAB_SLACK, closer, intersect_triangle, ray_shear
 from engine.core.types import MAX_BVH_DEPTH
 from engine.gpu.device import BLOCK, require_cuda
 from engine.gpu.twin import device_twin
@@ -24,7 +25,6 @@ cuda = require_cuda()
 _shear = device_twin(ray_shear)
 _triangle = device_twin(intersect_triangle)
 _closer = device_twin(closer)
-_slab = device_twin(slab_test)
 _inverse = device_twin(inverse_component)
 
 #: Most blocks of a grid-stride launch (enough to fill any current GPU).
@@ -33,9 +33,33 @@ MAX_BLOCKS = 8192
 STACK = MAX_BVH_DEPTH + 2
 
 
-@cuda.jit(device=True, inline=True)
-def _walk(org, dirs, tmin, tmax, r, any_hit, bmin, bmax, first, count, prim, v0, v1, v2):
-    """(t, prim, u, v) of ray r's closest hit (any_hit: some hit), (inf, -1, 0, 0) if none."""
+@cuda.jit(device=True)
+def _slab(ox, oy, oz, ix, iy, iz, t_lo, t_hi, box, row, at):
+    """Entry distance of a ray into the box box[row, at:at+6] (min xyz, max xyz), inf if it
+    misses [t_lo, t_hi]: the CPU's ``slab_test``, term for term, reading the packed table."""
+    t0 = (box[row, at] - ox) * ix
+    t1 = (box[row, at + 3] - ox) * ix
+    tn = min(t0, t1)
+    tf = max(t0, t1)
+    t0 = (box[row, at + 1] - oy) * iy
+    t1 = (box[row, at + 4] - oy) * iy
+    tn = max(tn, min(t0, t1))
+    tf = min(tf, max(t0, t1))
+    t0 = (box[row, at + 2] - oz) * iz
+    t1 = (box[row, at + 5] - oz) * iz
+    tn = max(tn, min(t0, t1))
+    tf = min(tf, max(t0, t1))
+    tn = max(tn - abs(tn) * SLAB_SLACK, t_lo)
+    tf = min(tf + abs(tf) * SLAB_SLACK, t_hi)
+    if tn <= tf:
+        return tn
+    return F32_INF
+
+
+@cuda.jit(device=True)
+def _walk(org, dirs, tmin, tmax, r, any_hit, child_boxes, links, prim, v0, v1, v2, root):
+    """(t, prim, u, v) of ray r's closest hit (any_hit: some hit), (inf, -1, 0, 0) if none.
+    v0, v1, v2: the corners in leaf order (row i holds triangle prim[i])."""
     best_t = F32_INF
     best_prim = -1
     best_u = np.float32(0.0)
@@ -51,31 +75,30 @@ def _walk(org, dirs, tmin, tmax, r, any_hit, bmin, bmax, first, count, prim, v0,
     okx, oky, okz = org[r, kx], org[r, ky], org[r, kz]
     stack = cuda.local.array(STACK, np.int32)
     top = 0
-    if _slab(ox, oy, oz, ix, iy, iz, t_lo, t_hi, bmin, bmax, 0) < F32_INF:
+    if _slab(ox, oy, oz, ix, iy, iz, t_lo, t_hi, root, 0, 0) < F32_INF:  # root: f32[1,6]
         stack[0] = 0
         top = 1
     while top > 0:
         top -= 1
         node = stack[top]
-        n_prims = count[node]
+        first = links[node, 0]
+        n_prims = links[node, 1]
         if n_prims > 0:
-            start = first[node]
-            for i in range(start, start + n_prims):
+            for i in range(first, first + n_prims):
                 tri = prim[i]
-                t, u, v = _triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi, v0, v1, v2, tri)
+                t, u, v = _triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi, v0, v1, v2, i)
                 if t < F32_INF and _closer(t, tri, best_t, best_prim):
                     best_t, best_prim, best_u, best_v = t, tri, u, v
                     t_hi = t
                     if any_hit:
                         return best_t, best_prim, best_u, best_v
             continue
-        left = first[node]
-        t_left = _slab(ox, oy, oz, ix, iy, iz, t_lo, t_hi, bmin, bmax, left)
-        t_right = _slab(ox, oy, oz, ix, iy, iz, t_lo, t_hi, bmin, bmax, left + 1)
-        near, far = left, left + 1
+        t_left = _slab(ox, oy, oz, ix, iy, iz, t_lo, t_hi, child_boxes, node, 0)
+        t_right = _slab(ox, oy, oz, ix, iy, iz, t_lo, t_hi, child_boxes, node, 6)
+        near, far = first, first + 1
         t_near, t_far = t_left, t_right
         if t_right < t_left:
-            near, far = left + 1, left
+            near, far = first + 1, first
             t_near, t_far = t_right, t_left
         if t_far < F32_INF:
             stack[top] = far
@@ -87,13 +110,14 @@ def _walk(org, dirs, tmin, tmax, r, any_hit, bmin, bmax, first, count, prim, v0,
 
 
 @cuda.jit
-def closest_kernel(org, dirs, tmin, tmax, count, bmin, bmax, first, count_in_leaf, prim, v0, v1, v2,
-                   t_out, prim_out, u_out, v_out):
+def closest_kernel(org, dirs, tmin, tmax, count, child_boxes, links, prim, leaf_tris, root, t_out, prim_out, u_out,
+                   v_out):
     """Closest hit of rays [0, count[0]): t, prim (-1 on a miss), barycentrics u, v. count is a
     device i32[1] (a queue's length, written by an earlier kernel); grid-stride over it."""
     n = min(count[0], org.shape[0])
+    v0, v1, v2 = leaf_tris[0], leaf_tris[1], leaf_tris[2]
     for r in range(cuda.grid(1), n, cuda.gridsize(1)):
-        t, p, u, v = _walk(org, dirs, tmin, tmax, r, False, bmin, bmax, first, count_in_leaf, prim, v0, v1, v2)
+        t, p, u, v = _walk(org, dirs, tmin, tmax, r, False, child_boxes, links, prim, v0, v1, v2, root)
         t_out[r] = t
         prim_out[r] = p
         u_out[r] = u
@@ -101,11 +125,12 @@ def closest_kernel(org, dirs, tmin, tmax, count, bmin, bmax, first, count_in_lea
 
 
 @cuda.jit
-def occluded_kernel(org, dirs, tmin, tmax, count, bmin, bmax, first, count_in_leaf, prim, v0, v1, v2, occluded):
+def occluded_kernel(org, dirs, tmin, tmax, count, child_boxes, links, prim, leaf_tris, root, occluded):
     """occluded[r] = 1 when ray r < count[0] hits anything in [tmin, tmax], else 0 (u8[C])."""
     n = min(count[0], org.shape[0])
+    v0, v1, v2 = leaf_tris[0], leaf_tris[1], leaf_tris[2]
     for r in range(cuda.grid(1), n, cuda.gridsize(1)):
-        t, p, u, v = _walk(org, dirs, tmin, tmax, r, True, bmin, bmax, first, count_in_leaf, prim, v0, v1, v2)
+        t, p, u, v = _walk(org, dirs, tmin, tmax, r, True, child_boxes, links, prim, v0, v1, v2, root)
         occluded[r] = 1 if p >= 0 else 0
 
 
@@ -131,15 +156,15 @@ class DeviceBVHTraversal:
                       v_out) -> None:
         """Closest hits of the first count[0] (device i32[1], at most ``bound``) rays.
         pixel, width, height: unused here (the ray-space hierarchy indexes rays by pixel)."""
-        b, t = self.bvh, self.tris
-        closest_kernel[launch_grid(bound), BLOCK](org, dirs, tmin, tmax, count, b.bmin, b.bmax, b.first, b.count,
-                                                  b.prim, t.v0, t.v1, t.v2, t_out, prim_out, u_out, v_out)
+        b = self.bvh
+        closest_kernel[launch_grid(bound), BLOCK](org, dirs, tmin, tmax, count, b.child_boxes, b.links, b.prim,
+                                                  b.leaf_tris, b.root_row, t_out, prim_out, u_out, v_out)
 
     def occluded_queue(self, org, dirs, tmin, tmax, pixel, count, bound, width, height, out) -> None:
         """out[r] = 1 where ray r < count[0] is blocked within [tmin, tmax], else 0 (u8)."""
-        b, t = self.bvh, self.tris
-        occluded_kernel[launch_grid(bound), BLOCK](org, dirs, tmin, tmax, count, b.bmin, b.bmax, b.first, b.count,
-                                                   b.prim, t.v0, t.v1, t.v2, out)
+        b = self.bvh
+        occluded_kernel[launch_grid(bound), BLOCK](org, dirs, tmin, tmax, count, b.child_boxes, b.links, b.prim,
+                                                   b.leaf_tris, b.root_row, out)
 
     def closest(self, org, dirs, tmin, tmax, pixel, n, width, height, t_out, prim_out, u_out, v_out) -> None:
         """Closest hits of the first n rays (host int) into t_out, prim_out (-1: miss), u_out, v_out."""

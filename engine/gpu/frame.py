@@ -251,6 +251,14 @@ class FrameArrays:
         # counts[2 g]: rays of generation g; counts[2 g + 1]: its shadow rays.
         self.counts = a(2 * (depth + 2), np.int32)
         self.kind_count = a(3, np.int32)
+        # Views and events made once: making a device-array view or an event costs the host
+        # tens of microseconds, and a frame would make dozens.
+        self.count_views = [self.counts[k:k + 1] for k in range(self.counts.shape[0])]
+        self.trace_views = [(v[Q_ORG], v[Q_DIR], sc[Q_TMIN], sc[Q_TMAX], px) for v, sc, px, _ in self.queues]
+        self.hit_views = (self.hit_tuv[0], self.hit_prim, self.hit_tuv[1], self.hit_tuv[2])
+        s_vec, s_scalar, s_pixel = self.shadow
+        self.shadow_views = (s_vec[0], s_vec[1], s_scalar[0], s_scalar[1], s_pixel)
+        self.events = [(cuda.event(), cuda.event()) for _ in range(2 * (depth + 1))]
 
 
 class GpuWhittedRenderer:
@@ -290,7 +298,7 @@ class GpuWhittedRenderer:
         self.tris = scene.triangles
         self.bvh = bvh if bvh is not None else build_bvh(self.tris, leaf_size=cfg.leaf_size, bins=cfg.bins)
         self.device_tris = DeviceTriangles.from_host(self.tris, triangle_magnitudes(self.tris))
-        self.device_bvh = DeviceBVH.from_host(self.bvh)
+        self.device_bvh = DeviceBVH.from_host(self.bvh, self.tris)
         self.traversal = device_traversals(self.config, self.device_bvh, self.device_tris, self.tris)
         lights = scene.lights
         self.n_lights = len(lights)
@@ -374,8 +382,9 @@ class GpuWhittedRenderer:
         return events
 
     def _timed(self, events, kind, launch) -> None:
-        """Run ``launch()`` between two CUDA events, kept for the trace time of ``kind``."""
-        begin, end = cuda.event(), cuda.event()
+        """Run ``launch()`` between two CUDA events (the frame's next pair), kept for the trace
+        time of ``kind``."""
+        begin, end = self.arrays.events[len(events)]
         begin.record()
         self._launch(f"trace {kind}", launch)
         end.record()
@@ -405,10 +414,9 @@ class GpuWhittedRenderer:
         # traversal (the config's refraction entry applies when both kinds name the same one).
         kind = "primary" if gen == 0 else "reflection"
         trace = self.traversal[kind]
-        count = f.counts[2 * gen:2 * gen + 1]
-        self._timed(events, kind, lambda: trace.closest_queue(
-            q_vec[Q_ORG], q_vec[Q_DIR], q_scalar[Q_TMIN], q_scalar[Q_TMAX], q_pixel, count, bound, width, height,
-            f.hit_tuv[0], f.hit_prim, f.hit_tuv[1], f.hit_tuv[2]))
+        rays = f.trace_views[gen % 2]
+        self._timed(events, kind, lambda: trace.closest_queue(*rays, f.count_views[2 * gen], bound, width, height,
+                                                              *f.hit_views))
         if self.observer is not None:
             self._observe_closest(f, gen, queue)
         self._launch("shade", lambda: _shade[grid(bound), BLOCK](
@@ -417,12 +425,9 @@ class GpuWhittedRenderer:
             self.background, f.image, f.surf_vec, f.surf_magnitude, f.surf_flags, f.surf_material, self.n_lights,
             self.lights, f.light_dir, f.light_scalar, f.lit, f.shadow_slot, *f.shadow, f.shadow_capacity))
         if self.n_lights:
-            s_vec, s_scalar, s_pixel = f.shadow
             shadow = self.traversal["shadow"]
-            s_count = f.counts[2 * gen + 1:2 * gen + 2]
             self._timed(events, "shadow", lambda: shadow.occluded_queue(
-                s_vec[0], s_vec[1], s_scalar[0], s_scalar[1], s_pixel, s_count, bound * self.n_lights, width, height,
-                f.occluded))
+                *f.shadow_views, f.count_views[2 * gen + 1], bound * self.n_lights, width, height, f.occluded))
             if self.observer is not None:
                 self._observe_shadow(f, gen)
         n_vec, n_scalar, n_pixel, n_kind = nxt

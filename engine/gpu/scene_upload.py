@@ -52,24 +52,49 @@ class DeviceTriangles:
         self.v0, self.v1, self.v2, self.ng = (self.vec[k] for k in range(4))
 
 
+def child_box_table(bvh) -> np.ndarray:
+    """f32[N,12]: for each inner node, its left child's box (min xyz, max xyz) then its right
+    child's; zeros for leaves. Both boxes a node's walk tests come from one 48-byte row."""
+    inner = np.flatnonzero(bvh.count == 0)
+    left = bvh.first[inner]
+    table = np.zeros((bvh.bmin.shape[0], 12), np.float32)
+    table[inner, 0:3], table[inner, 3:6] = bvh.bmin[left], bvh.bmax[left]
+    table[inner, 6:9], table[inner, 9:12] = bvh.bmin[left + 1], bvh.bmax[left + 1]
+    return table
+
+
+def _root_row(bvh) -> np.ndarray:
+    return np.concatenate([bvh.bmin[0], bvh.bmax[0]]).astype(np.float32)[None, :]
+
+
 @dataclass
 class DeviceBVH:
-    """``engine.core.types.BVH`` on the device: bmin, bmax f32[N,3]; first, count i32[N];
-    prim i32[P]; depth (host int: the traversal stack holds depth + 2 entries)."""
+    """``engine.core.types.BVH`` on the device, laid out for a per-ray walk.
 
-    bmin: object
-    bmax: object
-    first: object
-    count: object
+    child_boxes f32[N,12] (``child_box_table``); links i32[N,2]: (first, count) of each node as
+    the CPU tree has them; prim i32[P]; leaf_tris f32[3,P,3]: the corners v0, v1, v2 of
+    triangle prim[i] at row i, so a leaf's triangles are read from consecutive rows; root_row
+    f32[1,6] the root's box (min xyz, max xyz); depth (host int).
+    """
+
+    child_boxes: object
+    links: object
     prim: object
+    leaf_tris: object
+    root_row: object
     depth: int
 
     @classmethod
-    def from_host(cls, bvh) -> "DeviceBVH":
-        return cls(upload(bvh.bmin, np.float32), upload(bvh.bmax, np.float32), upload(bvh.first, np.int32),
-                   upload(bvh.count, np.int32), upload(bvh.prim, np.int32), int(bvh.depth))
+    def from_host(cls, bvh, tris) -> "DeviceBVH":
+        links = np.stack([bvh.first, bvh.count], axis=1).astype(np.int32)
+        leaf_tris = np.stack([tris.v0[bvh.prim], tris.v1[bvh.prim], tris.v2[bvh.prim]]).astype(np.float32)
+        return cls(upload(child_box_table(bvh)), upload(links), upload(bvh.prim, np.int32), upload(leaf_tris),
+                   upload(_root_row(bvh)), int(bvh.depth))
 
     def refit_from(self, bvh) -> None:
-        """Copy a refitted tree's boxes (same topology) into the uploaded arrays."""
-        self.bmin.copy_to_device(np.ascontiguousarray(bvh.bmin, np.float32))
-        self.bmax.copy_to_device(np.ascontiguousarray(bvh.bmax, np.float32))
+        """Copy a refitted tree's boxes (same topology) into the uploaded table."""
+        self.child_boxes.copy_to_device(child_box_table(bvh))
+        self.root_row.copy_to_device(_root_row(bvh))
+
+    def __post_init__(self):
+        self.v0, self.v1, self.v2 = (self.leaf_tris[k] for k in range(3))
