@@ -101,13 +101,14 @@ def time_ray_set(traversal, query: str, rays, repeat: int, cuda) -> tuple[dict, 
     org, dirs, tmin, tmax, pixel = (upload(a) for a in (rays.org, rays.dir, rays.tmin, rays.tmax, rays.pixel))
     count = upload(np.array([n], np.int32))
     width, height = rays.screen
+    # The launch prepared once, as the frame prepares its launches (``engine.gpu.launch``).
     if query == "closest":
         out = (cuda.device_array(n, np.float32), cuda.device_array(n, np.int32), cuda.device_array(n, np.float32),
                cuda.device_array(n, np.float32))
-        launch = lambda: traversal.closest_queue(org, dirs, tmin, tmax, pixel, count, n, width, height, *out)  # noqa: E731
+        launch = traversal.queue_launch("closest", org, dirs, tmin, tmax, pixel, count, n, width, height, *out)
     else:
         flags = cuda.device_array(n, np.uint8)
-        launch = lambda: traversal.occluded_queue(org, dirs, tmin, tmax, pixel, count, n, width, height, flags)  # noqa: E731
+        launch = traversal.queue_launch("occluded", org, dirs, tmin, tmax, pixel, count, n, width, height, flags)
     timing = {"seconds": _median_call_seconds(launch, repeat, cuda), "kernel_seconds": _kernel_seconds(launch, repeat, cuda)}
     if query == "closest":
         return timing, Hits(*(a.copy_to_host() for a in out))

@@ -17,6 +17,7 @@ import numpy as np
 from engine.core.triangle import F32_INF, SLAB_SLACK, closer, intersect_triangle, ray_shear
 from engine.core.types import MAX_BVH_DEPTH
 from engine.gpu.device import BLOCK, require_cuda
+from engine.gpu.launch import PreparedLaunch
 from engine.gpu.twin import device_twin
 from engine.packet.compact import inverse_component
 
@@ -165,6 +166,14 @@ class DeviceBVHTraversal:
         b = self.bvh
         occluded_kernel[launch_grid(bound), BLOCK](org, dirs, tmin, tmax, count, b.child_boxes, b.links, b.prim,
                                                    b.leaf_tris, b.root_row, out)
+
+    def queue_launch(self, query: str, org, dirs, tmin, tmax, pixel, count, bound, width, height, *out):
+        """A prepared launch (``engine.gpu.launch``) of ``closest_queue`` (query "closest", out =
+        t, prim, u, v) or ``occluded_queue`` (query "occluded", out = flags) on fixed arrays."""
+        b = self.bvh
+        kernel = closest_kernel if query == "closest" else occluded_kernel
+        return PreparedLaunch(kernel, launch_grid(bound), BLOCK, (org, dirs, tmin, tmax, count, b.child_boxes, b.links,
+                                                                  b.prim, b.leaf_tris, b.root_row, *out))
 
     def closest(self, org, dirs, tmin, tmax, pixel, n, width, height, t_out, prim_out, u_out, v_out) -> None:
         """Closest hits of the first n rays (host int) into t_out, prim_out (-1: miss), u_out, v_out."""

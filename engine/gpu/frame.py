@@ -31,6 +31,7 @@ handed over as ``RayBatch``es per ray kind, as the CPU loop hands over its batch
 """
 from __future__ import annotations
 
+import functools
 import time
 
 import numpy as np
@@ -40,6 +41,7 @@ from engine.core.offset import triangle_magnitudes
 from engine.core.triangle import safe_inverse
 from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch
 from engine.gpu.device import BLOCK, device_name, require_cuda
+from engine.gpu.launch import PreparedLaunch
 from engine.gpu.scene_upload import DeviceBVH, DeviceTriangles, upload
 from engine.gpu.traversals import device_traversals
 from engine.gpu.twin import device_twin
@@ -259,6 +261,7 @@ class FrameArrays:
         s_vec, s_scalar, s_pixel = self.shadow
         self.shadow_views = (s_vec[0], s_vec[1], s_scalar[0], s_scalar[1], s_pixel)
         self.events = [(cuda.event(), cuda.event()) for _ in range(2 * (depth + 1))]
+        self.eye, self.basis = a(3, np.float32), a((3, 3), np.float64)  # this frame's camera
 
 
 class GpuWhittedRenderer:
@@ -307,6 +310,7 @@ class GpuWhittedRenderer:
         self.ambient_light = upload(np.asarray(scene.ambient_light, np.float32))
         self.background = upload(np.asarray(scene.background, np.float32))
         cuda.synchronize()
+        self._plan_key = None  # the prepared launches hold the old scene's arrays
         self.prepare_seconds = {"upload": time.perf_counter() - start}
 
     def warm_up(self) -> float:
@@ -325,6 +329,7 @@ class GpuWhittedRenderer:
         if held is None or held.pixels != pixels or held.lights != self.n_lights or \
                 held.counts.shape[0] < 2 * (depth + 2) or held.secondary < self.secondary_per_pixel * pixels:
             self.arrays = FrameArrays(pixels, self.n_lights, depth, self.secondary_per_pixel * pixels)
+            self._plan_key = None
         return self.arrays
 
     # -- the frame ----------------------------------------------------------------------------
@@ -360,35 +365,44 @@ class GpuWhittedRenderer:
                                 k: self.traversal[k].name for k in RAY_KINDS}}})
 
     def _enqueue_frame(self, f: FrameArrays, width: int, height: int) -> list:
-        """Launch a whole frame into ``f``; returns the (kind, begin, end) trace events."""
+        """Launch a whole frame into ``f``: this frame's camera into the device, then the steps
+        of the frame's plan. Returns the (kind, begin, end) trace events."""
+        eye, forward, right, up, half_w, half_h = image_plane(self.scene, width, height)
+        f.eye.copy_to_device(eye.astype(np.float32))
+        f.basis.copy_to_device(np.stack([forward, right, up]))
+        events = []
+        for name, step, kind in self._plan(f, width, height, half_w, half_h):
+            if kind is None:
+                self._launch(name, step)
+                continue
+            begin, end = f.events[len(events)]
+            begin.record()
+            self._launch(name, step)
+            end.record()
+            events.append((kind, begin, end))
+        return events
+
+    def _plan(self, f: FrameArrays, width: int, height: int, half_w: float, half_h: float) -> list:
+        """[(name, step, traced kind or None)]: every launch of a frame of this size, in order,
+        with arguments prepared once (``engine.gpu.launch``) and kept until the size, the
+        arrays or the observer change."""
+        key = (id(f), width, height, half_w, half_h, self.observer is not None, id(self.traversal))
+        if getattr(self, "_plan_key", None) == key:
+            return self._plan_steps
         cfg = self.config.render
         pixels = width * height
-        self._launch("clear", lambda: _clear[grid(pixels), BLOCK](f.image, pixels, f.counts, f.kind_count))
-        eye, forward, right, up, half_w, half_h = image_plane(self.scene, width, height)
-        queue = f.queues[0]
-        eye, basis = upload(eye.astype(np.float32)), upload(np.stack([forward, right, up]))
-        self._launch("camera", lambda: _camera[grid(pixels), BLOCK](eye, basis, half_w, half_h, width, height,
-                                                                    *queue, f.counts))
-        events = []
+        steps = [("clear", PreparedLaunch(_clear, grid(pixels), BLOCK, (f.image, pixels, f.counts, f.kind_count)), None),
+                 ("camera", PreparedLaunch(_camera, grid(pixels), BLOCK, (f.eye, f.basis, half_w, half_h, width, height,
+                                                                         *f.queues[0], f.counts)), None)]
         bound = pixels
         for gen in range(cfg.max_depth + 1):
             spawn = gen < cfg.max_depth
-            nxt = f.queues[(gen + 1) % 2]
-            self._generation(f, gen, queue, nxt, bound, spawn, gen < cfg.max_reflection_depth, width, height, events)
+            steps += self._generation_steps(f, gen, bound, spawn, gen < cfg.max_reflection_depth, width, height)
             if not spawn:
                 break
-            queue = nxt
             bound = min(3 * bound, f.capacity)
-        return events
-
-    def _timed(self, events, kind, launch) -> None:
-        """Run ``launch()`` between two CUDA events (the frame's next pair), kept for the trace
-        time of ``kind``."""
-        begin, end = self.arrays.events[len(events)]
-        begin.record()
-        self._launch(f"trace {kind}", launch)
-        end.record()
-        events.append((kind, begin, end))
+        self._plan_key, self._plan_steps = key, steps
+        return steps
 
     def _launch(self, name: str, launch) -> None:
         """``launch()``; while profiling, timed on the host alone and to the GPU's finish."""
@@ -405,37 +419,37 @@ class GpuWhittedRenderer:
         row[1] += time.perf_counter() - start
         row[2] += 1
 
-    def _generation(self, f, gen, queue, nxt, bound, spawn, reflect, width, height, events) -> None:
-        """Enqueue one generation: trace ``queue`` (at most ``bound`` rays), shade it, trace its
-        shadow rays, light it and write its children into ``nxt``."""
+    def _generation_steps(self, f, gen, bound, spawn, reflect, width, height) -> list:
+        """The steps of one generation: trace its queue (at most ``bound`` rays), shade it, trace
+        its shadow rays, light it and write its children into the other queue."""
+        queue, nxt = f.queues[gen % 2], f.queues[(gen + 1) % 2]
         q_vec, q_scalar, q_pixel, q_kind = queue
         t = self.device_tris
         # A secondary queue mixes reflections and refractions; it is traced by the reflection
         # traversal (the config's refraction entry applies when both kinds name the same one).
         kind = "primary" if gen == 0 else "reflection"
-        trace = self.traversal[kind]
-        rays = f.trace_views[gen % 2]
-        self._timed(events, kind, lambda: trace.closest_queue(*rays, f.count_views[2 * gen], bound, width, height,
-                                                              *f.hit_views))
+        steps = [(f"trace {kind}", self.traversal[kind].queue_launch(
+            "closest", *f.trace_views[gen % 2], f.count_views[2 * gen], bound, width, height, *f.hit_views), kind)]
         if self.observer is not None:
-            self._observe_closest(f, gen, queue)
-        self._launch("shade", lambda: _shade[grid(bound), BLOCK](
+            steps.append(("observe", functools.partial(self._observe_closest, f, gen, queue), None))
+        steps.append(("shade", PreparedLaunch(_shade, grid(bound), BLOCK, (
             f.counts, gen, q_vec, q_pixel, f.hit_tuv, f.hit_prim, t.vec, t.normals, t.uvs, t.material, t.magnitude,
             t.has_normals, t.has_uvs, self.mat_vec, self.mat_texture, self.texels, self.ambient_light,
             self.background, f.image, f.surf_vec, f.surf_magnitude, f.surf_flags, f.surf_material, self.n_lights,
-            self.lights, f.light_dir, f.light_scalar, f.lit, f.shadow_slot, *f.shadow, f.shadow_capacity))
+            self.lights, f.light_dir, f.light_scalar, f.lit, f.shadow_slot, *f.shadow, f.shadow_capacity)), None))
         if self.n_lights:
-            shadow = self.traversal["shadow"]
-            self._timed(events, "shadow", lambda: shadow.occluded_queue(
-                *f.shadow_views, f.count_views[2 * gen + 1], bound * self.n_lights, width, height, f.occluded))
+            steps.append(("trace shadow", self.traversal["shadow"].queue_launch(
+                "occluded", *f.shadow_views, f.count_views[2 * gen + 1], bound * self.n_lights, width, height,
+                f.occluded), "shadow"))
             if self.observer is not None:
-                self._observe_shadow(f, gen)
+                steps.append(("observe", functools.partial(self._observe_shadow, f, gen), None))
         n_vec, n_scalar, n_pixel, n_kind = nxt
-        self._launch("light and spawn", lambda: _light_and_spawn[grid(bound), BLOCK](
+        steps.append(("light and spawn", PreparedLaunch(_light_and_spawn, grid(bound), BLOCK, (
             f.counts, gen, q_vec, q_pixel, f.surf_vec, f.surf_magnitude, f.surf_flags, f.surf_material, self.mat_vec,
             self.mat_scalar, self.n_lights, self.light_colors, f.light_dir, f.light_scalar, f.shadow_slot,
             f.occluded, f.image, spawn, reflect, f.child_flags, f.child_vec, n_vec, n_scalar, n_pixel, n_kind,
-            f.kind_count))
+            f.kind_count)), None))
+        return steps
 
     # -- the audit's view ---------------------------------------------------------------------
     def _observe_closest(self, f, gen, queue) -> None:

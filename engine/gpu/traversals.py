@@ -2,6 +2,8 @@
 says which name selects which)."""
 from __future__ import annotations
 
+import functools
+
 from engine.core.types import RAY_KINDS
 from engine.render.device_names import device_traversal_name
 
@@ -45,6 +47,11 @@ class HostCounted:
         n = self._n(count, min(bound, org.shape[0]))
         if n > 0:
             self.traversal.occluded(org, dirs, tmin, tmax, pixel, n, width, height, out)
+
+    def queue_launch(self, query: str, *args):
+        """A callable running ``closest_queue`` / ``occluded_queue`` on these arguments."""
+        method = self.closest_queue if query == "closest" else self.occluded_queue
+        return functools.partial(method, *args)
 
 
 def make_device_traversal(name: str, device_bvh, device_tris, host_tris, options: dict | None = None):

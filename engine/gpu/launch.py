@@ -1,0 +1,57 @@
+"""Kernel launches prepared once and replayed every frame.
+
+A numba-cuda launch turns each argument into its driver form in Python, several microseconds
+per array: a frame of two dozen launches with twenty to thirty arrays each spends more time
+there than the GPU spends tracing. The frame's arrays never move between frames, so
+``PreparedLaunch`` converts the arguments once and every later call goes straight to the
+driver's launch.
+
+That conversion is numba-cuda's own (``_Kernel._prepare_args``, the step ``_Kernel.launch``
+runs); it is not public API, so a version where it moved falls back, silently and correctly, to
+the ordinary ``kernel[blocks, threads](*args)`` (as does the simulator).
+"""
+from __future__ import annotations
+
+import functools
+
+from engine.gpu.device import simulated
+
+
+class PreparedLaunch:
+    """``kernel[blocks, threads](*args)`` as a callable whose arguments are converted once.
+    Device arrays in ``args`` must stay allocated while it is used; host arrays are refused."""
+
+    def __init__(self, kernel, blocks: int, threads: int, args: tuple):
+        self.kernel, self.blocks, self.threads, self.args = kernel, blocks, threads, tuple(args)
+        self.fast = None
+        if not simulated():
+            try:
+                self.fast = _prepare(kernel, blocks, threads, self.args)
+            except Exception:  # noqa: BLE001 - numba-cuda internals moved: the ordinary path
+                self.fast = None
+
+    def __call__(self) -> None:
+        if self.fast is not None:
+            self.fast()
+        else:
+            self.kernel[self.blocks, self.threads](*self.args)
+
+
+def _prepare(dispatcher, blocks: int, threads: int, args: tuple):
+    """The driver-level launch of ``dispatcher`` with ``args`` converted, as ``_Kernel.launch``
+    does it (numba-cuda 0.2x-0.3x)."""
+    from numba.cuda import dispatcher as numba_dispatcher
+
+    kernel = dispatcher._compile_for_args(*args)
+    if getattr(kernel, "debug", False) or kernel.extensions:
+        raise RuntimeError("debug kernels and argument extensions take the ordinary path")
+    function = kernel._codelibrary.get_cufunc()
+    converted, write_back = [], []
+    for kind, value in zip(kernel.argument_types, args):
+        kernel._prepare_args(kind, value, 0, write_back, converted)
+    if write_back:
+        raise RuntimeError("host arrays would be copied at every launch")
+    flag = "is_cooperative" if numba_dispatcher.CUDA_CORE_GE_1_0 else "cooperative_launch"
+    config = numba_dispatcher.LaunchConfig(grid=(blocks, 1, 1), block=(threads, 1, 1), shmem_size=0,
+                                           **{flag: kernel.cooperative})
+    return functools.partial(numba_dispatcher.launch, 0, config, function.kernel, *converted)
