@@ -41,6 +41,7 @@ def _prepare(dispatcher, blocks: int, threads: int, args: tuple):
     """The driver-level launch of ``dispatcher`` with ``args`` converted, as ``_Kernel.launch``
     does it (numba-cuda 0.2x-0.3x)."""
     from numba.cuda import dispatcher as numba_dispatcher
+    from numba.cuda.cudadrv import driver
 
     kernel = dispatcher._compile_for_args(*args)
     if getattr(kernel, "debug", False) or kernel.extensions:
@@ -54,4 +55,5 @@ def _prepare(dispatcher, blocks: int, threads: int, args: tuple):
     flag = "is_cooperative" if numba_dispatcher.CUDA_CORE_GE_1_0 else "cooperative_launch"
     config = numba_dispatcher.LaunchConfig(grid=(blocks, 1, 1), block=(threads, 1, 1), shmem_size=0,
                                            **{flag: kernel.cooperative})
-    return functools.partial(numba_dispatcher.launch, 0, config, function.kernel, *converted)
+    stream = driver._to_core_stream(0)  # the default stream, as an ordinary launch gets it
+    return functools.partial(numba_dispatcher.launch, stream, config, function.kernel, *converted)
