@@ -32,9 +32,12 @@ class PreparedLaunch:
 
     def __call__(self) -> None:
         if self.fast is not None:
-            self.fast()
-        else:
-            self.kernel[self.blocks, self.threads](*self.args)
+            try:
+                self.fast()
+                return
+            except TypeError:  # the driver call's signature moved: nothing was launched
+                self.fast = None
+        self.kernel[self.blocks, self.threads](*self.args)
 
 
 def _prepare(dispatcher, blocks: int, threads: int, args: tuple):
