@@ -1,0 +1,104 @@
+"""The CUDA device without a GPU: every GPU kernel of the frame runs on numba's CUDA simulator
+(``NUMBA_ENABLE_CUDASIM=1``, in a child process, since the simulator replaces numba.cuda for
+the whole process) on a tiny scene, and is compared with the CPU renderer and with Embree.
+
+Speed is never asserted here: the simulator runs each GPU thread as a Python thread.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def simulated(*args, timeout=300):
+    """Run ``python args...`` in the repository root under the CUDA simulator."""
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, *args], cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def frame_check():
+    run = simulated("-m", "tests.gpu_sim_frame_check", "13", "11", "bvh", "3")
+    assert run.returncode == 0, run.stderr[-3000:]
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def test_gpu_frame_casts_the_cpu_frames_rays(frame_check):
+    # The same rays of every kind: the queues hold what the CPU packets hold.
+    assert frame_check["rays_gpu"] == frame_check["rays_cpu"]
+    assert frame_check["rays_cpu"]["shadow"] > 0
+    assert frame_check["rays_cpu"]["reflection"] > 0 and frame_check["rays_cpu"]["refraction"] > 0
+
+
+def test_gpu_image_equals_the_cpu_image(frame_check):
+    # The simulator runs the shared per-lane functions as Python: the images agree to the
+    # rounding of the per-pixel sums (the GPU adds a pixel's contributions in any order).
+    assert frame_check["image_nonzero"] == 13 * 11
+    assert frame_check["max_abs_difference"] <= 1e-5
+    assert frame_check["pixels_over_1_255"] == 0
+
+
+def test_every_gpu_ray_agrees_with_embree(frame_check):
+    total = sum(frame_check["rays_gpu"].values())
+    assert frame_check["audit_checked"] == total
+    assert frame_check["audit_mismatches"] == 0
+    assert frame_check["traversal"] == dict.fromkeys(("primary", "shadow", "reflection", "refraction"), "bvh")
+
+
+def test_gpu_benchmark_runs_on_the_simulator(tmp_path):
+    matrix = tmp_path / "gpu-tiny.toml"
+    matrix.write_text('kind = "gpu"\nname = "gpu-tiny"\nresolution = 8\nrepeat_rays = 1\nrepeat_frames = 1\n'
+                      '[[scene]]\nname = "whitted"\nparams = {checks = 2, subdivisions = 0}\n'
+                      'recursion = "kitchen-full"\nrays = ["primary", "shadow-all", "bounce"]\n'
+                      '[[variant]]\nlabel = "bvh"\ntraversal = "bvh"\n')
+    run = simulated("-m", "engine.cli", "bench", str(matrix), "--device", "cuda", "--out", str(tmp_path / "out"))
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads((tmp_path / "out" / "gpu.json").read_text())
+    assert [r["rays"] for r in result["rays"]] == ["primary", "shadow-all", "bounce"]
+    assert all(r["bvh"]["embree"]["mismatches"] == 0 for r in result["rays"])
+    assert result["audits"][0]["mismatches"] == 0 and result["audits"][0]["checked"] > 64
+    assert result["images"][0]["over_1_255"] == 0
+    assert "| whitted |" in (tmp_path / "out" / "gpu.md").read_text()
+
+
+def test_device_cuda_without_a_gpu_is_one_clean_line():
+    from numba import cuda
+
+    if cuda.is_available():
+        pytest.skip("this machine has a CUDA GPU")
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_ENABLE_CUDASIM"}
+    run = subprocess.run([sys.executable, "-m", "engine.cli", "render", "--device", "cuda", "--size", "8x8",
+                          "-o", os.devnull], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and "device 'cuda'" in lines[0] and "Traceback" not in run.stderr
+
+
+def test_device_names_are_checked_without_cuda():
+    from engine.core.errors import ConfigError
+    from engine.render import config as cfg
+
+    with pytest.raises(ConfigError, match="render.device must be one of cpu, cuda"):
+        cfg.from_dict({"render": {"device": "tpu"}})
+    with pytest.raises(ConfigError, match="'embree' has no CUDA version"):
+        cfg.from_dict({"render": {"device": "cuda"}, "traversal": {"shadow": "embree"}})
+    # CPU BVH traversal names run as the device's bvh; the config stays as written.
+    config = cfg.from_dict({"render": {"device": "cuda"}, "traversal": {"primary": "ranged"}})
+    from engine.render.device_names import device_traversal_name
+
+    assert device_traversal_name(config.traversal.primary) == "bvh"
+    assert device_traversal_name("rayspace") == "rayspace"
+
+
+def test_cpu_only_commands_refuse_the_gpu(tmp_path):
+    run = subprocess.run([sys.executable, "-m", "engine.cli", "show", "--device", "cuda", "-o",
+                          str(tmp_path / "s.png")], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and "not supported here" in run.stderr
