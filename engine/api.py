@@ -355,6 +355,11 @@ class RayTracer:
     packet         n of the n x n packets (2, 4, 8, 16, 32).
     threads        numba threads for the queries (0 = all cores).
     leaf_size, bins  BVH build settings, as in a config's [render] table.
+    device         "cpu" (default) or "cuda": queries on the GPU (``engine.gpu.queries``), by the
+                   device's ``bvh`` traversal (any BVH traversal name selects it). Rays given as
+                   device arrays (torch, CuPy, numba: ``__cuda_array_interface__``) are traced in
+                   place and answered with device arrays; numpy rays are copied once and
+                   answered with numpy arrays. ``render`` then renders on the GPU too.
 
     Every query takes ``(origins (n,3), directions (n,3))`` plus optional ``tmin`` / ``tmax``
     keywords (scalars or (n,) arrays; defaults 0 and inf) and answers in input order.
@@ -363,7 +368,7 @@ class RayTracer:
     """
 
     def __init__(self, mesh_or_scene, traversal: str = "partition", frustum: str = "general",
-                 packet: int = 8, *, threads: int = 0, leaf_size: int = 4, bins: int = 16):
+                 packet: int = 8, *, threads: int = 0, leaf_size: int = 4, bins: int = 16, device: str = "cpu"):
         from engine.core.bvh import build_bvh, scene_bounds
         from engine.packet.layout import check_packet_size
         from engine.render.plugins import make_frustum, make_traversal
@@ -376,9 +381,19 @@ class RayTracer:
         self.threads = int(threads)
         if self.threads < 0:
             raise ApiArgumentError(f"threads must be >= 0 (0 = all cores), got {threads}")
+        if device not in ("cpu", "cuda"):
+            raise ApiArgumentError(f"device must be 'cpu' or 'cuda', got {device!r}")
+        self.device = device
         try:  # the plugin layers raise ConfigError; the API's mistakes are ValueErrors too
             self.packet = check_packet_size(packet)
             self.traversal_name, self.frustum_name = traversal, frustum
+            if device == "cuda":
+                from engine.render.device_names import device_traversal_name
+
+                if device_traversal_name(traversal) != "bvh":
+                    raise ApiArgumentError(f"RayTracer(device='cuda') traces with the device's bvh traversal; "
+                                           f"got traversal={traversal!r}")
+                traversal = "single" if traversal == "bvh" else traversal  # the CPU side's reference
             self.traversal = make_traversal(traversal)
             self.frustum = make_frustum(frustum)
         except ConfigError as exc:
@@ -390,10 +405,16 @@ class RayTracer:
         self.tracer = Tracer(self.bvh, self.triangles, self.bounds, dict.fromkeys(RAY_KINDS, self.traversal),
                              dict.fromkeys(RAY_KINDS, self.frustum))
         self.tracer.prepare()
+        self.device_queries = None
+        if device == "cuda":
+            from engine.gpu.queries import DeviceQueries
+
+            self.device_queries = DeviceQueries(self.triangles, self.bvh)
 
     def __repr__(self) -> str:
         return (f"RayTracer({self.scene.name!r}, {self.scene.n_triangles:,} triangles, "
-                f"traversal={self.traversal_name!r}, frustum={self.frustum_name!r}, packet={self.packet})")
+                f"traversal={self.traversal_name!r}, frustum={self.frustum_name!r}, packet={self.packet}, "
+                f"device={self.device!r})")
 
     # -- the two queries ---------------------------------------------------------------
     def _batch(self, kind, origins, directions, tmin, tmax):
@@ -418,8 +439,10 @@ class RayTracer:
         origins, directions: (n, 3); tmin, tmax: scalars or (n,) (defaults 0, inf).
         Returns ``Hits`` of (n,) arrays in input order: t f32 (inf = miss; hit point =
         origin + t * direction), prim i32 (triangle index, -1 = miss), u, v f32 (barycentrics
-        of v1 and v2).
+        of v1 and v2). With ``device="cuda"``, device-array rays get device-array answers.
         """
+        if self.device_queries is not None:
+            return self.device_queries.intersect(origins, directions, tmin, tmax, check_rays)
         batch = self._batch("reflection", origins, directions, tmin, tmax)
         if batch is None:
             return empty_hits(0)
@@ -429,7 +452,10 @@ class RayTracer:
         return Hits(*(np.ascontiguousarray(a[lane]) for a in hits))
 
     def occluded(self, origins, directions, tmin=None, tmax=None) -> np.ndarray:
-        """bool (n,): does ray i hit anything with tmin <= t <= tmax (any hit, early exit)."""
+        """bool (n,): does ray i hit anything with tmin <= t <= tmax (any hit, early exit).
+        With ``device="cuda"``, device-array rays get a u8 (n,) device array (1 = occluded)."""
+        if self.device_queries is not None:
+            return self.device_queries.occluded(origins, directions, tmin, tmax, check_rays)
         batch = self._batch("shadow", origins, directions, tmin, tmax)
         if batch is None:
             return np.zeros(0, np.bool_)
@@ -485,13 +511,17 @@ class RayTracer:
         document ``packetrt render --stats`` writes; ``counters=True`` fills its traversal
         counters from a second, counting render.
         """
+        from dataclasses import replace
+
         from engine.core.scene import override_materials
+        from engine.gpu.choose import new_renderer
         from engine.render.report import stats_dict
-        from engine.render.whitted import WhittedRenderer
 
         cfg = _as_config(config)
+        if self.device == "cuda" and cfg.render.device != "cuda":
+            cfg = replace(cfg, render=replace(cfg.render, device="cuda"))
         scene = override_materials(self.scene, cfg.override)
-        renderer = WhittedRenderer(scene, cfg)
+        renderer = new_renderer(scene, cfg)
         result = renderer.render()
         if counters:
             renderer.with_counters(result)

@@ -102,3 +102,15 @@ def test_cpu_only_commands_refuse_the_gpu(tmp_path):
     run = subprocess.run([sys.executable, "-m", "engine.cli", "show", "--device", "cuda", "-o",
                           str(tmp_path / "s.png")], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert run.returncode == 2 and "not supported here" in run.stderr
+
+
+def test_ray_tracer_on_the_device_answers_as_the_cpu_does():
+    run = simulated("-m", "tests.gpu_sim_api_check")
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert result["hits"] > 10
+    assert result["host_equal"] and result["host_types"] == ["ndarray"] * 4
+    assert result["device_equal"] and result["device_stays_on_device"]
+    assert result["occluded_equal"]
+    assert result["errors"] == ["DeviceQueryError", "DeviceQueryError", "ApiArgumentError"]
+    assert result["render_device"] == "cuda" and result["render_difference"] <= 1e-5

@@ -60,3 +60,15 @@ def device_name() -> str:
 def blocks(n: int) -> int:
     """Blocks of BLOCK threads that cover n items (at least one)."""
     return max(1, -(-int(n) // BLOCK))
+
+
+def on_device(value):
+    """A numba device array viewing ``value`` when it already lives on the GPU (a numba device
+    array, or any object with ``__cuda_array_interface__``: torch, CuPy), without a copy; None
+    for anything else (numpy arrays, lists, scalars)."""
+    cuda = require_cuda()
+    if cuda.devicearray.is_cuda_ndarray(value):
+        return value
+    if hasattr(value, "__cuda_array_interface__"):
+        return cuda.as_cuda_array(value)
+    return None

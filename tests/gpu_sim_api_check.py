@@ -1,0 +1,51 @@
+"""Run under numba's CUDA simulator (in its own process): ``RayTracer(device="cuda")`` against
+the CPU ``RayTracer`` on host rays and on device rays. Prints one JSON object
+(``tests/test_gpu_frame.py`` checks it)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+
+def main() -> dict:
+    from numba import cuda
+
+    from engine.api import RayTracer
+    from engine.core.errors import PacketrtError
+    from scenes.catalog import load_named
+
+    scene = load_named("whitted", {"checks": 2, "subdivisions": 0})
+    cpu = RayTracer(scene, "single", "none")
+    gpu = RayTracer(scene, device="cuda")
+    rng = np.random.default_rng(3)
+    org = np.tile(np.array([[0.0, 1.0, 6.0]], np.float32), (60, 1))
+    d = (rng.random((60, 3)) - 0.5).astype(np.float32)
+    d[:, 2] = -1
+    tmax = np.where(rng.random(60) < 0.3, 3.0, np.inf).astype(np.float32)
+    want = cpu.intersect(org, d, tmax=tmax)
+    host = gpu.intersect(org, d, tmax=tmax)
+    device = gpu.intersect(cuda.to_device(org), cuda.to_device(d), tmax=cuda.to_device(tmax))
+    errors = []
+    for bad in (lambda: gpu.intersect(cuda.to_device(org.astype(np.float64)), cuda.to_device(d)),
+                lambda: gpu.intersect(cuda.to_device(org), d),
+                lambda: RayTracer(scene, "embree", device="cuda")):
+        try:
+            bad()
+            errors.append("accepted")
+        except PacketrtError as error:
+            errors.append(type(error).__name__)
+    image_gpu, stats = gpu.render({"render": {"width": 9, "height": 7}})
+    image_cpu, _ = cpu.render({"render": {"width": 9, "height": 7}})
+    return {"hits": int((want.prim >= 0).sum()),
+            "host_equal": all(np.array_equal(a, b) for a, b in zip(want, host)),
+            "host_types": [type(a).__name__ for a in host],
+            "device_equal": all(np.array_equal(a.copy_to_host(), b) for a, b in zip(device, want)),
+            "device_stays_on_device": not isinstance(device.t, np.ndarray),
+            "occluded_equal": bool(np.array_equal(gpu.occluded(org, d, tmax=tmax), cpu.occluded(org, d, tmax=tmax))),
+            "errors": errors, "render_difference": float(np.abs(image_gpu - image_cpu).max()),
+            "render_device": stats["config"]["render"]["device"]}
+
+
+if __name__ == "__main__":
+    print(json.dumps(main()))
