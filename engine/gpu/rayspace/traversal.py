@@ -82,14 +82,15 @@ class DeviceRaySpace:
         self.last = new_record(0)
 
     # -- the two queries ---------------------------------------------------------------
-    def closest(self, org, dirs, tmin, tmax, pixel, n, width, height, t_out, prim_out, u_out, v_out) -> None:
+    def closest(self, org, dirs, tmin, tmax, pixel, n, width, height, t_out, prim_out, u_out, v_out,
+                light=None) -> None:
         """Closest hits of rays 0 .. n-1 of a device queue.
 
         org, dirs: f32[C,3]; tmin, tmax: f32[C]; pixel: i32[C] ancestral pixel y * width + x on
         the width x height screen (several rays may share one; -1 or tmax < tmin = dead);
         C >= n. Writes t_out f32, prim_out i32, u_out, v_out f32 (length >= n): the hit of the
         shared watertight test over all triangles with the smallest t, ties to the smaller
-        index (inf, -1, 0, 0 on a miss), bit for bit the CPU's answer.
+        index (inf, -1, 0, 0 on a miss), bit for bit the CPU's answer. light: as ``occluded``.
         """
         n = int(n)
         best_t = self.scratch.get("best_t", n, np.float32)
@@ -107,7 +108,7 @@ class DeviceRaySpace:
             final._merge_batch[blocks(n), BLOCK](n, org, dirs, tmin, tmax, tris.v0, tris.v1, tris.v2, best_t,
                                                  best_prim, t_out, prim_out, u_out, v_out)
 
-        self._trace(org, dirs, tmin, tmax, pixel, n, width, height, None, finish)
+        self._trace(org, dirs, tmin, tmax, pixel, n, width, height, light, finish)
 
     def occluded(self, org, dirs, tmin, tmax, pixel, n, width, height, out, light=None) -> None:
         """Any hit of rays 0 .. n-1 (arguments as ``closest``): out[r] = 1 (or True) when some
