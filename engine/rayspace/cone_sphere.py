@@ -190,7 +190,7 @@ def _sort_slots(pixel, tmin, tmax, width, block_width, n_blocks):
 
 
 @njit(cache=True)
-def _store_length(x):
+def store_length(x):
     """float64 length >= 0 -> float32 no smaller (inf stays inf)."""
     return np.float32(x * GROWTH)
 
@@ -239,17 +239,17 @@ def leaf_node(centre, radius, axis, alpha, cos_a, sin_a, far, slot_ray, s, org, 
         centre[s, 0] = ax
         centre[s, 1] = ay
         centre[s, 2] = az
-        radius[s] = _store_length(gap)
-        far[s] = _store_length(reach)
+        radius[s] = store_length(gap)
+        far[s] = store_length(reach)
         sign = -1.0
     else:
         centre[s, 0] = org[r, 0]
         centre[s, 1] = org[r, 1]
         centre[s, 2] = org[r, 2]
         behind = max(0.0, -lo) * length
-        radius[s] = _store_length(behind)
+        radius[s] = store_length(behind)
         # A zero direction reaches nowhere (and 0 * inf would be NaN).
-        far[s] = _store_length(max(behind, hi * length)) if length > 0 else radius[s]
+        far[s] = store_length(max(behind, hi * length)) if length > 0 else radius[s]
     if length > 0:
         axis[s, 0] = np.float32(sign * dx / length)
         axis[s, 1] = np.float32(sign * dy / length)
@@ -278,7 +278,7 @@ def _leaf_nodes(h, org, dirs, tmin, tmax, reverse, ax, ay, az):
 
 
 @njit(cache=True)
-def _grow_sphere(cx, cy, cz, r, ox, oy, oz, orad):
+def grow_sphere(cx, cy, cz, r, ox, oy, oz, orad):
     """Smallest sphere holding the spheres (c, r) and (o, orad), float64."""
     dx, dy, dz = ox - cx, oy - cy, oz - cz
     dist = np.sqrt(dx * dx + dy * dy + dz * dz)
@@ -292,7 +292,7 @@ def _grow_sphere(cx, cy, cz, r, ox, oy, oz, orad):
 
 
 @njit(cache=True)
-def _grow_cone(ax, ay, az, a, bx, by, bz, b):
+def grow_cone(ax, ay, az, a, bx, by, bz, b):
     """Smallest cone (about a great-circle blend of the axes) holding cones (A, a) and (B, b)."""
     # Exactly unit axes first: float32-stored ones are off by ~1e-7, and for near-opposite
     # axes the blend below divides by sin(theta), which would magnify that into the angle.
@@ -354,8 +354,8 @@ def merge_node(centre, radius, axis, alpha, cos_a, sin_a, far, level_offset, blo
             ax, ay, az, spread = oax, oay, oaz, np.float64(alpha[n])
             found = True
         else:
-            cx, cy, cz, rad = _grow_sphere(cx, cy, cz, rad, ocx, ocy, ocz, np.float64(radius[n]))
-            ax, ay, az, spread = _grow_cone(ax, ay, az, spread, oax, oay, oaz, np.float64(alpha[n]))
+            cx, cy, cz, rad = grow_sphere(cx, cy, cz, rad, ocx, ocy, ocz, np.float64(radius[n]))
+            ax, ay, az, spread = grow_cone(ax, ay, az, spread, oax, oay, oaz, np.float64(alpha[n]))
     if not found:
         radius[parent] = EMPTY
         far[parent] = EMPTY
@@ -379,8 +379,8 @@ def merge_node(centre, radius, axis, alpha, cos_a, sin_a, far, level_offset, blo
         gap = np.sqrt(gx * gx + gy * gy + gz * gz)
         rad = max(rad, gap + np.float64(radius[n]))
         reach = max(reach, gap + np.float64(far[n]))
-    radius[parent] = _store_length(rad)
-    far[parent] = _store_length(reach)
+    radius[parent] = store_length(rad)
+    far[parent] = store_length(reach)
     axis[parent, 0], axis[parent, 1], axis[parent, 2] = ax, ay, az
     if spread > 0:
         spread = spread + ANGLE_SLACK

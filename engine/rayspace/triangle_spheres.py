@@ -16,7 +16,7 @@ RADIUS_GROWTH = 1.0 + 2.0 ** -20
 
 
 @njit(cache=True)
-def _smallest_sphere(ax, ay, az, bx, by, bz, cx, cy, cz):
+def smallest_sphere(ax, ay, az, bx, by, bz, cx, cy, cz):
     """Centre (float64 x, y, z) of the smallest sphere holding the points a, b, c."""
     abx, aby, abz = bx - ax, by - ay, bz - az
     acx, acy, acz = cx - ax, cy - ay, cz - az
@@ -52,7 +52,7 @@ def store_sphere(v0, v1, v2, i, centre, radius):
     ax, ay, az = np.float64(v0[i, 0]), np.float64(v0[i, 1]), np.float64(v0[i, 2])
     bx, by, bz = np.float64(v1[i, 0]), np.float64(v1[i, 1]), np.float64(v1[i, 2])
     cx, cy, cz = np.float64(v2[i, 0]), np.float64(v2[i, 1]), np.float64(v2[i, 2])
-    sx, sy, sz = _smallest_sphere(ax, ay, az, bx, by, bz, cx, cy, cz)
+    sx, sy, sz = smallest_sphere(ax, ay, az, bx, by, bz, cx, cy, cz)
     centre[i, 0] = np.float32(sx)
     centre[i, 1] = np.float32(sy)
     centre[i, 2] = np.float32(sz)

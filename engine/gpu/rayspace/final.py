@@ -4,14 +4,14 @@ The last stream holds (slot, triangle) pairs. Every pair gets the shared waterti
 (``engine.core.triangle.intersect_triangle``'s twin, with the ray's own [tmin, tmax]); the
 closest hit per ray is found without sorting the pairs by ray, exactly and in any order:
 
-1. ``_nearest_t`` (per pair): t of the pair, kept; atomic min of t per ray;
-2. ``_nearest_prim`` (per pair): among the pairs whose t equals the ray's minimum, atomic min of
+1. ``nearest_t`` (per pair): t of the pair, kept; atomic min of t per ray;
+2. ``nearest_prim`` (per pair): among the pairs whose t equals the ray's minimum, atomic min of
    the triangle index (the tie rule of ``closer``: smaller t, then smaller index);
-3. ``_merge_batch`` (per ray): the winner's (t, u, v) recomputed by the same test (the same
+3. ``merge_batch`` (per ray): the winner's (t, u, v) recomputed by the same test (the same
    inputs give the same bits) and merged with ``closer`` into the answer of earlier triangle
    batches; the batch's per-ray minima are reset for the next batch.
 
-Occlusion is one kernel, ``_any_hit``: a pair whose ray is not yet known occluded sets its flag.
+Occlusion is one kernel, ``any_hit``: a pair whose ray is not yet known occluded sets its flag.
 """
 from __future__ import annotations
 
@@ -39,7 +39,7 @@ def _test(org, dirs, tmin, tmax, v0, v1, v2, r, tri):
 
 
 @cuda.jit
-def _reset_answers(n, t_out, prim_out, u_out, v_out, best_t, best_prim):
+def reset_answers(n, t_out, prim_out, u_out, v_out, best_t, best_prim):
     """Answers of rays 0 .. n-1 to misses; batch minima to empty."""
     r = cuda.grid(1)
     if r < n:
@@ -52,14 +52,14 @@ def _reset_answers(n, t_out, prim_out, u_out, v_out, best_t, best_prim):
 
 
 @cuda.jit
-def _reset_flags(n, flags):
+def reset_flags(n, flags):
     r = cuda.grid(1)
     if r < n:
         flags[r] = 0
 
 
 @cuda.jit
-def _nearest_t(slots, tris, n_pairs, slot_ray, org, dirs, tmin, tmax, v0, v1, v2, pair_t, best_t):
+def nearest_t(slots, tris, n_pairs, slot_ray, org, dirs, tmin, tmax, v0, v1, v2, pair_t, best_t):
     p = cuda.grid(1)
     if p < n_pairs:
         r = slot_ray[slots[p]]
@@ -70,7 +70,7 @@ def _nearest_t(slots, tris, n_pairs, slot_ray, org, dirs, tmin, tmax, v0, v1, v2
 
 
 @cuda.jit
-def _nearest_prim(slots, tris, n_pairs, slot_ray, pair_t, best_t, best_prim):
+def nearest_prim(slots, tris, n_pairs, slot_ray, pair_t, best_t, best_prim):
     p = cuda.grid(1)
     if p < n_pairs:
         r = slot_ray[slots[p]]
@@ -80,7 +80,7 @@ def _nearest_prim(slots, tris, n_pairs, slot_ray, pair_t, best_t, best_prim):
 
 
 @cuda.jit
-def _merge_batch(n, org, dirs, tmin, tmax, v0, v1, v2, best_t, best_prim, t_out, prim_out, u_out, v_out):
+def merge_batch(n, org, dirs, tmin, tmax, v0, v1, v2, best_t, best_prim, t_out, prim_out, u_out, v_out):
     r = cuda.grid(1)
     if r < n:
         tri = best_prim[r]
@@ -96,7 +96,7 @@ def _merge_batch(n, org, dirs, tmin, tmax, v0, v1, v2, best_t, best_prim, t_out,
 
 
 @cuda.jit
-def _any_hit(slots, tris, n_pairs, slot_ray, org, dirs, tmin, tmax, v0, v1, v2, flags):
+def any_hit(slots, tris, n_pairs, slot_ray, org, dirs, tmin, tmax, v0, v1, v2, flags):
     p = cuda.grid(1)
     if p < n_pairs:
         r = slot_ray[slots[p]]

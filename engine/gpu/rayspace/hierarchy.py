@@ -33,17 +33,19 @@ from engine.rayspace.cone_sphere import TEST_SLACK, level_grid
 
 cuda = require_cuda()
 
-_store_length = device_twin(cone_sphere._store_length)
+# Device twins of the CPU build's helpers; each keyword re-binds a helper the twinned function
+# calls by name to that helper's own twin.
+_store_length = device_twin(cone_sphere.store_length)
 _reversed_segment = device_twin(cone_sphere.reversed_segment)
-_grow_sphere = device_twin(cone_sphere._grow_sphere)
-_grow_cone = device_twin(cone_sphere._grow_cone)
+_grow_sphere = device_twin(cone_sphere.grow_sphere)
+_grow_cone = device_twin(cone_sphere.grow_cone)
 child_grid = device_twin(cone_sphere.child_grid)
 node_overlap = device_twin(cone_sphere.node_overlap)
-_leaf_node = device_twin(cone_sphere.leaf_node, reversed_segment=_reversed_segment, _store_length=_store_length)
-_merge_node = device_twin(cone_sphere.merge_node, child_grid=child_grid, _grow_sphere=_grow_sphere,
-                          _grow_cone=_grow_cone, _store_length=_store_length)
+_leaf_node = device_twin(cone_sphere.leaf_node, reversed_segment=_reversed_segment, store_length=_store_length)
+_merge_node = device_twin(cone_sphere.merge_node, child_grid=child_grid, grow_sphere=_grow_sphere,
+                          grow_cone=_grow_cone, store_length=_store_length)
 _store_sphere = device_twin(triangle_spheres.store_sphere,
-                            _smallest_sphere=device_twin(triangle_spheres._smallest_sphere))
+                            smallest_sphere=device_twin(triangle_spheres.smallest_sphere))
 
 
 @dataclass
@@ -52,7 +54,8 @@ class DeviceHierarchy:
     S = ``n_slots`` live-ray slots; arrays may be longer than M, S: scratch views).
 
     centre, axis: f32[M,3]; radius (-1 = empty), alpha, cos_a, sin_a, far: f32[M].
-    level_offset: i64[levels+2] (and ``level_offset_host``, its host copy); level_width, level_height: i64[levels+1] (level 0: S x 1).
+    level_offset: i64[levels+2] (``level_offset_host``: its host copy); level_width,
+    level_height: i64[levels+1] (level 0: S x 1).
     block_start: i32[n1+1] (slots of level-1 block b); slot_ray: i32[S].
     sphere_c: f32[T,3], sphere_r: f32[T]: the triangles' bounding spheres; abs_tol: the test's
     absolute slack (float32). level_sizes: host list of the node count of every level.
@@ -231,17 +234,15 @@ def build(scratch: Scratch, scanner: Scanner, tris, org, dirs, tmin, tmax, pixel
     h = DeviceHierarchy(
         scratch.get("centre", m, f32, 3), scratch.get("radius", m, f32), scratch.get("axis", m, f32, 3),
         scratch.get("alpha", m, f32), scratch.get("cos_a", m, f32), scratch.get("sin_a", m, f32),
-        scratch.get("far", m, f32), cuda.to_device(level_offset), level_offset, cuda.to_device(widths), cuda.to_device(heights),
-        block_start, slot_ray, scratch.get("sphere_c", tris.count, f32, 3), scratch.get("sphere_r", tris.count, f32),
-        n_slots, int(levels), sizes, np.float32(0))
+        scratch.get("far", m, f32), cuda.to_device(level_offset), level_offset, cuda.to_device(widths),
+        cuda.to_device(heights), block_start, slot_ray, scratch.get("sphere_c", tris.count, f32, 3),
+        scratch.get("sphere_r", tris.count, f32), n_slots, int(levels), sizes, np.float32(0))
     node_arrays = (h.centre, h.radius, h.axis, h.alpha, h.cos_a, h.sin_a, h.far)
     if n_slots:
-        if light is None:
-            _leaves[blocks(n_slots), BLOCK](*node_arrays, slot_ray, n_slots, org, dirs, tmin, tmax, False, 0.0, 0.0, 0.0)
-        else:
-            a = np.asarray(light, np.float32).astype(np.float64)  # stored as a float32 centre
-            _leaves[blocks(n_slots), BLOCK](*node_arrays, slot_ray, n_slots, org, dirs, tmin, tmax, True,
-                                            float(a[0]), float(a[1]), float(a[2]))
+        # The light as the CPU stores a shared apex: a float32 point, used in float64.
+        a = np.zeros(3) if light is None else np.asarray(light, np.float32).astype(np.float64)
+        _leaves[blocks(n_slots), BLOCK](*node_arrays, slot_ray, n_slots, org, dirs, tmin, tmax, light is not None,
+                                        float(a[0]), float(a[1]), float(a[2]))
     for level in range(1, levels + 1):
         _inner[blocks(sizes[level]), BLOCK](*node_arrays, h.level_offset, block_start, h.level_width,
                                             h.level_height, level, sizes[level])

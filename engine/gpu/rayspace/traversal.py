@@ -96,16 +96,16 @@ class DeviceRaySpace:
         best_t = self.scratch.get("best_t", n, np.float32)
         best_prim = self.scratch.get("best_prim", n, np.int32)
         if n:
-            final._reset_answers[blocks(n), BLOCK](n, t_out, prim_out, u_out, v_out, best_t, best_prim)
+            final.reset_answers[blocks(n), BLOCK](n, t_out, prim_out, u_out, v_out, best_t, best_prim)
         tris = self.tris
 
         def finish(slots, cand, count):
             pair_t = self.scratch.get("pair_t", count, np.float32)
             args = (slots, cand, count, self._h.slot_ray)
-            final._nearest_t[blocks(count), BLOCK](*args, org, dirs, tmin, tmax, tris.v0, tris.v1, tris.v2, pair_t,
+            final.nearest_t[blocks(count), BLOCK](*args, org, dirs, tmin, tmax, tris.v0, tris.v1, tris.v2, pair_t,
                                                    best_t)
-            final._nearest_prim[blocks(count), BLOCK](*args, pair_t, best_t, best_prim)
-            final._merge_batch[blocks(n), BLOCK](n, org, dirs, tmin, tmax, tris.v0, tris.v1, tris.v2, best_t,
+            final.nearest_prim[blocks(count), BLOCK](*args, pair_t, best_t, best_prim)
+            final.merge_batch[blocks(n), BLOCK](n, org, dirs, tmin, tmax, tris.v0, tris.v1, tris.v2, best_t,
                                                  best_prim, t_out, prim_out, u_out, v_out)
 
         self._trace(org, dirs, tmin, tmax, pixel, n, width, height, light, finish)
@@ -120,11 +120,11 @@ class DeviceRaySpace:
         """
         n = int(n)
         if n:
-            final._reset_flags[blocks(n), BLOCK](n, out)
+            final.reset_flags[blocks(n), BLOCK](n, out)
         tris = self.tris
 
         def finish(slots, cand, count):
-            final._any_hit[blocks(count), BLOCK](slots, cand, count, self._h.slot_ray, org, dirs, tmin, tmax,
+            final.any_hit[blocks(count), BLOCK](slots, cand, count, self._h.slot_ray, org, dirs, tmin, tmax,
                                                  tris.v0, tris.v1, tris.v2, out)
 
         self._trace(org, dirs, tmin, tmax, pixel, n, width, height, light, finish)
