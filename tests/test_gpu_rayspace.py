@@ -166,6 +166,9 @@ def run(tmp_path_factory):
     _case(cases, "shadow_forward", shadow, "occluded", len(shadow.org))
     _case(cases, "batches", shadow, "closest", len(shadow.org), light=rays.light, budget=SMALL_BUDGET)
     _case(cases, "too_small", rays.primary, "closest", len(rays.primary.org), budget=1)
+    count = len(rays.primary.org)
+    _case(cases, "all_dead", rays.primary._replace(tmax=np.full(count, -1, np.float32)), "closest", count)
+    _case(cases, "off_screen", rays.primary._replace(pixel=rays.primary.pixel + 1), "closest", count)
     folder = tmp_path_factory.mktemp("gpu_rayspace")
     np.savez(folder / "cases.npz", **cases)
     env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1",
@@ -299,3 +302,12 @@ def test_budget_too_small_for_one_triangle_names_the_need(run):
     error = answers["too_small_report"].get("error", "")
     assert error.startswith("ConfigError: options.rayspace: pair_budget = 1 is too small"), error
     assert "raise pair_budget to at least" in error
+
+
+def test_all_dead_rays_miss_and_a_pixel_off_screen_is_refused(run):
+    _, answers, _ = run
+    stats = ok(answers, "all_dead")
+    assert stats["rays"] == 0 and stats["candidates"] == 0
+    assert (answers["all_dead_prim"] == -1).all() and np.isinf(answers["all_dead_t"]).all()
+    error = answers["off_screen_report"].get("error", "")
+    assert error == f"ValueError: ray pixel {SIZE * SIZE} is outside the {SIZE}x{SIZE} screen grid", error

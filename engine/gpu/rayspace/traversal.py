@@ -103,10 +103,10 @@ class DeviceRaySpace:
             pair_t = self.scratch.get("pair_t", count, np.float32)
             args = (slots, cand, count, self._h.slot_ray)
             final.nearest_t[blocks(count), BLOCK](*args, org, dirs, tmin, tmax, tris.v0, tris.v1, tris.v2, pair_t,
-                                                   best_t)
+                                                  best_t)
             final.nearest_prim[blocks(count), BLOCK](*args, pair_t, best_t, best_prim)
             final.merge_batch[blocks(n), BLOCK](n, org, dirs, tmin, tmax, tris.v0, tris.v1, tris.v2, best_t,
-                                                 best_prim, t_out, prim_out, u_out, v_out)
+                                                best_prim, t_out, prim_out, u_out, v_out)
 
         self._trace(org, dirs, tmin, tmax, pixel, n, width, height, light, finish)
 
@@ -125,7 +125,7 @@ class DeviceRaySpace:
 
         def finish(slots, cand, count):
             final.any_hit[blocks(count), BLOCK](slots, cand, count, self._h.slot_ray, org, dirs, tmin, tmax,
-                                                 tris.v0, tris.v1, tris.v2, out)
+                                                tris.v0, tris.v1, tris.v2, out)
 
         self._trace(org, dirs, tmin, tmax, pixel, n, width, height, light, finish)
 
