@@ -85,24 +85,31 @@ def cone_sphere_overlap(h, node, sx, sy, sz, rho, abs_tol):
     the distance from the centre to the wedge. Conservative: never False when a segment of
     the node meets the sphere. abs_tol: absolute slack for the coordinates' magnitude.
     """
-    r = h.radius[node]
-    vx = sx - h.centre[node, 0]
-    vy = sy - h.centre[node, 1]
-    vz = sz - h.centre[node, 2]
+    return node_overlap(h.centre, h.radius, h.axis, h.cos_a, h.sin_a, h.far, node, sx, sy, sz, rho, abs_tol)
+
+
+@njit(cache=True)
+def node_overlap(centre, radius, axis, cos_a, sin_a, far, node, sx, sy, sz, rho, abs_tol):
+    """``cone_sphere_overlap`` on the node arrays themselves (f32[M,3] / f32[M]), so the CPU
+    build and the device (``engine.gpu.rayspace``, through a twin) run the same test."""
+    r = radius[node]
+    vx = sx - centre[node, 0]
+    vy = sy - centre[node, 1]
+    vz = sz - centre[node, 2]
     dist = np.sqrt(vx * vx + vy * vy + vz * vz)
     grown = rho + r
     tol = TEST_SLACK * (dist + grown) + abs_tol
-    dx, dy, dz = h.axis[node, 0], h.axis[node, 1], h.axis[node, 2]
+    dx, dy, dz = axis[node, 0], axis[node, 1], axis[node, 2]
     a = vx * dx + vy * dy + vz * dz  # along the axis
     # The off-axis part from |v x d|, not sqrt(dist^2 - a^2): no cancellation near the axis.
     cx = vy * dz - vz * dy
     cy = vz * dx - vx * dz
     cz = vx * dy - vy * dx
     b = np.sqrt(cx * cx + cy * cy + cz * cz)
-    ca, sa = h.cos_a[node], h.sin_a[node]
+    ca, sa = cos_a[node], sin_a[node]
     # Every clause is evaluated and combined with & and | rather than branched on: the
     # outcome is unpredictable, and a mispredicted branch costs more than the arithmetic.
-    reach = dist - rho <= h.far[node] + tol   # not past the end of every segment
+    reach = dist - rho <= far[node] + tol   # not past the end of every segment
     apex = dist <= grown + tol                # the apex is inside the grown sphere
     # Signed distance to the wedge's edge line, negative inside the cone; it is the distance
     # to the wedge where the nearest wedge point is not the apex (a ca + b sa >= 0), which
@@ -123,15 +130,21 @@ def children(h, level, node):
     Level 1: the block's slots (one row). Coarser: the 2x2 nodes below, clipped at the
     grid's edge. One integer division per node, none per child.
     """
+    return child_grid(h.block_start, h.level_width, h.level_height, level, node)
+
+
+@njit(cache=True)
+def child_grid(block_start, level_width, level_height, level, node):
+    """``children`` on the layout arrays themselves (shared with the device build)."""
     if level == 1:
-        first = h.block_start[node]
-        return first, h.block_start[node + 1] - first, 1, 0
-    width = h.level_width[level]
+        first = block_start[node]
+        return first, block_start[node + 1] - first, 1, 0
+    width = level_width[level]
     y = node // width
     x0 = 2 * (node - y * width)
     y0 = 2 * y
-    below = h.level_width[level - 1]
-    return y0 * below + x0, min(2, below - x0), min(2, h.level_height[level - 1] - y0), below
+    below = level_width[level - 1]
+    return y0 * below + x0, min(2, below - x0), min(2, level_height[level - 1] - y0), below
 
 
 # ---------------------------------------------------------------------------------------
@@ -177,7 +190,7 @@ def _sort_slots(pixel, tmin, tmax, width, block_width, n_blocks):
 
 
 @njit(cache=True)
-def _store_length(x):
+def store_length(x):
     """float64 length >= 0 -> float32 no smaller (inf stays inf)."""
     return np.float32(x * GROWTH)
 
@@ -208,41 +221,49 @@ def _leaf_node(h, s, org, dirs, tmin, tmax, reverse, ax, ay, az):
     Forward: apex at the origin; a negative tmin puts the part behind the origin in the
     sphere. Reversed: apex at a, direction -dir, radius and reach from ``reversed_segment``.
     """
-    r = h.slot_ray[s]
+    leaf_node(h.centre, h.radius, h.axis, h.alpha, h.cos_a, h.sin_a, h.far, h.slot_ray, s, org, dirs, tmin, tmax,
+              reverse, ax, ay, az)
+
+
+@njit(cache=True)
+def leaf_node(centre, radius, axis, alpha, cos_a, sin_a, far, slot_ray, s, org, dirs, tmin, tmax, reverse,
+              ax, ay, az):
+    """``_leaf_node`` on the node arrays themselves (shared with the device build)."""
+    r = slot_ray[s]
     dx, dy, dz = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
     length = np.sqrt(dx * dx + dy * dy + dz * dz)
     lo, hi = np.float64(tmin[r]), np.float64(tmax[r])
     sign = 1.0
     if reverse and length > 0:
         gap, reach = reversed_segment(org, dirs, tmin, tmax, r, ax, ay, az)
-        h.centre[s, 0] = ax
-        h.centre[s, 1] = ay
-        h.centre[s, 2] = az
-        h.radius[s] = _store_length(gap)
-        h.far[s] = _store_length(reach)
+        centre[s, 0] = ax
+        centre[s, 1] = ay
+        centre[s, 2] = az
+        radius[s] = store_length(gap)
+        far[s] = store_length(reach)
         sign = -1.0
     else:
-        h.centre[s, 0] = org[r, 0]
-        h.centre[s, 1] = org[r, 1]
-        h.centre[s, 2] = org[r, 2]
+        centre[s, 0] = org[r, 0]
+        centre[s, 1] = org[r, 1]
+        centre[s, 2] = org[r, 2]
         behind = max(0.0, -lo) * length
-        h.radius[s] = _store_length(behind)
+        radius[s] = store_length(behind)
         # A zero direction reaches nowhere (and 0 * inf would be NaN).
-        h.far[s] = _store_length(max(behind, hi * length)) if length > 0 else h.radius[s]
+        far[s] = store_length(max(behind, hi * length)) if length > 0 else radius[s]
     if length > 0:
-        h.axis[s, 0] = np.float32(sign * dx / length)
-        h.axis[s, 1] = np.float32(sign * dy / length)
-        h.axis[s, 2] = np.float32(sign * dz / length)
-        h.alpha[s] = 0.0
-        h.cos_a[s] = 1.0
-        h.sin_a[s] = 0.0
+        axis[s, 0] = np.float32(sign * dx / length)
+        axis[s, 1] = np.float32(sign * dy / length)
+        axis[s, 2] = np.float32(sign * dz / length)
+        alpha[s] = 0.0
+        cos_a[s] = 1.0
+        sin_a[s] = 0.0
     else:  # a zero direction has no cone: allow every direction
-        h.axis[s, 0] = 0.0
-        h.axis[s, 1] = 0.0
-        h.axis[s, 2] = 1.0
-        h.alpha[s] = np.pi
-        h.cos_a[s] = -1.0
-        h.sin_a[s] = 0.0
+        axis[s, 0] = 0.0
+        axis[s, 1] = 0.0
+        axis[s, 2] = 1.0
+        alpha[s] = np.pi
+        cos_a[s] = -1.0
+        sin_a[s] = 0.0
 
 
 @njit(cache=True, parallel=True)
@@ -257,7 +278,7 @@ def _leaf_nodes(h, org, dirs, tmin, tmax, reverse, ax, ay, az):
 
 
 @njit(cache=True)
-def _grow_sphere(cx, cy, cz, r, ox, oy, oz, orad):
+def grow_sphere(cx, cy, cz, r, ox, oy, oz, orad):
     """Smallest sphere holding the spheres (c, r) and (o, orad), float64."""
     dx, dy, dz = ox - cx, oy - cy, oz - cz
     dist = np.sqrt(dx * dx + dy * dy + dz * dz)
@@ -271,7 +292,7 @@ def _grow_sphere(cx, cy, cz, r, ox, oy, oz, orad):
 
 
 @njit(cache=True)
-def _grow_cone(ax, ay, az, a, bx, by, bz, b):
+def grow_cone(ax, ay, az, a, bx, by, bz, b):
     """Smallest cone (about a great-circle blend of the axes) holding cones (A, a) and (B, b)."""
     # Exactly unit axes first: float32-stored ones are off by ~1e-7, and for near-opposite
     # axes the blend below divides by sin(theta), which would magnify that into the angle.
@@ -307,58 +328,66 @@ def _grow_cone(ax, ay, az, a, bx, by, bz, b):
 @njit(cache=True)
 def _merge_children(h, parent, level, local):
     """Parent node ``parent`` (global) from the children of node ``local`` at ``level`` >= 1."""
-    base = h.level_offset[level - 1]
-    first, nx, ny, stride = children(h, level, local)
+    merge_node(h.centre, h.radius, h.axis, h.alpha, h.cos_a, h.sin_a, h.far, h.level_offset, h.block_start,
+               h.level_width, h.level_height, parent, level, local)
+
+
+@njit(cache=True)
+def merge_node(centre, radius, axis, alpha, cos_a, sin_a, far, level_offset, block_start, level_width,
+               level_height, parent, level, local):
+    """``_merge_children`` on the node and layout arrays themselves (shared with the device build)."""
+    base = level_offset[level - 1]
+    first, nx, ny, stride = child_grid(block_start, level_width, level_height, level, local)
     # Pass 1: merged sphere and cone, children taken one by one.
     found = False
     cx = cy = cz = rad = 0.0
     ax = ay = az = 0.0
-    alpha = 0.0
+    spread = 0.0
     for j in range(nx * ny):
         n = base + first + (j // nx) * stride + j % nx
-        if h.radius[n] < 0:
+        if radius[n] < 0:
             continue
-        ocx, ocy, ocz = np.float64(h.centre[n, 0]), np.float64(h.centre[n, 1]), np.float64(h.centre[n, 2])
-        oax, oay, oaz = np.float64(h.axis[n, 0]), np.float64(h.axis[n, 1]), np.float64(h.axis[n, 2])
+        ocx, ocy, ocz = np.float64(centre[n, 0]), np.float64(centre[n, 1]), np.float64(centre[n, 2])
+        oax, oay, oaz = np.float64(axis[n, 0]), np.float64(axis[n, 1]), np.float64(axis[n, 2])
         if not found:
-            cx, cy, cz, rad = ocx, ocy, ocz, np.float64(h.radius[n])
-            ax, ay, az, alpha = oax, oay, oaz, np.float64(h.alpha[n])
+            cx, cy, cz, rad = ocx, ocy, ocz, np.float64(radius[n])
+            ax, ay, az, spread = oax, oay, oaz, np.float64(alpha[n])
             found = True
         else:
-            cx, cy, cz, rad = _grow_sphere(cx, cy, cz, rad, ocx, ocy, ocz, np.float64(h.radius[n]))
-            ax, ay, az, alpha = _grow_cone(ax, ay, az, alpha, oax, oay, oaz, np.float64(h.alpha[n]))
+            cx, cy, cz, rad = grow_sphere(cx, cy, cz, rad, ocx, ocy, ocz, np.float64(radius[n]))
+            ax, ay, az, spread = grow_cone(ax, ay, az, spread, oax, oay, oaz, np.float64(alpha[n]))
     if not found:
-        h.radius[parent] = EMPTY
-        h.far[parent] = EMPTY
-        h.centre[parent, 0] = h.centre[parent, 1] = h.centre[parent, 2] = 0.0
-        h.axis[parent, 0] = h.axis[parent, 1] = 0.0
-        h.axis[parent, 2] = 1.0
-        h.alpha[parent], h.cos_a[parent], h.sin_a[parent] = 0.0, 1.0, 0.0
+        radius[parent] = EMPTY
+        far[parent] = EMPTY
+        centre[parent, 0] = centre[parent, 1] = centre[parent, 2] = 0.0
+        axis[parent, 0] = axis[parent, 1] = 0.0
+        axis[parent, 2] = 1.0
+        alpha[parent], cos_a[parent], sin_a[parent] = 0.0, 1.0, 0.0
         return
-    h.centre[parent, 0], h.centre[parent, 1], h.centre[parent, 2] = cx, cy, cz
+    centre[parent, 0], centre[parent, 1], centre[parent, 2] = cx, cy, cz
     # Pass 2: radius and reach measured from the stored (rounded) centre.
-    qx, qy, qz = np.float64(h.centre[parent, 0]), np.float64(h.centre[parent, 1]), np.float64(h.centre[parent, 2])
+    qx, qy, qz = np.float64(centre[parent, 0]), np.float64(centre[parent, 1]), np.float64(centre[parent, 2])
     rad = 0.0
-    far = 0.0
+    reach = 0.0
     for j in range(nx * ny):
         n = base + first + (j // nx) * stride + j % nx
-        if h.radius[n] < 0:
+        if radius[n] < 0:
             continue
-        gx = np.float64(h.centre[n, 0]) - qx
-        gy = np.float64(h.centre[n, 1]) - qy
-        gz = np.float64(h.centre[n, 2]) - qz
+        gx = np.float64(centre[n, 0]) - qx
+        gy = np.float64(centre[n, 1]) - qy
+        gz = np.float64(centre[n, 2]) - qz
         gap = np.sqrt(gx * gx + gy * gy + gz * gz)
-        rad = max(rad, gap + np.float64(h.radius[n]))
-        far = max(far, gap + np.float64(h.far[n]))
-    h.radius[parent] = _store_length(rad)
-    h.far[parent] = _store_length(far)
-    h.axis[parent, 0], h.axis[parent, 1], h.axis[parent, 2] = ax, ay, az
-    if alpha > 0:
-        alpha = alpha + ANGLE_SLACK
-    alpha = min(alpha, np.pi)
-    h.alpha[parent] = alpha
-    h.cos_a[parent] = np.cos(alpha)
-    h.sin_a[parent] = np.sin(alpha)
+        rad = max(rad, gap + np.float64(radius[n]))
+        reach = max(reach, gap + np.float64(far[n]))
+    radius[parent] = store_length(rad)
+    far[parent] = store_length(reach)
+    axis[parent, 0], axis[parent, 1], axis[parent, 2] = ax, ay, az
+    if spread > 0:
+        spread = spread + ANGLE_SLACK
+    spread = min(spread, np.pi)
+    alpha[parent] = spread
+    cos_a[parent] = np.cos(spread)
+    sin_a[parent] = np.sin(spread)
 
 
 @njit(cache=True, parallel=True)

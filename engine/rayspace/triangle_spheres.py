@@ -16,7 +16,7 @@ RADIUS_GROWTH = 1.0 + 2.0 ** -20
 
 
 @njit(cache=True)
-def _smallest_sphere(ax, ay, az, bx, by, bz, cx, cy, cz):
+def smallest_sphere(ax, ay, az, bx, by, bz, cx, cy, cz):
     """Centre (float64 x, y, z) of the smallest sphere holding the points a, b, c."""
     abx, aby, abz = bx - ax, by - ay, bz - az
     acx, acy, acz = cx - ax, cy - ay, cz - az
@@ -45,6 +45,25 @@ def _smallest_sphere(ax, ay, az, bx, by, bz, cx, cy, cz):
     return ax + px * scale, ay + py * scale, az + pz * scale
 
 
+@njit(cache=True)
+def store_sphere(v0, v1, v2, i, centre, radius):
+    """Writes triangle i's sphere into centre f32[T,3], radius f32[T] (the body of
+    ``triangle_spheres``, shared with the device)."""
+    ax, ay, az = np.float64(v0[i, 0]), np.float64(v0[i, 1]), np.float64(v0[i, 2])
+    bx, by, bz = np.float64(v1[i, 0]), np.float64(v1[i, 1]), np.float64(v1[i, 2])
+    cx, cy, cz = np.float64(v2[i, 0]), np.float64(v2[i, 1]), np.float64(v2[i, 2])
+    sx, sy, sz = smallest_sphere(ax, ay, az, bx, by, bz, cx, cy, cz)
+    centre[i, 0] = np.float32(sx)
+    centre[i, 1] = np.float32(sy)
+    centre[i, 2] = np.float32(sz)
+    # Measure from the rounded centre so the stored sphere really holds the corners.
+    qx, qy, qz = np.float64(centre[i, 0]), np.float64(centre[i, 1]), np.float64(centre[i, 2])
+    r2 = max((ax - qx) ** 2 + (ay - qy) ** 2 + (az - qz) ** 2,
+             (bx - qx) ** 2 + (by - qy) ** 2 + (bz - qz) ** 2,
+             (cx - qx) ** 2 + (cy - qy) ** 2 + (cz - qz) ** 2)
+    radius[i] = np.float32(np.sqrt(r2) * RADIUS_GROWTH)
+
+
 @njit(cache=True, parallel=True)
 def triangle_spheres(v0, v1, v2):
     """Bounding spheres of T triangles.
@@ -56,17 +75,5 @@ def triangle_spheres(v0, v1, v2):
     centre = np.empty((n, 3), np.float32)
     radius = np.empty(n, np.float32)
     for i in prange(n):
-        ax, ay, az = np.float64(v0[i, 0]), np.float64(v0[i, 1]), np.float64(v0[i, 2])
-        bx, by, bz = np.float64(v1[i, 0]), np.float64(v1[i, 1]), np.float64(v1[i, 2])
-        cx, cy, cz = np.float64(v2[i, 0]), np.float64(v2[i, 1]), np.float64(v2[i, 2])
-        sx, sy, sz = _smallest_sphere(ax, ay, az, bx, by, bz, cx, cy, cz)
-        centre[i, 0] = np.float32(sx)
-        centre[i, 1] = np.float32(sy)
-        centre[i, 2] = np.float32(sz)
-        # Measure from the rounded centre so the stored sphere really holds the corners.
-        qx, qy, qz = np.float64(centre[i, 0]), np.float64(centre[i, 1]), np.float64(centre[i, 2])
-        r2 = max((ax - qx) ** 2 + (ay - qy) ** 2 + (az - qz) ** 2,
-                 (bx - qx) ** 2 + (by - qy) ** 2 + (bz - qz) ** 2,
-                 (cx - qx) ** 2 + (cy - qy) ** 2 + (cz - qz) ** 2)
-        radius[i] = np.float32(np.sqrt(r2) * RADIUS_GROWTH)
+        store_sphere(v0, v1, v2, i, centre, radius)
     return centre, radius
