@@ -35,7 +35,7 @@ from engine.core.errors import ConfigError
 TOP_KEYS = {"kind", "name", "description", "device", "resolution", "repeat_rays", "repeat_frames", "scene",
             "variant", "audit", "image_check"}
 SCENE_KEYS = {"name", "path", "params", "recursion", "rays", "resolution", "ray_resolutions"}
-VARIANT_KEYS = {"label", "traversal"}
+VARIANT_KEYS = {"label", "traversal", "rays"}  # rays = false: frames only, no ray-set timings
 
 
 def _fail(source: str, where: str, message: str):
@@ -165,6 +165,8 @@ def _scene_rays(scene_table, scene, bvh, variants, matrix, cuda, tris_device, bv
             row = {"scene": scene.name, "rays": name, "resolution": side, "count": int(rays.org.shape[0]),
                    "query": query}
             for variant in variants:
+                if not variant.get("rays", True):
+                    continue
                 traversal = make_device_traversal(variant["traversal"], bvh_device, tris_device, scene.triangles)
                 timing, answer = time_ray_set(traversal, query, rays, matrix.get("repeat_rays", 10), cuda)
                 closest = time_ray_set(traversal, "closest", rays, 1, cuda)[1] if query == "occluded" else None
@@ -279,18 +281,19 @@ def image_check(scene: str, variant: str, cpu: np.ndarray, gpu: np.ndarray, tie_
 
 def table(result: dict) -> str:
     """The README's GPU tables (markdown) of a gpu.json result."""
+    labels = [label for label in result["labels"] if any(label in row for row in result["rays"])]
     lines = [f"GPU: {result['device']}; {result['date']}", "",
-             "| scene | rays | count | " + " | ".join(result["labels"]) + " | Mitsuba 3 cuda_ad_rgb | ours / Mitsuba |",
-             "|---|---|---:|" + "---:|" * (len(result["labels"]) + 2)]
+             "| scene | rays | count | " + " | ".join(labels) + " | Mitsuba 3 cuda_ad_rgb | ours / Mitsuba |",
+             "|---|---|---:|" + "---:|" * (len(labels) + 2)]
     for row in result["rays"]:
         cells = []
-        for label in result["labels"]:
+        for label in labels:
             v = row.get(label, {})
             cells.append(f"{v['grays_per_s']:.2f} Grays/s ({v['seconds'] * 1e3:.2f} ms a call; kernel "
                          f"{v['kernel_grays_per_s']:.2f}; {v['embree']['mismatches']} mismatches, "
                          f"{v['embree']['ties']} ties)" if "grays_per_s" in v else "-")
         mitsuba = row.get("mitsuba", {})
-        best = max((row[l]["grays_per_s"] for l in result["labels"] if "grays_per_s" in row.get(l, {})), default=0)
+        best = max((row[l]["grays_per_s"] for l in labels if "grays_per_s" in row.get(l, {})), default=0)
         ratio = f"{best / mitsuba['grays_per_s']:.2f}x" if "grays_per_s" in mitsuba else "-"
         m = f"{mitsuba['grays_per_s']:.2f} Grays/s ({mitsuba['seconds'] * 1e3:.2f} ms)" if "grays_per_s" in mitsuba \
             else f"skipped: {mitsuba.get('skipped', '?')}"

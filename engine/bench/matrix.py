@@ -93,6 +93,7 @@ RECURSION = {
                                doc="the paper's Kitchen row: 1-bounce reflections, 4-deep refractions, "
                                    "shadows of the first point light only"),
     "bunny-floor": Recursion(1, False, "none", doc="bunny on a mirror floor: 1-bounce reflections"),
+    "render-defaults": Recursion(5, True, "none", doc="packetrt render's defaults: 5 generations, every light"),
 }
 
 AXES = ("scene", "traversal", "frustum", "packet", "recursion", "resolution")

@@ -167,9 +167,10 @@ class DeviceBVHTraversal:
         occluded_kernel[launch_grid(bound), BLOCK](org, dirs, tmin, tmax, count, b.child_boxes, b.links, b.prim,
                                                    b.leaf_tris, b.root_row, out)
 
-    def queue_launch(self, query: str, org, dirs, tmin, tmax, pixel, count, bound, width, height, *out):
+    def queue_launch(self, query: str, org, dirs, tmin, tmax, pixel, count, bound, width, height, *out, light=None):
         """A prepared launch (``engine.gpu.launch``) of ``closest_queue`` (query "closest", out =
-        t, prim, u, v) or ``occluded_queue`` (query "occluded", out = flags) on fixed arrays."""
+        t, prim, u, v) or ``occluded_queue`` (query "occluded", out = flags) on fixed arrays.
+        light: unused (the ray-space hierarchy reverses shadow rays to leave it)."""
         b = self.bvh
         kernel = closest_kernel if query == "closest" else occluded_kernel
         return PreparedLaunch(kernel, launch_grid(bound), BLOCK, (org, dirs, tmin, tmax, count, b.child_boxes, b.links,

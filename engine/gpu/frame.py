@@ -360,9 +360,11 @@ class GpuWhittedRenderer:
         seconds = {"bvh": self.bvh.build_seconds, "trace": trace_seconds,
                    "shade": max(total - sum(trace_seconds.values()), 0.0), "total": total,
                    "plugin_build": self.prepare_seconds}
-        return RenderResult(host_image.reshape(height, width, 3), seconds, rays, {}, {},
-                            {"device": {"name": self.device_name, "traversal": {
-                                k: self.traversal[k].name for k in RAY_KINDS}}})
+        extra = {"device": {"name": self.device_name, "traversal": {k: self.traversal[k].name for k in RAY_KINDS}}}
+        for kind, traversal in self.traversal.items():
+            if hasattr(traversal, "last"):  # the ray-space hierarchy's candidate counts per level
+                extra.setdefault("rayspace", {})[kind] = traversal.stats
+        return RenderResult(host_image.reshape(height, width, 3), seconds, rays, {}, {}, extra)
 
     def _enqueue_frame(self, f: FrameArrays, width: int, height: int) -> list:
         """Launch a whole frame into ``f``: this frame's camera into the device, then the steps
@@ -438,9 +440,12 @@ class GpuWhittedRenderer:
             self.background, f.image, f.surf_vec, f.surf_magnitude, f.surf_flags, f.surf_material, self.n_lights,
             self.lights, f.light_dir, f.light_scalar, f.lit, f.shadow_slot, *f.shadow, f.shadow_capacity)), None))
         if self.n_lights:
+            # With one light every shadow ray aims at it: the ray-space hierarchy then indexes
+            # them reversed, leaving the light, as the paper does.
+            light = tuple(self.scene.lights[0].position) if self.n_lights == 1 else None
             steps.append(("trace shadow", self.traversal["shadow"].queue_launch(
                 "occluded", *f.shadow_views, f.count_views[2 * gen + 1], bound * self.n_lights, width, height,
-                f.occluded), "shadow"))
+                f.occluded, light=light), "shadow"))
             if self.observer is not None:
                 steps.append(("observe", functools.partial(self._observe_shadow, f, gen), None))
         n_vec, n_scalar, n_pixel, n_kind = nxt

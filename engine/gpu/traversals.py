@@ -29,7 +29,7 @@ class HostCounted:
 
     def __init__(self, traversal):
         self.traversal = traversal
-        self.name = traversal.name
+        self.name = getattr(traversal, "name", "rayspace")
 
     def __getattr__(self, attribute):
         return getattr(self.traversal, attribute)
@@ -43,15 +43,17 @@ class HostCounted:
         if n > 0:
             self.traversal.closest(org, dirs, tmin, tmax, pixel, n, width, height, *out)
 
-    def occluded_queue(self, org, dirs, tmin, tmax, pixel, count, bound, width, height, out) -> None:
+    def occluded_queue(self, org, dirs, tmin, tmax, pixel, count, bound, width, height, out, light=None) -> None:
         n = self._n(count, min(bound, org.shape[0]))
         if n > 0:
-            self.traversal.occluded(org, dirs, tmin, tmax, pixel, n, width, height, out)
+            self.traversal.occluded(org, dirs, tmin, tmax, pixel, n, width, height, out, light=light)
 
-    def queue_launch(self, query: str, *args):
-        """A callable running ``closest_queue`` / ``occluded_queue`` on these arguments."""
-        method = self.closest_queue if query == "closest" else self.occluded_queue
-        return functools.partial(method, *args)
+    def queue_launch(self, query: str, *args, light=None):
+        """A callable running ``closest_queue`` / ``occluded_queue`` on these arguments
+        (``light``: the point every shadow ray aims at, when there is one)."""
+        if query == "closest":
+            return functools.partial(self.closest_queue, *args)
+        return functools.partial(self.occluded_queue, *args, light=light)
 
 
 def make_device_traversal(name: str, device_bvh, device_tris, host_tris, options: dict | None = None):

@@ -65,6 +65,9 @@ class DeviceRaySpace:
     ``stats``: the running totals over calls (keys of ``new_record``); ``last``: the last call's.
     """
 
+    name = "rayspace"
+    uses_bvh = False
+
     def __init__(self, tris, host_tris, pair_budget: int = 4194304):
         if isinstance(pair_budget, bool) or not isinstance(pair_budget, (int, np.integer)) \
                 or not 1 <= pair_budget <= MAX_PAIR_BUDGET:
