@@ -76,7 +76,7 @@ class RayHierarchy(NamedTuple):
 # The test
 # ---------------------------------------------------------------------------------------
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def cone_sphere_overlap(h, node, sx, sy, sz, rho, abs_tol):
     """May a segment of node ``node`` (global index) touch the sphere (s, rho)?
 
@@ -88,7 +88,7 @@ def cone_sphere_overlap(h, node, sx, sy, sz, rho, abs_tol):
     return node_overlap(h.centre, h.radius, h.axis, h.cos_a, h.sin_a, h.far, node, sx, sy, sz, rho, abs_tol)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def node_overlap(centre, radius, axis, cos_a, sin_a, far, node, sx, sy, sz, rho, abs_tol):
     """``cone_sphere_overlap`` on the node arrays themselves (f32[M,3] / f32[M]), so the CPU
     build and the device (``engine.gpu.rayspace``, through a twin) run the same test."""
@@ -122,7 +122,7 @@ def node_overlap(centre, radius, axis, cos_a, sin_a, far, node, sx, sy, sz, rho,
     return (r >= 0) & reach & (apex | edge | inside)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def children(h, level, node):
     """Children of node ``node`` (index within ``level`` >= 1), as indices within level - 1:
     first + jy * stride + jx for jy < ny, jx < nx (empty ones included).
@@ -133,7 +133,7 @@ def children(h, level, node):
     return child_grid(h.block_start, h.level_width, h.level_height, level, node)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def child_grid(block_start, level_width, level_height, level, node):
     """``children`` on the layout arrays themselves (shared with the device build)."""
     if level == 1:
@@ -225,7 +225,7 @@ def _leaf_node(h, s, org, dirs, tmin, tmax, reverse, ax, ay, az):
               reverse, ax, ay, az)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def leaf_node(centre, radius, axis, alpha, cos_a, sin_a, far, slot_ray, s, org, dirs, tmin, tmax, reverse,
               ax, ay, az):
     """``_leaf_node`` on the node arrays themselves (shared with the device build)."""
@@ -332,7 +332,7 @@ def _merge_children(h, parent, level, local):
                h.level_width, h.level_height, parent, level, local)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def merge_node(centre, radius, axis, alpha, cos_a, sin_a, far, level_offset, block_start, level_width,
                level_height, parent, level, local):
     """``_merge_children`` on the node and layout arrays themselves (shared with the device build)."""

@@ -45,7 +45,7 @@ def smallest_sphere(ax, ay, az, bx, by, bz, cx, cy, cz):
     return ax + px * scale, ay + py * scale, az + pz * scale
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def store_sphere(v0, v1, v2, i, centre, radius):
     """Writes triangle i's sphere into centre f32[T,3], radius f32[T] (the body of
     ``triangle_spheres``, shared with the device)."""
