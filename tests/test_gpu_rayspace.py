@@ -39,6 +39,8 @@ DUPLICATES = 4      # floor triangles repeated at the end of the list: exact tie
 SMALL_BUDGET = 300  # pairs: forces several triangle batches (and a retry) on the shadow rays
 FIRST_DUPLICATE = 2
 SCENE = {"checks": 2, "subdivisions": 0}
+ELSEWHERE = (4.3, 7.6, 5.2)  # near the light (4, 8, 5), but not the point the shadow rays aim at
+ELSEWHERE_RAYS = 40  # of the shadow batch: the rest are rows past n
 GARBAGE = 5         # rows past n in the secondary queue: never read, never written
 
 
@@ -117,6 +119,13 @@ class Rays:
                           np.ones((len(org), 3)), SIZE, SIZE, PACKET)
 
 
+def unbounded_some(rays: RayBatch) -> RayBatch:
+    """The batch with every fifth ray made unbounded (tmax = inf): no far end to reverse from."""
+    tmax = rays.tmax.copy()
+    tmax[::5] = np.where(rays.tmin[::5] <= tmax[::5], np.float32(np.inf), tmax[::5])
+    return rays._replace(tmax=tmax)
+
+
 def reference(rays: RayBatch, tris: Triangles, n=None):
     """(t f32[n], prim i32[n]): the shared kernel over every triangle (tests/brute_force.py)."""
     n = rays.org.shape[0] if n is None else n
@@ -164,6 +173,7 @@ def run(tmp_path_factory):
     _case(cases, "secondary", secondary, "closest", len(secondary.org) - GARBAGE)
     _case(cases, "shadow_reversed", shadow, "occluded", len(shadow.org), light=rays.light)
     _case(cases, "shadow_forward", shadow, "occluded", len(shadow.org))
+    _case(cases, "shadow_elsewhere", unbounded_some(shadow), "occluded", ELSEWHERE_RAYS, light=ELSEWHERE)
     _case(cases, "batches", shadow, "closest", len(shadow.org), light=rays.light, budget=SMALL_BUDGET)
     _case(cases, "too_small", rays.primary, "closest", len(rays.primary.org), budget=1)
     count = len(rays.primary.org)
@@ -270,17 +280,20 @@ def test_secondary_queue_with_shared_pixels_dead_rays_and_rows_past_n(run):
     assert np.array_equal(hits.prim, answers["secondary_prim"][:n])
 
 
-@pytest.mark.parametrize("name", ["shadow_reversed", "shadow_forward"])
+@pytest.mark.parametrize("name", ["shadow_reversed", "shadow_forward", "shadow_elsewhere"])
 def test_shadow_rays_occlusion(run, name):
+    """Reversed from the light, forward, or reversed from a wrong point with some rays unbounded
+    (those stay forward): the same answers, since any leaf that holds its segment is exact."""
     rays, answers, extra = run
-    batch = extra["shadow"]
+    batch = unbounded_some(extra["shadow"]) if name == "shadow_elsewhere" else extra["shadow"]
+    n = ELSEWHERE_RAYS if name == "shadow_elsewhere" else len(batch.org)
     stats = ok(answers, name)
-    _, prim = reference(batch, rays.tris)
+    _, prim = reference(batch, rays.tris, n)
     got = answers[f"{name}_occluded"]
-    assert set(np.unique(got)) <= {0, 1}
-    assert np.array_equal(got.astype(bool), prim >= 0)
-    assert 0 < (prim >= 0).sum() < (batch.pixel >= 0).sum()  # some lit, some in shadow
-    assert stats["reversed_batches"] == (name == "shadow_reversed")
+    assert set(np.unique(got[:n])) <= {0, 1} and (got[n:] == 7).all()  # rows past n untouched
+    assert np.array_equal(got[:n].astype(bool), prim >= 0)
+    assert 0 < (prim >= 0).sum() < (batch.pixel[:n] >= 0).sum()  # some lit, some in shadow
+    assert stats["reversed_batches"] == (name != "shadow_forward")
 
 
 def test_small_pair_budget_batches_triangles(run):
