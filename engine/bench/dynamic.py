@@ -110,6 +110,8 @@ def cell_config(matrix: dict, scene: dict, variant: dict, source: str):
         "accel": {"update": variant.get("accel", "rebuild"),
                   **{key: variant[key] for key in ("degrade", "budget") if key in variant}},
     }
+    if variant.get("options"):  # per-plugin options, as a config's [options.NAME] tables
+        table["options"] = dict(variant["options"])
     try:
         return from_dict(table, source=f"{source} scene {_scene_label(scene)!r} variant {variant.get('label')!r}")
     except ConfigError as exc:

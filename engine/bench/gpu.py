@@ -35,7 +35,9 @@ from engine.core.errors import ConfigError
 TOP_KEYS = {"kind", "name", "description", "device", "resolution", "repeat_rays", "repeat_frames", "scene",
             "variant", "audit", "image_check"}
 SCENE_KEYS = {"name", "path", "params", "recursion", "rays", "resolution", "ray_resolutions"}
-VARIANT_KEYS = {"label", "traversal", "rays"}  # rays = false: frames only, no ray-set timings
+# rays = false: frames only, no ray-set timings; repeat_frames: this variant's frames per scene;
+# options: per-plugin option tables, as a config's [options.NAME].
+VARIANT_KEYS = {"label", "traversal", "rays", "repeat_frames", "options"}
 
 
 def _fail(source: str, where: str, message: str):
@@ -198,11 +200,11 @@ def _frames(scene_table, variants, matrix, source) -> tuple[list, list, list]:
     from validation.audit import AuditObserver, make_oracle
 
     frames, images, audits = [], [], []
-    repeat = matrix.get("repeat_frames", 20)
     cpu_image = None
     for variant in variants:
+        repeat = variant.get("repeat_frames", matrix.get("repeat_frames", 20))
         config = cell_config({"resolution": scene_table.get("resolution", matrix.get("resolution", 1024))},
-                             scene_table, {"label": variant["label"]}, source)
+                             scene_table, {"label": variant["label"], "options": variant.get("options", {})}, source)
         config = replace(config, render=replace(config.render, device="cuda"),
                          traversal=replace(config.traversal, **{k: variant["traversal"] for k in
                                                                 ("primary", "shadow", "reflection", "refraction")}))
@@ -223,7 +225,9 @@ def _frames(scene_table, variants, matrix, source) -> tuple[list, list, list]:
         renderer.profile = None
         print("  profile (host ms / launch-to-finish ms / launches): " + "; ".join(
             f"{k} {v['host_ms']:.2f}/{v['to_finish_ms']:.2f}/{v['launches']}" for k, v in profile.items()), flush=True)
-        frames.append({"profile": profile, "profiled_frame_seconds": profiled_total, "scene": scene.name, "recursion": scene_table.get("recursion"), "variant": variant["label"],
+        rayspace = last.extra.get("rayspace", {}).get("primary")
+        frames.append({"rayspace_totals": rayspace, "profile": profile, "profiled_frame_seconds": profiled_total,
+                       "scene": scene.name, "recursion": scene_table.get("recursion"), "variant": variant["label"],
                        "resolution": [config.render.width, config.render.height], "frames": repeat,
                        "median_seconds": median, "fps": 1 / median, "compile_seconds": compile_seconds,
                        "trace_seconds": last.seconds["trace"], "rays": last.rays,
@@ -342,5 +346,5 @@ def run_gpu(data: dict, source: str, out: Path) -> dict:
             result["images"] += images
             result["audits"] += audits
         atomic.write_json(out / "gpu.json", result)  # after every scene: a cut-off run keeps its part
-    atomic.write_text(out / "gpu.md", table(result))
+        atomic.write_text(out / "gpu.md", table(result))
     return result
