@@ -31,6 +31,7 @@ from engine.bench.gpu_pixels import PixelRecorder, explain
 from engine.bench.gpu_rays import RAY_SETS, ray_sets
 from engine.core import atomic
 from engine.core.errors import ConfigError
+from engine.core.types import Packets
 
 TOP_KEYS = {"kind", "name", "description", "device", "resolution", "repeat_rays", "repeat_frames", "scene",
             "variant", "audit", "image_check"}
@@ -138,6 +139,19 @@ def _checked(rays, query, answer, oracle, tris, closest_ours=None) -> dict:
             "examples": examples}
 
 
+def _cpu_agreement(scene, bvh, rays, answer) -> dict:
+    """How many rays' (prim, t, u, v) differ bit for bit from the CPU ``single`` traversal's."""
+    from engine.render.plugins import make_traversal
+    from engine.render.tracer import Tracer
+
+    tracer = Tracer(bvh, scene.triangles, None, {"reflection": make_traversal("single")}, {"reflection": None})
+    packets = Packets(np.array([0, rays.org.shape[0]], np.int32), 2, 1, 1)
+    cpu = tracer.trace("reflection", "intersect", rays.batch._replace(kind="reflection"), packets)
+    differ = (cpu.prim != answer.prim) | (cpu.t != answer.t) | (cpu.u != answer.u) | (cpu.v != answer.v)
+    return {"checked": int(rays.org.shape[0]), "differ": int(differ.sum()),
+            "different_triangle": int((cpu.prim != answer.prim).sum())}
+
+
 def _mitsuba(scene):
     """(yardstick module, MitsubaScene or None, why not) for Mitsuba 3's cuda_ad_rgb variant."""
     try:
@@ -176,6 +190,8 @@ def _scene_rays(scene_table, scene, bvh, variants, matrix, cuda, tris_device, bv
                                          "kernel_grays_per_s": rays.org.shape[0] / timing["kernel_seconds"] / 1e9,
                                          "embree": _checked(rays, query, answer, oracle, scene.triangles,
                                                             closest)}
+            if query == "closest" and name == "primary" and side == sides[0]:
+                row["cpu_single"] = _cpu_agreement(scene, bvh, rays, answer)
             if mitsuba is not None:
                 timing = yardstick.time_queries(mitsuba, rays.org, rays.dir, rays.tmin, rays.tmax,
                                                 "closest" if query == "closest" else "occluded",
