@@ -45,9 +45,6 @@ def require_cuda():
     if not available:
         raise DeviceUnavailable("device 'cuda': no CUDA GPU or driver found on this machine "
                                 "(use device = 'cpu', or NUMBA_ENABLE_CUDASIM=1 to simulate)")
-    from engine.gpu.exact import install_no_fma
-
-    install_no_fma()  # the CPU's rounding on the device (see engine.gpu.exact)
     return cuda
 
 
