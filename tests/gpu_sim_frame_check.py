@@ -12,7 +12,18 @@ import sys
 import numpy as np
 
 
+def _faster_simulator() -> None:
+    """Fewer simulated threads per block and quicker thread switches: the simulator runs every
+    GPU thread as a Python thread. The kernels are written for any block size (the real device
+    keeps 128); set before engine.gpu's kernels are imported."""
+    sys.setswitchinterval(1e-4)
+    from engine.gpu import device
+
+    device.BLOCK = 32
+
+
 def main(width: int, height: int, traversal: str, depth: int) -> dict:
+    _faster_simulator()
     from engine.gpu.frame import GpuWhittedRenderer
     from engine.render.config import Config, RenderConfig, PerKind
     from engine.render.whitted import WhittedRenderer

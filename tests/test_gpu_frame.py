@@ -114,3 +114,15 @@ def test_ray_tracer_on_the_device_answers_as_the_cpu_does():
     assert result["occluded_equal"]
     assert result["errors"] == ["DeviceQueryError", "DeviceQueryError", "ApiArgumentError"]
     assert result["render_device"] == "cuda" and result["render_difference"] <= 1e-5
+
+
+def test_gpu_frame_with_the_ray_space_hierarchy():
+    """The same frame with ``rayspace`` for every ray kind (hierarchies built per generation on
+    the device, shadow rays reversed to leave the one light): same rays, image and audit."""
+    run = simulated("-m", "tests.gpu_sim_frame_check", "9", "7", "rayspace", "2")
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert result["traversal"] == dict.fromkeys(("primary", "shadow", "reflection", "refraction"), "rayspace")
+    assert result["rays_gpu"] == result["rays_cpu"] and result["rays_cpu"]["shadow"] > 0
+    assert result["max_abs_difference"] <= 1e-5 and result["pixels_over_1_255"] == 0
+    assert result["audit_mismatches"] == 0 and result["audit_checked"] == sum(result["rays_gpu"].values())
