@@ -110,7 +110,7 @@ def _cpu_only(config, command: str):
     """``config`` unchanged, or a ConfigError for a command that draws CPU packets or paths only."""
     if config.render.device != "cpu":
         raise ConfigError(f"packetrt {command}: device {config.render.device!r} is not supported here "
-                          f"(it works on the CPU only; render, audit and bench take --device cuda)")
+                          f"(it works on the CPU only; render, audit, animate and bench take --device cuda)")
     return config
 
 
@@ -182,7 +182,7 @@ def cmd_animate(args) -> int:
     from engine.animate.run import run_animation
     from engine.render.config import validate
 
-    config = _cpu_only(_config_from(args), "animate")
+    config = _config_from(args)
     if args.accel is not None:
         config = validate(replace(config, accel=replace(config.accel, update=args.accel)))
     return run_animation(config, args.output, frames=args.frames, fps=args.fps, start=args.start, end=args.end,

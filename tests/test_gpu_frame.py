@@ -126,3 +126,16 @@ def test_gpu_frame_with_the_ray_space_hierarchy():
     assert result["rays_gpu"] == result["rays_cpu"] and result["rays_cpu"]["shadow"] > 0
     assert result["max_abs_difference"] <= 1e-5 and result["pixels_over_1_255"] == 0
     assert result["audit_mismatches"] == 0 and result["audit_checked"] == sum(result["rays_gpu"].values())
+
+
+def test_animation_on_the_device_refits_and_matches_the_cpu_frames(tmp_path):
+    """``packetrt animate --device cuda --accel refit``: each frame's moved triangles and refitted
+    boxes are copied into the device arrays in place; frames equal the CPU's, audits clean."""
+    run = simulated("-m", "tests.gpu_sim_animate_check", str(tmp_path))
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert result["codes"] == {"cpu": 0, "cuda": 0}
+    assert result["policies"] == ["rebuild", "refit", "refit"]
+    assert result["rays"] == result["cpu_rays"]
+    assert result["png_difference"] == 0
+    assert "0 mismatches" in run.stdout

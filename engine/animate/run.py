@@ -23,6 +23,7 @@ from engine.animate.plot import plot_path
 from engine.animate.preview import keep_for_preview, preview_format, shrink, write_preview
 from engine.core.atomic import output_folder, write_json
 from engine.core.errors import PacketrtError
+from engine.gpu.choose import new_renderer
 from engine.render.animation import AnimationRenderer, path_summary, plan_times
 from engine.render.image import save_png, to_srgb8
 
@@ -107,7 +108,7 @@ def run_animation(config, out: str, *, frames=None, fps=None, start=None, end=No
     records = _load_records(folder, identity, resume)
     todo = [i for i in range(len(times)) if i not in records]
     audit_observer = _frame_observer(audit)
-    animator = AnimationRenderer(path, config, audit_observer)
+    animator = AnimationRenderer(path, config, audit_observer, make_renderer=new_renderer)
     compile_seconds = animator.warm_up(times[todo[0]] if todo else times[0]) if todo else 0.0
     keep = keep_for_preview(len(times))
     pictures = {}

@@ -287,30 +287,54 @@ class GpuWhittedRenderer:
         self.set_scene(scene, bvh)
 
     def set_scene(self, scene, bvh=None) -> None:
-        """Render ``scene`` from now on over ``bvh`` (None: build one); uploads triangles, tree,
-        materials and lights. ``prepare_seconds`` holds the upload time (outside the frame)."""
+        """Render ``scene`` from now on over ``bvh`` (None: build one). The first scene is
+        uploaded; a later one of the same size (an animation's next frame) is copied into the
+        same device arrays, and a refit of the uploaded tree copies only its boxes, so the
+        prepared launches stay valid. ``prepare_seconds`` holds the upload time (an animation
+        counts it as the frame's acceleration-structure time)."""
         start = time.perf_counter()
         cfg = self.config.render
+        replaced = False
         if self.scene is None or [id(m) for m in scene.materials] != [id(m) for m in self.scene.materials]:
             table = MaterialTable(scene.materials)
             self.mat_vec = upload(np.stack([table.ambient, table.diffuse, table.specular, table.reflectance]))
             self.mat_scalar = upload(np.stack([table.shininess, table.transmission, table.ior]))
             self.mat_texture = upload(np.stack([table.texture_start, table.texture_width, table.texture_height]))
             self.texels = upload(table.texels)
+            replaced = True
         self.scene = scene
         self.tris = scene.triangles
         self.bvh = bvh if bvh is not None else build_bvh(self.tris, leaf_size=cfg.leaf_size, bins=cfg.bins)
-        self.device_tris = DeviceTriangles.from_host(self.tris, triangle_magnitudes(self.tris))
-        self.device_bvh = DeviceBVH.from_host(self.bvh, self.tris)
-        self.traversal = device_traversals(self.config, self.device_bvh, self.device_tris, self.tris)
+        magnitude = triangle_magnitudes(self.tris)
+        if getattr(self, "device_tris", None) is not None and self.device_tris.fits(self.tris):
+            self.device_tris.update(self.tris, magnitude)
+        else:
+            self.device_tris = DeviceTriangles.from_host(self.tris, magnitude)
+            replaced = True
+        if not replaced and self.device_bvh.same_topology(self.bvh):
+            self.device_bvh.refit_from(self.bvh, self.tris)
+        else:
+            self.device_bvh = DeviceBVH.from_host(self.bvh, self.tris)
+            replaced = True
         lights = scene.lights
-        self.n_lights = len(lights)
-        self.lights = upload(np.array([l.position for l in lights], np.float32).reshape(-1, 3))
-        self.light_colors = upload(np.array([l.color for l in lights], np.float32).reshape(-1, 3))
-        self.ambient_light = upload(np.asarray(scene.ambient_light, np.float32))
-        self.background = upload(np.asarray(scene.background, np.float32))
+        positions = np.array([l.position for l in lights], np.float32).reshape(-1, 3)
+        colors = np.array([l.color for l in lights], np.float32).reshape(-1, 3)
+        if not replaced and len(lights) == self.n_lights:
+            for held, value in ((self.lights, positions), (self.light_colors, colors)):
+                if value.size:
+                    held.copy_to_device(value)
+            self.ambient_light.copy_to_device(np.asarray(scene.ambient_light, np.float32))
+            self.background.copy_to_device(np.asarray(scene.background, np.float32))
+        else:
+            self.n_lights = len(lights)
+            self.lights, self.light_colors = upload(positions), upload(colors)
+            self.ambient_light = upload(np.asarray(scene.ambient_light, np.float32))
+            self.background = upload(np.asarray(scene.background, np.float32))
+            replaced = True
+        if replaced:
+            self.traversal = device_traversals(self.config, self.device_bvh, self.device_tris, self.tris)
+            self._plan_key = None  # the prepared launches hold the replaced arrays
         cuda.synchronize()
-        self._plan_key = None  # the prepared launches hold the old scene's arrays
         self.prepare_seconds = {"upload": time.perf_counter() - start}
 
     def warm_up(self) -> float:

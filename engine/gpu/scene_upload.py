@@ -51,6 +51,22 @@ class DeviceTriangles:
         # Views of the stack, made once (a view made per launch costs host time every frame).
         self.v0, self.v1, self.v2, self.ng = (self.vec[k] for k in range(4))
 
+    def fits(self, tris) -> bool:
+        """True when ``tris`` can be copied into these arrays (same count, same attributes)."""
+        return (self.count == tris.v0.shape[0] and self.has_normals == (tris.normals.shape[0] > 0)
+                and self.has_uvs == (tris.uvs.shape[0] > 0))
+
+    def update(self, tris, magnitude: np.ndarray) -> None:
+        """Copy moved triangles (an animation's next frame) into the arrays, in place, so every
+        prepared launch that holds them stays valid."""
+        self.vec.copy_to_device(np.stack([tris.v0, tris.v1, tris.v2, tris.ng]).astype(np.float32))
+        self.material.copy_to_device(np.ascontiguousarray(tris.material, np.int32))
+        if self.has_normals:
+            self.normals.copy_to_device(np.ascontiguousarray(tris.normals, np.float32))
+        if self.has_uvs:
+            self.uvs.copy_to_device(np.ascontiguousarray(tris.uvs, np.float32))
+        self.magnitude.copy_to_device(np.ascontiguousarray(magnitude, np.float32))
+
 
 def child_box_table(bvh) -> np.ndarray:
     """f32[N,12]: for each inner node, its left child's box (min xyz, max xyz) then its right
@@ -61,6 +77,11 @@ def child_box_table(bvh) -> np.ndarray:
     table[inner, 0:3], table[inner, 3:6] = bvh.bmin[left], bvh.bmax[left]
     table[inner, 6:9], table[inner, 9:12] = bvh.bmin[left + 1], bvh.bmax[left + 1]
     return table
+
+
+def _leaf_corners(bvh, tris) -> np.ndarray:
+    """f32[3,P,3]: the corners of triangle prim[i] at row i (leaf order)."""
+    return np.stack([tris.v0[bvh.prim], tris.v1[bvh.prim], tris.v2[bvh.prim]]).astype(np.float32)
 
 
 def _root_row(bvh) -> np.ndarray:
@@ -87,14 +108,23 @@ class DeviceBVH:
     @classmethod
     def from_host(cls, bvh, tris) -> "DeviceBVH":
         links = np.stack([bvh.first, bvh.count], axis=1).astype(np.int32)
-        leaf_tris = np.stack([tris.v0[bvh.prim], tris.v1[bvh.prim], tris.v2[bvh.prim]]).astype(np.float32)
-        return cls(upload(child_box_table(bvh)), upload(links), upload(bvh.prim, np.int32), upload(leaf_tris),
-                   upload(_root_row(bvh)), int(bvh.depth))
+        made = cls(upload(child_box_table(bvh)), upload(links), upload(bvh.prim, np.int32),
+                   upload(_leaf_corners(bvh, tris)), upload(_root_row(bvh)), int(bvh.depth))
+        made.host_prim = bvh.prim
+        return made
 
-    def refit_from(self, bvh) -> None:
-        """Copy a refitted tree's boxes (same topology) into the uploaded table."""
+    def same_topology(self, bvh) -> bool:
+        """True for a refit of the uploaded tree: the same node links and primitive order (a
+        refit keeps the build's ``prim`` array, ``engine.core.bvh_refit``)."""
+        return bvh.prim is self.host_prim
+
+    def refit_from(self, bvh, tris) -> None:
+        """Copy a refitted tree's boxes and its moved triangles' corners (same topology) into the
+        uploaded arrays, in place."""
         self.child_boxes.copy_to_device(child_box_table(bvh))
         self.root_row.copy_to_device(_root_row(bvh))
+        self.leaf_tris.copy_to_device(_leaf_corners(bvh, tris))
 
     def __post_init__(self):
         self.v0, self.v1, self.v2 = (self.leaf_tris[k] for k in range(3))
+        self.host_prim = None

@@ -84,8 +84,11 @@ class AnimationRenderer:
     config's ``[accel]`` policy. ``observer_for(scene, bvh)``: makes the renderer's observer
     for each frame (the animation audit), or None."""
 
-    def __init__(self, path, config, observer_for=None):
+    def __init__(self, path, config, observer_for=None, make_renderer=WhittedRenderer):
+        """``make_renderer(scene, config, bvh=...)``: the frame renderer (the front end passes
+        ``engine.gpu.choose.new_renderer``, which gives the GPU's for ``device = "cuda"``)."""
         self.path, self.config, self.observer_for = path, config, observer_for
+        self.make_renderer = make_renderer
         self.keeper = self._new_keeper()
         self.renderer = None
         self.last_frame_seconds = None   # auto's rebuild budget is a share of it
@@ -105,7 +108,7 @@ class AnimationRenderer:
         bvh, _ = keeper.update(scene.triangles)
         keeper.update(scene.triangles)                      # a refit and its SAH cost
         if self.renderer is None:
-            self.renderer = WhittedRenderer(scene, self.config, bvh=bvh)
+            self.renderer = self.make_renderer(scene, self.config, bvh=bvh)
         else:
             self.renderer.set_scene(scene, bvh)
         self.renderer.warm_up()
@@ -117,7 +120,7 @@ class AnimationRenderer:
         scene = self.path.scene_at(time_)
         bvh, accel = self.keeper.update(scene.triangles, self.last_frame_seconds)
         if self.renderer is None:
-            self.renderer = WhittedRenderer(scene, self.config, bvh=bvh)
+            self.renderer = self.make_renderer(scene, self.config, bvh=bvh)
         else:
             self.renderer.set_scene(scene, bvh)
         # accel: our tree's update and plugins' own builds (Embree's scene for the moved
