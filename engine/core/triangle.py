@@ -109,22 +109,20 @@ def closer(t, tri, best_t, best_tri):
 
 
 @njit(cache=True)
-def slab_test(ox, oy, oz, ix, iy, iz, tmin, tmax, bmin, bmax, node):
-    """Conservative ray-box test for one ray.
-
-    ix, iy, iz: the ray's inv_dir (finite). bmin, bmax: f32[N,3]. Returns the entry distance
-    (>= tmin) when the ray's [tmin, tmax] overlaps the box, else inf.
-    """
-    t0 = (bmin[node, 0] - ox) * ix
-    t1 = (bmax[node, 0] - ox) * ix
+def slab_interval(ox, oy, oz, ix, iy, iz, tmin, tmax, x0, y0, z0, x1, y1, z1):
+    """Conservative ray-box test of one ray against the box (x0, y0, z0)-(x1, y1, z1): the
+    entry distance (>= tmin) when the ray's [tmin, tmax] overlaps the box, else inf. The one
+    box test of the CPU walks and, as a device twin, of the GPU's (``engine.gpu.bvh_trace``)."""
+    t0 = (x0 - ox) * ix
+    t1 = (x1 - ox) * ix
     tn = min(t0, t1)
     tf = max(t0, t1)
-    t0 = (bmin[node, 1] - oy) * iy
-    t1 = (bmax[node, 1] - oy) * iy
+    t0 = (y0 - oy) * iy
+    t1 = (y1 - oy) * iy
     tn = max(tn, min(t0, t1))
     tf = min(tf, max(t0, t1))
-    t0 = (bmin[node, 2] - oz) * iz
-    t1 = (bmax[node, 2] - oz) * iz
+    t0 = (z0 - oz) * iz
+    t1 = (z1 - oz) * iz
     tn = max(tn, min(t0, t1))
     tf = min(tf, max(t0, t1))
     tn = max(tn - abs(tn) * SLAB_SLACK, tmin)
@@ -132,6 +130,14 @@ def slab_test(ox, oy, oz, ix, iy, iz, tmin, tmax, bmin, bmax, node):
     if tn <= tf:
         return tn
     return F32_INF
+
+
+@njit(cache=True)
+def slab_test(ox, oy, oz, ix, iy, iz, tmin, tmax, bmin, bmax, node):
+    """Conservative ray-box test for one ray against node ``node`` of bmin, bmax (f32[N,3]);
+    ix, iy, iz: the ray's inv_dir (finite). See ``slab_interval``."""
+    return slab_interval(ox, oy, oz, ix, iy, iz, tmin, tmax, bmin[node, 0], bmin[node, 1], bmin[node, 2],
+                         bmax[node, 0], bmax[node, 1], bmax[node, 2])
 
 
 def safe_inverse(directions: np.ndarray) -> np.ndarray:

@@ -5,7 +5,7 @@ triangles or both children's boxes, and pushes the far child under the near one.
 CPU's, laid out as they suggest (``engine.gpu.scene_upload.DeviceBVH``): a node's row holds both
 children's boxes, and triangles are stored in leaf order. The watertight triangle test and the
 tie rule are the CPU's own functions compiled for the device (``engine.gpu.twin``) and the box
-test is the CPU's term for term, so every hit equals ``single``'s bit for bit: the box test is
+test is the CPU's own too, so every hit equals ``single``'s bit for bit: the box test is
 conservative, and the closest hit under the tie rule does not depend on the visiting order.
 
 Rays: org, dirs f32[C,3], tmin, tmax f32[C], the first n live (dead lanes have tmax < tmin).
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.core.triangle import F32_INF, SLAB_SLACK, closer, intersect_triangle, ray_shear
+from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear, slab_interval
 from engine.core.types import MAX_BVH_DEPTH
 from engine.gpu.device import BLOCK, require_cuda
 from engine.gpu.launch import PreparedLaunch
@@ -34,27 +34,15 @@ MAX_BLOCKS = 8192
 STACK = MAX_BVH_DEPTH + 2
 
 
+_slab_interval = device_twin(slab_interval)
+
+
 @cuda.jit(device=True)
 def _slab(ox, oy, oz, ix, iy, iz, t_lo, t_hi, box, row, at):
-    """Entry distance of a ray into the box box[row, at:at+6] (min xyz, max xyz), inf if it
-    misses [t_lo, t_hi]: the CPU's ``slab_test``, term for term, reading the packed table."""
-    t0 = (box[row, at] - ox) * ix
-    t1 = (box[row, at + 3] - ox) * ix
-    tn = min(t0, t1)
-    tf = max(t0, t1)
-    t0 = (box[row, at + 1] - oy) * iy
-    t1 = (box[row, at + 4] - oy) * iy
-    tn = max(tn, min(t0, t1))
-    tf = min(tf, max(t0, t1))
-    t0 = (box[row, at + 2] - oz) * iz
-    t1 = (box[row, at + 5] - oz) * iz
-    tn = max(tn, min(t0, t1))
-    tf = min(tf, max(t0, t1))
-    tn = max(tn - abs(tn) * SLAB_SLACK, t_lo)
-    tf = min(tf + abs(tf) * SLAB_SLACK, t_hi)
-    if tn <= tf:
-        return tn
-    return F32_INF
+    """The CPU's box test (``slab_interval``) against the box box[row, at:at+6] (min xyz, max
+    xyz) of the packed table."""
+    return _slab_interval(ox, oy, oz, ix, iy, iz, t_lo, t_hi, box[row, at], box[row, at + 1], box[row, at + 2],
+                          box[row, at + 3], box[row, at + 4], box[row, at + 5])
 
 
 @cuda.jit(device=True)

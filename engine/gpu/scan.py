@@ -15,6 +15,19 @@ from engine.gpu.device import BLOCK, blocks, require_cuda
 cuda = require_cuda()
 
 
+@cuda.jit(device=True)
+def _inclusive_in_block(shared, t):
+    """shared[0:BLOCK] replaced by its inclusive prefix sums (Hillis-Steele: BLOCK is small,
+    log2(BLOCK) steps); every thread of the block calls it with its index t."""
+    step = 1
+    while step < BLOCK:
+        y = shared[t - step] if t >= step else 0
+        cuda.syncthreads()
+        shared[t] += y
+        cuda.syncthreads()
+        step *= 2
+
+
 @cuda.jit
 def _scan_blocks(values, n, out, block_sums):
     """Per block: out[i] = exclusive sum within the block; block_sums[b] = the block's total."""
@@ -24,13 +37,7 @@ def _scan_blocks(values, n, out, block_sums):
     x = values[i] if i < n else 0
     shared[t] = x
     cuda.syncthreads()
-    step = 1
-    while step < BLOCK:  # Hillis-Steele inclusive scan: BLOCK is small, log2(BLOCK) steps
-        y = shared[t - step] if t >= step else 0
-        cuda.syncthreads()
-        shared[t] += y
-        cuda.syncthreads()
-        step *= 2
+    _inclusive_in_block(shared, t)
     if i < n:
         out[i] = shared[t] - x
     if t == BLOCK - 1:
@@ -50,13 +57,7 @@ def _scan_sums(block_sums, count, total_out):
         x = block_sums[i] if i < count else 0
         shared[t] = x
         cuda.syncthreads()
-        step = 1
-        while step < BLOCK:
-            y = shared[t - step] if t >= step else 0
-            cuda.syncthreads()
-            shared[t] += y
-            cuda.syncthreads()
-            step *= 2
+        _inclusive_in_block(shared, t)
         if i < count:
             block_sums[i] = carry + shared[t] - x
         chunk_total = shared[BLOCK - 1]
