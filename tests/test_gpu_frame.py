@@ -139,3 +139,11 @@ def test_animation_on_the_device_refits_and_matches_the_cpu_frames(tmp_path):
     assert result["rays"] == result["cpu_rays"]
     assert result["png_difference"] == 0
     assert "0 mismatches" in run.stdout
+
+
+def test_device_refit_equals_the_cpu_refit():
+    run = simulated("-m", "tests.gpu_sim_refit_check")
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert result["triangles"] > 100
+    assert result["equal"] == [{"child_boxes": True, "root_row": True, "leaf_tris": True}] * 2

@@ -42,6 +42,7 @@ from engine.core.triangle import safe_inverse
 from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch
 from engine.gpu.device import BLOCK, device_name, require_cuda
 from engine.gpu.launch import PreparedLaunch
+from engine.gpu.refit import DeviceRefit
 from engine.gpu.scene_upload import DeviceBVH, DeviceTriangles, upload
 from engine.gpu.traversals import device_traversals
 from engine.gpu.twin import device_twin
@@ -289,8 +290,9 @@ class GpuWhittedRenderer:
     def set_scene(self, scene, bvh=None) -> None:
         """Render ``scene`` from now on over ``bvh`` (None: build one). The first scene is
         uploaded; a later one of the same size (an animation's next frame) is copied into the
-        same device arrays, and a refit of the uploaded tree copies only its boxes, so the
-        prepared launches stay valid. ``prepare_seconds`` holds the upload time (an animation
+        same device arrays, and a refit of the uploaded tree is redone on the GPU from them
+        (``engine.gpu.refit``, the same boxes as the CPU's refit), so the prepared launches stay
+        valid. ``prepare_seconds`` holds the upload time (an animation
         counts it as the frame's acceleration-structure time)."""
         start = time.perf_counter()
         cfg = self.config.render
@@ -312,9 +314,10 @@ class GpuWhittedRenderer:
             self.device_tris = DeviceTriangles.from_host(self.tris, magnitude)
             replaced = True
         if not replaced and self.device_bvh.same_topology(self.bvh):
-            self.device_bvh.refit_from(self.bvh, self.tris)
+            self.device_refit.refit(self.device_tris)  # the boxes recomputed on the GPU
         else:
             self.device_bvh = DeviceBVH.from_host(self.bvh, self.tris)
+            self.device_refit = DeviceRefit(self.bvh, self.device_bvh)
             replaced = True
         lights = scene.lights
         positions = np.array([l.position for l in lights], np.float32).reshape(-1, 3)

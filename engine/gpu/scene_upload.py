@@ -118,13 +118,6 @@ class DeviceBVH:
         refit keeps the build's ``prim`` array, ``engine.core.bvh_refit``)."""
         return bvh.prim is self.host_prim
 
-    def refit_from(self, bvh, tris) -> None:
-        """Copy a refitted tree's boxes and its moved triangles' corners (same topology) into the
-        uploaded arrays, in place."""
-        self.child_boxes.copy_to_device(child_box_table(bvh))
-        self.root_row.copy_to_device(_root_row(bvh))
-        self.leaf_tris.copy_to_device(_leaf_corners(bvh, tris))
-
     def __post_init__(self):
         self.v0, self.v1, self.v2 = (self.leaf_tris[k] for k in range(3))
         self.host_prim = None
