@@ -3,8 +3,9 @@
 ``exclusive_scan(values, n, out)`` writes out[i] = values[0] + ... + values[i-1] for i < n and
 out[n] = the total, in three launches: each block scans its BLOCK items in shared memory and
 keeps its sum; one block scans the block sums (looping over them); every item adds its block's
-offset. A queue compacted through it keeps its parents' order, so rays stay in pixel order
-from generation to generation (coherent warps, and a deterministic image).
+offset. A stream compacted through it keeps its order: the ray-space hierarchy's (node,
+triangle) streams and its pixel-block sort use it (``engine.gpu.rayspace``). The frame's queues
+are appended by atomic counters instead (``engine.gpu.frame``), which need no host round trip.
 """
 from __future__ import annotations
 
