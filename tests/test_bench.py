@@ -386,3 +386,19 @@ def test_wrong_answers_are_caught_and_their_rates_dropped():
     rates = bench._checked({"primary": 1.0, "shadow": 2.0, "reflection": 3.0, "refraction": 4.0, "all": 5.0}, bad)
     assert rates["primary"] is None and rates["shadow"] is None and rates["all"] is None
     assert bench._checked(dict(rates, primary=1.0, shadow=2.0, all=5.0), good)["all"] == 5.0
+
+
+def test_the_eta_cost_counts_only_the_lights_a_preset_keeps():
+    """``kitchen-paper`` keeps the first light: its shadow rays are one light's, not six."""
+    from engine.bench.matrix import parse_matrix
+    from engine.bench.runner import _cost
+
+    table = {"name": "eta", "axes": {"scene": ["whitted"], "recursion": ["kitchen-full", "kitchen-paper"],
+                                     "traversal": ["partition"], "frustum": ["general"], "packet": [8],
+                                     "resolution": [64]}}
+    cells = parse_matrix(table, "<eta>").cells
+    full, paper = (next(c for c in cells if c.recursion == name) for name in ("kitchen-full", "kitchen-paper"))
+    six_lights = (6, 1000)
+    # kinds per generation: primary + 6 shadow kinds, against primary + 1.
+    assert _cost(full, six_lights, 1) / _cost(paper, six_lights, 1) == 7 / 2
+    assert _cost(paper, (1, 1000), 1) == _cost(paper, six_lights, 1)

@@ -364,6 +364,8 @@ def _cost(cell: Cell, scene: tuple, repeat: int) -> float:
     slowness guess per traversal (measured here: the ray-space hierarchy's cost grows with the
     triangle count, a BVH's barely). ``scene`` = (lights, triangles)."""
     lights, triangles = scene
+    if cell.preset.max_lights is not None:  # the preset keeps only the first lights
+        lights = min(lights, cell.preset.max_lights)
     kinds = 1 + (lights if cell.preset.lights else 0)
     generations = 1 + cell.preset.max_depth
     slow = 3.0 if cell.packet <= 2 or "single" in cell.traversal.names else 1.0
