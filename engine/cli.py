@@ -374,6 +374,11 @@ def _add_bench_parser(sub) -> None:
     p.add_argument("--resume", action="store_true", help="skip cells already in DIR/results.jsonl")
     p.add_argument("--device", choices=["cpu", "cuda"],
                    help="cuda: run a kind = \"gpu\" matrix on the GPU (default: the matrix's device)")
+    p.add_argument("--scheduler", nargs="?", const="local", metavar="ADDRESS",
+                   help="run the cells as Dask tasks: on the scheduler at ADDRESS (tcp://host:8786), or with "
+                        "no address on a local cluster started here")
+    p.add_argument("--workers", type=int, help="worker processes of the local cluster (default 1: one cell at a "
+                                               "time, clean timings)")
     p.set_defaults(run=_delegate("engine.bench.runner", "cmd_bench"))
 
 

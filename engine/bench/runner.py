@@ -410,6 +410,22 @@ def _is_interrupt(exc: BaseException) -> bool:
     return False
 
 
+def _run_on_dask(matrix: Matrix, todo: list, path: Path, scheduler: str, workers: int, run) -> int:
+    """The cells ``todo`` as Dask tasks, each record appended to ``path`` as it arrives."""
+    from engine.bench.cluster import connect, run_on_cluster
+
+    client, cluster = connect(scheduler, workers)
+    print(f"{matrix.name}: {len(todo)} cell(s) as Dask tasks on {client.scheduler.address} "
+          f"({len(client.scheduler_info()['workers'])} worker(s))", file=sys.stderr)
+    try:
+        return run_on_cluster(client, todo, matrix.repeat, matrix.name,
+                              lambda cell, record: results_io.append(path, record), run)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
 def free_backup_name(path: Path) -> Path:
     """``results.jsonl.prev``, else ``.prev2``, ``.prev3``, ...: the first name not yet taken, so
     starting afresh again never overwrites an earlier run's backup."""
@@ -420,12 +436,15 @@ def free_backup_name(path: Path) -> Path:
     return candidate
 
 
-def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool = True, run=None) -> dict:
+def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool = True, run=None,
+               scheduler: str | None = None, workers: int = 1) -> dict:
     """Run every cell not yet in ``out/results.jsonl``; {"ran", "skipped", "files"}.
 
     ``run`` measures one cell (default ``run_cell``, looked up at call time). A KeyboardInterrupt
     stops between cells (a cell in flight is dropped), the outputs are rewritten for what is
-    done, and the interrupt is raised again.
+    done, and the interrupt is raised again. ``scheduler``: None runs the cells here, one after
+    another; an address, or ``engine.bench.cluster.LOCAL`` for a local cluster of ``workers``
+    processes, runs them as Dask tasks (``engine.bench.cluster``).
     """
     from tqdm import tqdm
 
@@ -450,15 +469,19 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
             if any(c.open3d for c in todo):
                 require_open3d(matrix.source)
             scenes = preflight(todo)
+            here = todo
+            if scheduler is not None:
+                ran = _run_on_dask(matrix, todo, path, scheduler, workers, run if run is not run_cell else None)
+                here = []
             machine = machine_info()
-            costs = [_cost(c, scenes[(c.scene.name, c.scene.params, c.scene.time)], matrix.repeat) for c in todo]
+            costs = [_cost(c, scenes[(c.scene.name, c.scene.params, c.scene.time)], matrix.repeat) for c in here]
             scene_cache, yardstick, references = SceneCache(), EmbreeYardstick(), ReferenceAnswers()
             open3d = Open3DYardstick()
-            bar = tqdm(total=sum(costs), disable=not progress, file=sys.stderr, dynamic_ncols=True,
+            bar = tqdm(total=sum(costs), disable=not progress or not here, file=sys.stderr, dynamic_ncols=True,
                        bar_format="{l_bar}{bar}| {postfix} [{elapsed}<{remaining}]")
             try:
-                for i, (cell, cost) in enumerate(zip(todo, costs)):
-                    bar.set_postfix_str(f"cell {i + 1}/{len(todo)}: {cell.describe()}")
+                for i, (cell, cost) in enumerate(zip(here, costs)):
+                    bar.set_postfix_str(f"cell {i + 1}/{len(here)}: {cell.describe()}")
                     record = run(cell, matrix.repeat, scene_cache, yardstick, machine, matrix.name, references,
                                  open3d=open3d)
                     results_io.append(path, record)
@@ -510,7 +533,8 @@ def cmd_bench(args) -> int:
         return cmd_trimesh_bench(args, data)
     matrix = load_matrix(args.matrix, repeat=args.repeat)
     out = Path(args.out) if args.out else Path("out") / f"bench-{matrix.name}"
-    summary = run_matrix(matrix, out, resume=args.resume)
+    summary = run_matrix(matrix, out, resume=args.resume, scheduler=getattr(args, "scheduler", None),
+                         workers=getattr(args, "workers", None) or 1)
     print(f"{matrix.name}: ran {summary['ran']} cell(s), skipped {summary['skipped']}; wrote "
           f"{', '.join(str(p) for p in summary['files'])}")
     return 0

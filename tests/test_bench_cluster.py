@@ -1,0 +1,71 @@
+"""``packetrt bench --scheduler``: the smoke matrix's cells as Dask tasks on a local cluster of
+two worker processes give the serial runner's cells and answers; a worker killed mid-cell loses
+no cell and records none twice."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("distributed")
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ROOT / "benchmarks" / "smoke.toml"
+
+
+def records(folder: Path) -> dict:
+    return {r["id"]: r for r in map(json.loads, (folder / "results.jsonl").read_text().splitlines())}
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    from engine.bench.matrix import load_matrix
+    from engine.bench.runner import run_matrix
+
+    out = tmp_path_factory.mktemp("serial")
+    run_matrix(load_matrix(str(SMOKE)), out, progress=False)
+    return records(out)
+
+
+def test_two_workers_give_the_serial_runners_cells_and_answers(serial, tmp_path):
+    from engine.bench.matrix import load_matrix
+    from engine.bench.runner import run_matrix
+
+    summary = run_matrix(load_matrix(str(SMOKE)), tmp_path, progress=False, scheduler="local", workers=2)
+    assert summary["ran"] == len(serial) and summary["skipped"] == 0
+    lines = (tmp_path / "results.jsonl").read_text().splitlines()
+    clustered = records(tmp_path)
+    assert len(lines) == len(clustered) == len(serial)
+    assert set(clustered) == set(serial)
+    for key, record in clustered.items():
+        assert record["rays"] == serial[key]["rays"]
+        assert record["checks"] == serial[key]["checks"]
+        assert record["config"] == serial[key]["config"]
+        assert record["machine"]["cpu"] and record["machine"]["numba_threads"] >= 1
+    # --resume across schedulers: everything is done, the serial runner runs nothing more.
+    assert run_matrix(load_matrix(str(SMOKE)), tmp_path, resume=True, progress=False)["ran"] == 0
+
+
+def test_a_worker_lost_mid_cell_loses_no_cell_and_records_none_twice(serial, tmp_path, monkeypatch):
+    from engine.bench.matrix import load_matrix
+    from engine.bench.runner import run_matrix
+    from tests.bench_cluster_helpers import crash_once_then_run
+
+    marker = tmp_path / "crashed"
+    monkeypatch.setenv("PACKETRT_TEST_CRASH_MARKER", str(marker))
+    out = tmp_path / "out"
+    summary = run_matrix(load_matrix(str(SMOKE)), out, progress=False, scheduler="local", workers=2,
+                         run=crash_once_then_run)
+    assert marker.exists()  # a worker did die mid-cell
+    ids = [json.loads(line)["id"] for line in (out / "results.jsonl").read_text().splitlines()]
+    assert sorted(ids) == sorted(serial) and len(ids) == len(set(ids))
+    assert summary["ran"] == len(serial)
+
+
+def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):
+    from engine.cli import main
+
+    assert main(["bench", str(SMOKE), "--out", str(tmp_path), "--scheduler", "tcp://127.0.0.1:9"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("packetrt: error: --scheduler tcp://127.0.0.1:9: cannot reach a Dask scheduler")
