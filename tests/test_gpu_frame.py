@@ -147,3 +147,20 @@ def test_device_refit_equals_the_cpu_refit():
     result = json.loads(run.stdout.strip().splitlines()[-1])
     assert result["triangles"] > 100
     assert result["equal"] == [{"child_boxes": True, "root_row": True, "leaf_tris": True}] * 2
+
+
+def test_a_frame_larger_than_the_free_gpu_memory_is_one_line(tmp_path):
+    """Checked before any allocation, from the device's free memory (faked here: the
+    simulator reports infinite memory)."""
+    out = tmp_path / "never.png"
+    run = simulated("-c", "import sys\n"
+                    "from numba import cuda\n"
+                    "class Info:\n    free = 2**16\n    total = 2**16\n"
+                    "type(cuda.current_context()).get_memory_info = lambda self: Info\n"
+                    "from engine.cli import main\n"
+                    "sys.exit(main(['render', '--device', 'cuda', '--size', '64x64', '--param', 'subdivisions=0', "
+                    f"'-o', {str(out)!r}]))", timeout=120)
+    assert run.returncode == 2, run.stderr[-2000:]
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and "GiB of GPU memory" in lines[0] and "render smaller" in lines[0]
+    assert not out.exists()

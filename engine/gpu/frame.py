@@ -40,7 +40,7 @@ from engine.core.bvh import build_bvh
 from engine.core.offset import triangle_magnitudes
 from engine.core.triangle import safe_inverse
 from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch
-from engine.gpu.device import BLOCK, device_name, require_cuda
+from engine.gpu.device import BLOCK, DeviceUnavailable, device_name, require_cuda
 from engine.gpu.launch import PreparedLaunch
 from engine.gpu.refit import DeviceRefit
 from engine.gpu.scene_upload import DeviceBVH, DeviceTriangles, upload
@@ -265,6 +265,21 @@ class FrameArrays:
         self.eye, self.basis = a(3, np.float32), a((3, 3), np.float64)  # this frame's camera
 
 
+def frame_bytes(pixels: int, lights: int, secondary: int) -> int:
+    """Device bytes ``FrameArrays`` takes: per queue row 53 bytes (two queues), per lane 156
+    (hits, surface, children), per light and lane 29, per shadow-queue row 33."""
+    rows = max(pixels, secondary)
+    return pixels * 12 + rows * (2 * 53 + 156 + max(lights, 1) * 29) + rows * lights * 33
+
+
+def check_device_memory(needed: int, pixels: int) -> None:
+    """DeviceUnavailable (one line) when the GPU has less free memory than a frame needs."""
+    free = cuda.current_context().get_memory_info().free
+    if needed > free:
+        raise DeviceUnavailable(f"a {pixels:,}-pixel frame needs about {needed / 2**30:.1f} GiB of GPU memory, "
+                                f"more than the {free / 2**30:.1f} GiB free on the device; render smaller")
+
+
 class GpuWhittedRenderer:
     """Renders one scene with one config on the CUDA device. Build once, ``render()`` often.
 
@@ -355,7 +370,10 @@ class GpuWhittedRenderer:
         held = self.arrays
         if held is None or held.pixels != pixels or held.lights != self.n_lights or \
                 held.counts.shape[0] < 2 * (depth + 2) or held.secondary < self.secondary_per_pixel * pixels:
-            self.arrays = FrameArrays(pixels, self.n_lights, depth, self.secondary_per_pixel * pixels)
+            secondary = self.secondary_per_pixel * pixels
+            self.arrays = None  # let the old arrays go before the new ones are asked for
+            check_device_memory(frame_bytes(pixels, self.n_lights, secondary), pixels)
+            self.arrays = FrameArrays(pixels, self.n_lights, depth, secondary)
             self._plan_key = None
         return self.arrays
 
