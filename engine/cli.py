@@ -229,22 +229,28 @@ def cmd_view(args) -> int:
     return 0
 
 
-def _run_audit(scene, config, image_path, json_path, report_dir, stats_path, oracle="embree") -> int:
+def _run_audit(scene, config, image_path, json_path, report_dir, stats_path, oracle="embree", tiled=None) -> int:
+    """Audit, write what was asked for and print the summary; ``tiled``: (report, image,
+    mismatching pixels) of an audit already run over a Dask scheduler."""
     from validation.audit import audit
 
     from engine.render.image import save_png
 
-    report, result, bad_pixels = audit(scene, config, oracle=oracle)
+    if tiled is None:
+        report, result, bad_pixels = audit(scene, config, oracle=oracle)
+        image = result.image
+    else:
+        (report, image, bad_pixels), result = tiled, None
     if image_path:
-        save_png(result.image, image_path)
+        save_png(image, image_path)
     if json_path:
         _write_json(json_path, report)
-    if stats_path:
+    if stats_path and result is not None:
         _write_json(stats_path, stats_dict(scene, config, result))
     if report_dir:
         from validation.report import write_report
 
-        write_report(report_dir, report, result.image, bad_pixels, config.render.width, config.render.height)
+        write_report(report_dir, report, image, bad_pixels, config.render.width, config.render.height)
     def rows(by_kind, bad="mismatches", indent="  "):
         for kind, row in by_kind.items():
             if row["checked"]:
@@ -271,7 +277,13 @@ def _run_audit(scene, config, image_path, json_path, report_dir, stats_path, ora
 def cmd_audit(args) -> int:
     config = _config_from(args)
     scene = _load_scene(config, args.strict)
-    return _run_audit(scene, config, None, args.json, args.report, None, oracle=args.oracle)
+    tiled = None
+    if args.scheduler is not None:  # bands of rows as Dask tasks, merged into one report
+        from engine.bench.cluster import audit_on_cluster
+
+        workers = args.workers or 1
+        tiled = audit_on_cluster(config, args.tiles or 2 * workers, args.scheduler, workers, args.oracle)
+    return _run_audit(scene, config, None, args.json, args.report, None, oracle=args.oracle, tiled=tiled)
 
 
 def _delegate(module: str, function: str):
@@ -333,6 +345,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_selectors(p)
     p.add_argument("--json", help="write the audit report as JSON")
     p.add_argument("--report", help="write a report folder (JSON + mismatch image)")
+    p.add_argument("--scheduler", nargs="?", const="local", metavar="ADDRESS",
+                   help="split the audit into bands of rows run as Dask tasks: on the scheduler at ADDRESS, or "
+                        "with no address on a local cluster started here")
+    p.add_argument("--workers", type=int, help="worker processes of the local cluster (default 1)")
+    p.add_argument("--tiles", type=int, help="bands of rows of a --scheduler audit (default: 2 per worker)")
     p.add_argument("--oracle", choices=["embree", "open3d", "both"], default="embree",
                    help="ground truth: Embree (default), Open3D's RaycastingScene, or both")
     p.set_defaults(run=cmd_audit)

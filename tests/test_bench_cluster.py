@@ -69,3 +69,18 @@ def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):
     assert main(["bench", str(SMOKE), "--out", str(tmp_path), "--scheduler", "tcp://127.0.0.1:9"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("packetrt: error: --scheduler tcp://127.0.0.1:9: cannot reach a Dask scheduler")
+
+
+def test_a_tiled_audit_over_the_cluster_equals_the_serial_audit(tmp_path):
+    """``packetrt audit --scheduler --tiles 3``: three bands of rows as tasks on two workers,
+    merged into the report the serial audit writes (every ray checked once)."""
+    from engine.cli import main
+
+    common = ["audit", "--size", "40x30", "--param", "subdivisions=1"]
+    assert main(common + ["--json", str(tmp_path / "serial.json")]) == 0
+    assert main(common + ["--json", str(tmp_path / "tiled.json"), "--scheduler", "--workers", "2",
+                          "--tiles", "3"]) == 0
+    serial, tiled = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("serial", "tiled"))
+    assert tiled["bands"] == [[0, 400], [400, 800], [800, 1200]]
+    assert tiled["by_kind"] == serial["by_kind"] and tiled["rays_checked"] == serial["rays_checked"] > 1200
+    assert tiled["mismatch_count"] == serial["mismatch_count"] == 0

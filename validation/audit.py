@@ -21,7 +21,7 @@ import numpy as np
 from engine.core.errors import ConfigError
 from engine.render.plugins import make_traversal
 from engine.render.tracer import Tracer
-from engine.core.types import RAY_KINDS
+from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch
 from engine.gpu.choose import new_renderer
 
 from .compare import compare_hits, compare_occlusion
@@ -231,3 +231,57 @@ def audit(scene, config, oracle: str = "embree") -> tuple[dict, object, list]:
     report["triangles"] = scene.n_triangles
     report["config"] = config.to_dict()
     return report, result, observer.mismatch_pixels
+
+
+class PixelBand:
+    """Observer that passes on only the rays whose ancestral pixel lies in [lo, hi) (one band
+    of a tiled audit), each batch narrowed to them as one packet."""
+
+    def __init__(self, observer, lo: int, hi: int):
+        self.observer, self.lo, self.hi = observer, lo, hi
+
+    def __call__(self, kind, query, rays, packets, answer):
+        keep = np.flatnonzero((rays.pixel >= self.lo) & (rays.pixel < self.hi))
+        if keep.size == 0:
+            return
+        narrowed = RayBatch(*(np.ascontiguousarray(a[keep]) for a in rays[:7]), rays.kind)
+        one = Packets(np.array([0, keep.size], np.int32), 2, 1, 1)
+        if query == "intersect":
+            answer = Hits(*(np.ascontiguousarray(a[keep]) for a in answer))
+        else:
+            answer = np.ascontiguousarray(np.asarray(answer)[keep])
+        self.observer(kind, query, narrowed, one, answer)
+
+
+def audit_band(scene, config, lo: int, hi: int, oracle: str = "embree") -> tuple[dict, object, list]:
+    """``audit`` of the rays of pixels [lo, hi) only (the whole frame is rendered; only this
+    band's rays are checked): one task of a tiled audit (``merge_reports`` joins them)."""
+    if oracle not in ("embree", "open3d"):
+        raise ConfigError(f"a tiled audit checks against one oracle (embree or open3d), got {oracle!r}")
+    oracles = [make_oracle(oracle, scene.triangles)]
+    renderer = new_renderer(scene, config)
+    observer = AuditObserver(scene, renderer.bvh, oracles)
+    renderer.observer = PixelBand(observer, lo, hi)
+    result = renderer.render()
+    report = observer.report()
+    report.update(scene=scene.name, triangles=scene.n_triangles, config=config.to_dict(), band=[lo, hi])
+    return report, result, observer.mismatch_pixels
+
+
+def merge_reports(reports: list) -> dict:
+    """One audit report from the reports of disjoint pixel bands (``audit_band``): counts
+    summed per kind, the worst t error, the first examples, the agreement over everything."""
+    merged = {key: value for key, value in reports[0].items() if key != "band"}
+    by_kind = {kind: dict.fromkeys(reports[0]["by_kind"][kind], 0) for kind in reports[0]["by_kind"]}
+    for report in reports:
+        for kind, row in report["by_kind"].items():
+            for key, value in row.items():
+                by_kind[kind][key] += value
+    checked = sum(r["rays_checked"] for r in reports)
+    mismatches = sum(r["mismatch_count"] for r in reports)
+    merged.update(by_kind=by_kind, rays_checked=checked, mismatch_count=mismatches,
+                  agreement=(checked - mismatches) / checked if checked else 1.0,
+                  max_abs_t_err=max(r["max_abs_t_err"] for r in reports),
+                  mismatches=[m for r in reports for m in r["mismatches"]][:MISMATCHES_KEPT],
+                  bands=[r["band"] for r in reports])
+    return merged

@@ -41,30 +41,16 @@ def connect(address: str, workers: int = 1):
                           f"({type(error).__name__}: {error})") from None
 
 
-def cell_task(cell, repeat: int, matrix_name: str, run=None) -> dict:
-    """On a worker: measure one cell with fresh caches and yardsticks (``run``: the measuring
-    function, default ``runner.run_cell``); returns its results.jsonl record, stamped with the
-    worker's machine."""
-    from engine.bench import runner
-
-    run = run or runner.run_cell
-    yardstick, open3d = runner.EmbreeYardstick(), runner.Open3DYardstick()
-    try:
-        return run(cell, repeat, runner.SceneCache(), yardstick, runner.machine_info(), matrix_name,
-                   runner.ReferenceAnswers(), open3d=open3d)
-    finally:
-        yardstick.close()
-        open3d.close()
-
-
-def run_on_cluster(client, cells: list, repeat: int, matrix_name: str, record, run=None) -> int:
-    """Submit every cell, then hand each finished record to ``record(cell, record)`` as it
-    arrives; returns how many ran. A task that fails for a reason other than a lost worker
-    raises here, after the records that did arrive were handed over."""
+def run_on_cluster(client, task, cells: list, record) -> int:
+    """Submit ``task(cell)`` for every cell (a module-level function the workers import by
+    name: ``engine.bench.runner.measure_cell_afresh`` with its other arguments bound), then hand
+    each finished record to ``record(cell, record)`` as it arrives; returns how many ran. A task
+    that fails for a reason other than a lost worker raises here, after the records that did
+    arrive were handed over."""
     from distributed import as_completed
 
-    futures = {client.submit(cell_task, cell, repeat, matrix_name, run, pure=False,
-                             key=f"cell-{cell.key}-{i}"): cell for i, cell in enumerate(cells)}
+    futures = {client.submit(task, cell, pure=False, key=f"cell-{cell.key}-{i}"): cell
+               for i, cell in enumerate(cells)}
     ran = 0
     try:
         for future in as_completed(futures):
@@ -74,3 +60,38 @@ def run_on_cluster(client, cells: list, repeat: int, matrix_name: str, record, r
         for future in futures:
             future.cancel()
     return ran
+
+
+def audit_task(config, lo: int, hi: int, oracle: str) -> tuple:
+    """On a worker: (report, image f32[H,W,3], mismatching pixels) of the band [lo, hi) of the
+    config's frame (``validation.audit.audit_band``); the scene is loaded there."""
+    from scenes.catalog import scene_from_config
+    from validation.audit import audit_band
+
+    scene = scene_from_config(config.scene, config.override)
+    report, result, pixels = audit_band(scene, config, lo, hi, oracle)
+    return report, result.image, list(pixels)
+
+
+def audit_on_cluster(config, tiles: int, scheduler: str, workers: int = 1, oracle: str = "embree") -> tuple:
+    """(merged report, image, mismatching pixels) of an audit split into ``tiles`` bands of
+    rows, each a Dask task (every task renders the frame and checks only its band's rays, so the
+    checking, the costly part on a large scene, spreads over the workers)."""
+    from validation.audit import merge_reports
+
+    pixels = config.render.width * config.render.height
+    if not 1 <= tiles <= pixels:
+        raise ConfigError(f"--tiles must be in 1..{pixels:,} (the frame's pixels), got {tiles}")
+    rows = config.render.height
+    edges = [config.render.width * (rows * k // tiles) for k in range(tiles + 1)]
+    client, cluster = connect(scheduler, workers)
+    try:
+        futures = [client.submit(audit_task, config, lo, hi, oracle, pure=False)
+                   for lo, hi in zip(edges, edges[1:]) if hi > lo]
+        results = client.gather(futures)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    report = merge_reports([r for r, _, _ in results])
+    return report, results[0][1], sorted(p for _, _, found in results for p in found)

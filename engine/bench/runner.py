@@ -34,6 +34,7 @@ checked by a digest of the rays) and shared by the cells that trace it (``Embree
 from __future__ import annotations
 
 import datetime
+import functools
 import gc
 import hashlib
 import os
@@ -410,6 +411,19 @@ def _is_interrupt(exc: BaseException) -> bool:
     return False
 
 
+def measure_cell_afresh(cell: Cell, repeat: int, matrix_name: str, run=None) -> dict:
+    """One cell measured with fresh caches and yardsticks and this process's machine in its
+    record (``run``: the measuring function, default ``run_cell``): a Dask worker's task."""
+    run = run or run_cell
+    yardstick, open3d = EmbreeYardstick(), Open3DYardstick()
+    try:
+        return run(cell, repeat, SceneCache(), yardstick, machine_info(), matrix_name, ReferenceAnswers(),
+                   open3d=open3d)
+    finally:
+        yardstick.close()
+        open3d.close()
+
+
 def _run_on_dask(matrix: Matrix, todo: list, path: Path, scheduler: str, workers: int, run) -> int:
     """The cells ``todo`` as Dask tasks, each record appended to ``path`` as it arrives."""
     from engine.bench.cluster import connect, run_on_cluster
@@ -418,8 +432,8 @@ def _run_on_dask(matrix: Matrix, todo: list, path: Path, scheduler: str, workers
     print(f"{matrix.name}: {len(todo)} cell(s) as Dask tasks on {client.scheduler.address} "
           f"({len(client.scheduler_info()['workers'])} worker(s))", file=sys.stderr)
     try:
-        return run_on_cluster(client, todo, matrix.repeat, matrix.name,
-                              lambda cell, record: results_io.append(path, record), run)
+        task = functools.partial(measure_cell_afresh, repeat=matrix.repeat, matrix_name=matrix.name, run=run)
+        return run_on_cluster(client, task, todo, lambda cell, record: results_io.append(path, record))
     finally:
         client.close()
         if cluster is not None:
