@@ -164,3 +164,11 @@ def test_a_frame_larger_than_the_free_gpu_memory_is_one_line(tmp_path):
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and "GiB of GPU memory" in lines[0] and "render smaller" in lines[0]
     assert not out.exists()
+
+
+def test_bench_device_cuda_on_a_cpu_matrix_is_one_line(tmp_path, capsys):
+    from engine.cli import main
+
+    assert main(["bench", str(ROOT / "benchmarks" / "smoke.toml"), "--device", "cuda", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and 'runs matrices of kind = "gpu"' in err[0]

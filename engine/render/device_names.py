@@ -9,7 +9,6 @@ the device their names select ``bvh``, so a CPU config runs on the GPU unchanged
 from __future__ import annotations
 
 from engine.core.errors import ConfigError
-from engine.core.types import RAY_KINDS
 
 DEVICE_TRAVERSALS = ("bvh", "rayspace")
 #: CPU traversal names that walk the BVH and so run as ``bvh`` on the device.
