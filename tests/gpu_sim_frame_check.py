@@ -2,7 +2,7 @@
 frame of a tiny scene against the CPU renderer, and every ray it casts against Embree.
 
 Prints one JSON object; ``tests/test_gpu_frame.py`` runs it and checks the numbers. Usage:
-``python -m tests.gpu_sim_frame_check WIDTH HEIGHT TRAVERSAL [MAX_DEPTH]``.
+``python -m tests.gpu_sim_frame_check WIDTH HEIGHT TRAVERSAL [MAX_DEPTH [textured]]``.
 """
 from __future__ import annotations
 
@@ -22,7 +22,21 @@ def _faster_simulator() -> None:
     device.BLOCK = 32
 
 
-def main(width: int, height: int, traversal: str, depth: int) -> dict:
+def _textured(scene):
+    """``scene`` with texture coordinates on every triangle (planar in x and z, negative ones
+    included, so lookups wrap) and a small texture on every material: the texel path of the
+    shading (``texel_at``) on both targets."""
+    from dataclasses import replace
+
+    tris = scene.triangles
+    corners = np.stack([tris.v0, tris.v1, tris.v2], axis=1)            # (T, 3, 3)
+    uvs = np.ascontiguousarray(corners[:, :, [0, 2]] * np.float32(0.37), np.float32)
+    rng = np.random.default_rng(5)
+    materials = [replace(m, texture=rng.random((5, 7, 3)).astype(np.float32)) for m in scene.materials]
+    return replace(scene, triangles=tris._replace(uvs=uvs), materials=materials)
+
+
+def main(width: int, height: int, traversal: str, depth: int, textured: bool = False) -> dict:
     _faster_simulator()
     from engine.gpu.frame import GpuWhittedRenderer
     from engine.render.config import Config, RenderConfig, PerKind
@@ -31,6 +45,8 @@ def main(width: int, height: int, traversal: str, depth: int) -> dict:
     from validation.audit import AuditObserver, make_oracle
 
     scene = load_named("whitted", {"checks": 2, "subdivisions": 0})
+    if textured:
+        scene = _textured(scene)
     render = RenderConfig(width=width, height=height, max_depth=depth, packet=4)
     cpu_config = Config(render=render, traversal=PerKind("single", "single", "single", "single"),
                         frustum=PerKind("none", "none", "none", "none"))
@@ -46,12 +62,13 @@ def main(width: int, height: int, traversal: str, depth: int) -> dict:
     return {"triangles": scene.n_triangles, "rays_cpu": cpu.rays, "rays_gpu": gpu.rays,
             "max_abs_difference": float(difference.max()),
             "pixels_over_1_255": int((difference.max(axis=2) > 1 / 255).sum()),
-            "image_nonzero": int((gpu.image.max(axis=2) > 0).sum()),
+            "image_nonzero": int((gpu.image.max(axis=2) > 0).sum()), "image_mean": float(gpu.image.mean()),
             "audit_checked": report["rays_checked"], "audit_mismatches": report["mismatch_count"],
             "audit_by_kind": report["by_kind"], "traversal": gpu.extra["device"]["traversal"]}
 
 
 if __name__ == "__main__":
     args = sys.argv[1:]
-    result = main(int(args[0]), int(args[1]), args[2], int(args[3]) if len(args) > 3 else 3)
+    result = main(int(args[0]), int(args[1]), args[2], int(args[3]) if len(args) > 3 else 3,
+                  len(args) > 4 and args[4] == "textured")
     print(json.dumps(result))

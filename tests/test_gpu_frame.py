@@ -116,6 +116,17 @@ def test_ray_tracer_on_the_device_answers_as_the_cpu_does():
     assert result["render_device"] == "cuda" and result["render_difference"] <= 1e-5
 
 
+def test_gpu_frame_with_textures_equals_the_cpu_frame(frame_check):
+    """Textured materials and wrapping texture coordinates: the texel lookup twin (an integer
+    index on the device, where math.floor gives a float) picks the CPU's texels."""
+    run = simulated("-m", "tests.gpu_sim_frame_check", "13", "11", "bvh", "3", "textured")
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert abs(result["image_mean"] - frame_check["image_mean"]) > 1e-3  # the textures are seen
+    assert result["max_abs_difference"] <= 1e-5 and result["pixels_over_1_255"] == 0
+    assert result["audit_mismatches"] == 0
+
+
 def test_gpu_frame_with_the_ray_space_hierarchy():
     """The same frame with ``rayspace`` for every ray kind (hierarchies built per generation on
     the device, shadow rays reversed to leave the one light): same rays, image and audit."""
