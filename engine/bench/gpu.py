@@ -123,13 +123,12 @@ def _checked(rays, query, answer, oracle, tris, closest_ours=None) -> dict:
     answer also needs our closest hits of the same rays (``closest_ours``) to classify ties."""
     from validation.compare import compare_hits, compare_occlusion
 
+    theirs = oracle.intersect(rays.batch)  # once: the comparison and the examples both read it
     if query == "closest":
-        result = compare_hits(rays.batch, answer, oracle.intersect(rays.batch), tris)
+        result = compare_hits(rays.batch, answer, theirs, tris)
     else:
-        result = compare_occlusion(rays.batch, answer, oracle.occluded(rays.batch), tris, closest_ours,
-                                   oracle.intersect(rays.batch))
+        result = compare_occlusion(rays.batch, answer, oracle.occluded(rays.batch), tris, closest_ours, theirs)
     examples = []
-    theirs = oracle.intersect(rays.batch)
     for i in np.flatnonzero(result.mismatch)[:5]:
         ours = answer if query == "closest" else closest_ours
         examples.append({"org": rays.org[i].tolist(), "dir": rays.dir[i].tolist(), "tmax": float(rays.tmax[i]),
