@@ -281,8 +281,9 @@ def cmd_audit(args) -> int:
     if args.scheduler is not None:  # bands of rows as Dask tasks, merged into one report
         from engine.bench.cluster import audit_on_cluster
 
-        workers = args.workers or 1
-        tiled = audit_on_cluster(config, args.tiles or 2 * workers, args.scheduler, workers, args.oracle)
+        workers = 1 if args.workers is None else args.workers  # 0 is a mistake, not the default
+        tiles = 2 * workers if args.tiles is None else args.tiles
+        tiled = audit_on_cluster(config, tiles, args.scheduler, workers, args.oracle)
     return _run_audit(scene, config, None, args.json, args.report, None, oracle=args.oracle, tiled=tiled)
 
 

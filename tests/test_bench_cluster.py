@@ -84,3 +84,12 @@ def test_a_tiled_audit_over_the_cluster_equals_the_serial_audit(tmp_path):
     assert tiled["bands"] == [[0, 400], [400, 800], [800, 1200]]
     assert tiled["by_kind"] == serial["by_kind"] and tiled["rays_checked"] == serial["rays_checked"] > 1200
     assert tiled["mismatch_count"] == serial["mismatch_count"] == 0
+
+
+@pytest.mark.parametrize("extra, message", [(["--workers", "0"], "--workers must be in 1..256, got 0"),
+                                            (["--tiles", "0"], "--tiles must be in 1..256 (the frame's pixels), got 0")])
+def test_zero_workers_or_tiles_are_refused_not_defaulted(extra, message, capsys):
+    from engine.cli import main
+
+    assert main(["audit", "--size", "16x16", "--scheduler"] + extra) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == f"packetrt: error: {message}"

@@ -80,6 +80,8 @@ def audit_on_cluster(config, tiles: int, scheduler: str, workers: int = 1, oracl
     from validation.audit import merge_reports
 
     pixels = config.render.width * config.render.height
+    if not 1 <= workers <= 256:
+        raise ConfigError(f"--workers must be in 1..256, got {workers}")
     if not 1 <= tiles <= pixels:
         raise ConfigError(f"--tiles must be in 1..{pixels:,} (the frame's pixels), got {tiles}")
     rows = config.render.height

@@ -548,7 +548,7 @@ def cmd_bench(args) -> int:
     matrix = load_matrix(args.matrix, repeat=args.repeat)
     out = Path(args.out) if args.out else Path("out") / f"bench-{matrix.name}"
     summary = run_matrix(matrix, out, resume=args.resume, scheduler=getattr(args, "scheduler", None),
-                         workers=getattr(args, "workers", None) or 1)
+                         workers=1 if getattr(args, "workers", None) is None else args.workers)
     print(f"{matrix.name}: ran {summary['ran']} cell(s), skipped {summary['skipped']}; wrote "
           f"{', '.join(str(p) for p in summary['files'])}")
     return 0
