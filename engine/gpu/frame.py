@@ -139,7 +139,7 @@ def _shade(counts, gen, q_vec, q_pixel, hit_tuv, hit_prim, tri_vec, normals, uvs
             continue
         hit[i] = True
         _surface(i, p, dirs, t_u, t_v, tri_vec[0], tri_vec[1], tri_vec[2], tri_vec[3], normals, uvs, tri_material,
-                 corner_magnitude, has_normals, has_uvs, mat_vec[0], mat_texture[0], mat_texture[1],
+                 corner_magnitude, (has_normals, has_uvs), mat_vec[0], mat_texture[0], mat_texture[1],
                  mat_texture[2], texels, ambient_light, surf_vec[S_POINT], surf_magnitude, surf_vec[S_VIEW],
                  surf_vec[S_NORMAL], surf_vec[S_FACING], entering, surf_material, surf_vec[S_TEXEL],
                  surf_vec[S_COLOR], surf_vec[S_LEAVE])

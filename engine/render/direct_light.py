@@ -20,7 +20,7 @@ _TWO = np.float32(2.0)
 SHADOW_TMAX_SCALE = np.float32(1.0 - 1e-4)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def light_direction_lane(i, leave, ns, ng, light, to_light, dist, ndotl, lit, shadow_tmax):
     """Row ``i`` of ``light_directions`` for a lane that hit (shared by the CPU kernel and the
     device twin in ``engine.gpu.frame``)."""
@@ -53,7 +53,7 @@ def light_directions(hit, leave, ns, ng, light, to_light, dist, ndotl, lit, shad
         light_direction_lane(i, leave, ns, ng, light, to_light, dist, ndotl, lit, shadow_tmax)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def add_light_lane(i, color, ns, to_light, ndotl, view, mat, diffuse, specular, shininess, texel, light_color):
     """color[i] += the diffuse + Phong term of one unshadowed light (see ``add_light``)."""
     cos_s = ndotl[i]

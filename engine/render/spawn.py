@@ -60,7 +60,7 @@ def new_children(r: int, allocate=new_array) -> Children:
     return Children(*(allocate(name, r, tail, dtype) for name, (tail, dtype) in CHILDREN_FIELDS.items()))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def spawn_lane(i, weight, point, magnitude, view, normal, facing, entering, material, reflectance, transmission,
                ior, reflect, mirror, total_internal, refract, reflect_dir, refract_dir, reflect_weight,
                transmit_weight, enter):
