@@ -118,7 +118,7 @@ def _camera(eye, basis, half_w, half_h, width, height, q_vec, q_scalar, q_pixel,
 
 @cuda.jit
 def _shade(counts, gen, q_vec, q_pixel, hit_tuv, hit_prim, tri_vec, normals, uvs, tri_material, corner_magnitude,
-           has_normals, has_uvs, mat_vec, mat_texture, texels, ambient_light, background, image,
+           has_normals, has_uvs, mat_vec, mat_texture, texels, palette, ambient_light, background, image,
            surf_vec, surf_magnitude, surf_flags, surf_material, n_lights, lights, light_dir, light_scalar, lit,
            shadow_slot, s_vec, s_scalar, s_pixel, s_capacity):
     """Surface rows of the hits of queue ``gen``, the background of its misses, and a shadow ray
@@ -139,8 +139,8 @@ def _shade(counts, gen, q_vec, q_pixel, hit_tuv, hit_prim, tri_vec, normals, uvs
             continue
         hit[i] = True
         _surface(i, p, dirs, t_u, t_v, tri_vec[0], tri_vec[1], tri_vec[2], tri_vec[3], normals, uvs, tri_material,
-                 corner_magnitude, (has_normals, has_uvs), mat_vec[0], mat_texture[0], mat_texture[1],
-                 mat_texture[2], texels, ambient_light, surf_vec[S_POINT], surf_magnitude, surf_vec[S_VIEW],
+                 corner_magnitude, (has_normals, has_uvs), mat_vec[0], mat_texture, texels, palette,
+                 ambient_light, surf_vec[S_POINT], surf_magnitude, surf_vec[S_VIEW],
                  surf_vec[S_NORMAL], surf_vec[S_FACING], entering, surf_material, surf_vec[S_TEXEL],
                  surf_vec[S_COLOR], surf_vec[S_LEAVE])
         for light in range(n_lights):
@@ -316,8 +316,9 @@ class GpuWhittedRenderer:
             table = MaterialTable(scene.materials)
             self.mat_vec = upload(np.stack([table.ambient, table.diffuse, table.specular, table.reflectance]))
             self.mat_scalar = upload(np.stack([table.shininess, table.transmission, table.ior]))
-            self.mat_texture = upload(np.stack([table.texture_start, table.texture_width, table.texture_height]))
+            self.mat_texture = upload(table.texture_layout)
             self.texels = upload(table.texels)
+            self.palette = upload(table.palette)
             replaced = True
         self.scene = scene
         self.tris = scene.triangles
@@ -481,7 +482,7 @@ class GpuWhittedRenderer:
             steps.append(("observe", functools.partial(self._observe_closest, f, gen, queue), None))
         steps.append(("shade", PreparedLaunch(_shade, grid(bound), BLOCK, (
             f.counts, gen, q_vec, q_pixel, f.hit_tuv, f.hit_prim, t.vec, t.normals, t.uvs, t.material, t.magnitude,
-            t.has_normals, t.has_uvs, self.mat_vec, self.mat_texture, self.texels, self.ambient_light,
+            t.has_normals, t.has_uvs, self.mat_vec, self.mat_texture, self.texels, self.palette, self.ambient_light,
             self.background, f.image, f.surf_vec, f.surf_magnitude, f.surf_flags, f.surf_material, self.n_lights,
             self.lights, f.light_dir, f.light_scalar, f.lit, f.shadow_slot, *f.shadow, f.shadow_capacity)), None))
         if self.n_lights:

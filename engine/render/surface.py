@@ -76,9 +76,9 @@ def unit_wrap(s):
 
 
 @njit(cache=True, inline="always")
-def texel_at(texels, start, width, height, s, t):
-    """Index into ``texels`` of the nearest texel, wrapping, of the texture at ``start``
-    (width x height) at (s, t)."""
+def texel_at(start, width, height, s, t):
+    """Row of the stacked texels (``MaterialTable``) of the nearest texel, wrapping, of the
+    texture that begins at row ``start`` (width x height) at (s, t)."""
     # int(): math.floor gives an integer on the CPU target but a float on CUDA.
     x = int(math.floor(unit_wrap(s) * np.float32(width)))
     y = int(math.floor((np.float32(1.0) - unit_wrap(t)) * np.float32(height)))
@@ -93,7 +93,7 @@ def texel_at(texels, start, width, height, s, t):
 
 @njit(cache=True, inline="always")
 def fill_surface_lane(i, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
-                      interpolated, ambient, texture_start, texture_width, texture_height, texels,
+                      interpolated, ambient, texture_layout, texels, palette,
                       ambient_light, point, magnitude, view, normal, facing, entering, material, texel, color,
                       leave):
     """Row ``i`` of a Surface (point .. leave) for a ray along dirs[i] that hit triangle ``p``
@@ -137,13 +137,13 @@ def fill_surface_lane(i, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_materi
             normal[i, a] = facing[i, a]
     m = tri_material[p]
     material[i] = m
-    start = texture_start[m]
+    start = texture_layout[0, m]
     if has_uvs and start >= 0:
         s = w * uvs[p, 0, 0] + u[i] * uvs[p, 1, 0] + v[i] * uvs[p, 2, 0]
         t = w * uvs[p, 0, 1] + u[i] * uvs[p, 1, 1] + v[i] * uvs[p, 2, 1]
-        j = texel_at(texels, start, texture_width[m], texture_height[m], s, t)
+        j = texel_at(start, texture_layout[1, m], texture_layout[2, m], s, t)
         for c in range(3):
-            texel[i, c] = texels[j, c]
+            texel[i, c] = palette[texels[j, c]]
     else:
         for c in range(3):
             texel[i, c] = one
@@ -157,8 +157,7 @@ def fill_surface_lane(i, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_materi
 @njit(cache=True, parallel=True)
 def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
                   v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
-                  ambient, texture_start, texture_width, texture_height, texels,
-                  ambient_light, background, image,
+                  ambient, texture_layout, texels, palette, ambient_light, background, image,
                   hit, point, magnitude, view, normal, facing, entering, material, texel, color, leave):
     """Fill the Surface rows (hit .. leave, see ``Surface``) of a batch and add the background
     of its misses to ``image`` (f32[W*H,3]).
@@ -183,6 +182,6 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
                 continue
             hit[i] = True
             fill_surface_lane(i, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
-                              (has_normals, has_uvs), ambient, texture_start, texture_width, texture_height, texels,
+                              (has_normals, has_uvs), ambient, texture_layout, texels, palette,
                               ambient_light, point, magnitude, view, normal, facing, entering, material, texel,
                               color, leave)

@@ -208,8 +208,8 @@ class WhittedRenderer:
         surface = new_surface(r, take)
         shade_surface(packets.offsets, rays.dir, rays.pixel, rays.weight, hits.prim, hits.u, hits.v,
                       tris.v0, tris.v1, tris.v2, tris.ng, tris.normals, tris.uvs, tris.material,
-                      self.corner_magnitude, m.ambient, m.texture_start, m.texture_width, m.texture_height,
-                      m.texels, self.ambient_light, self.background, image, *surface)
+                      self.corner_magnitude, m.ambient, m.texture_layout, m.texels, m.palette, self.ambient_light,
+                      self.background, image, *surface)
         if self.scene.lights:
             light = self.scratch.allocator("light")
             to_light, dist, ndotl, shadow_tmax = (light("to_light", r, (3,)), light("dist", r), light("ndotl", r),
