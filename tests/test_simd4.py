@@ -13,7 +13,7 @@ from numba import njit
 
 from engine.core.triangle import F32_INF, HUGE_INV, safe_inverse, slab_test
 from engine.packet.kernels import IX, OX, RF_ROWS, THI, TLO
-from engine.packet.simd4 import planes4_box, planes4_triangle, slab4
+from engine.packet.simd4 import planes4_box, planes4_triangle, slab4, slab4x2
 
 LANES = 32
 BOXES = 40
@@ -42,10 +42,23 @@ def masks_scalar(rf, bmin, bmax):
     return out
 
 
-@settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2 ** 32 - 1))
-def test_slab4_is_slab_test_on_four_lanes(seed):
-    rng = np.random.default_rng(seed)
+@njit(cache=True)
+def masks_pairs(rf, bmin, bmax, pairs):
+    """slab4x2 of SIMD rays pairs[p, 0] and pairs[p, 1], split back into two 4-lane masks."""
+    out = np.zeros((LANES // 4, bmin.shape[0]), np.int64)
+    for p in range(pairs.shape[0]):
+        i0, i1 = pairs[p, 0], pairs[p, 1]
+        for node in range(bmin.shape[0]):
+            both = slab4x2(rf, 4 * i0, 4 * i1, bmin[node, 0], bmin[node, 1], bmin[node, 2],
+                           bmax[node, 0], bmax[node, 1], bmax[node, 2])
+            out[i0, node] = both & 0xF
+            out[i1, node] = both >> 4
+    return out
+
+
+def random_lanes_and_boxes(rng):
+    """(rf f32[RF_ROWS, LANES], bmin, bmax f32[BOXES, 3]) with dead lanes, axis-parallel rays
+    and flat boxes."""
     rf = np.zeros((RF_ROWS, LANES), np.float32)
     d = rng.normal(size=(LANES, 3)).astype(np.float32)
     d[rng.random((LANES, 3)) < 0.15] = 0.0  # axis-parallel rays: inv_dir is +-HUGE_INV
@@ -58,9 +71,25 @@ def test_slab4_is_slab_test_on_four_lanes(seed):
     lo = rng.normal(size=(BOXES, 3)) * 2
     bmin = lo.astype(np.float32)
     bmax = (lo + np.abs(rng.normal(size=(BOXES, 3))) * rng.choice([0.0, 1.0], (BOXES, 3), p=[0.1, 0.9])).astype(np.float32)
+    return rf, bmin, bmax
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1))
+def test_slab4_is_slab_test_on_four_lanes(seed):
+    rf, bmin, bmax = random_lanes_and_boxes(np.random.default_rng(seed))
     vector = masks_vector(rf, bmin, bmax)
     np.testing.assert_array_equal(vector, masks_scalar(rf, bmin, bmax))
     assert np.abs(rf[IX:IX + 3]).max() <= HUGE_INV
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1))
+def test_slab4x2_is_slab_test_on_two_simd_rays_in_any_order(seed):
+    rng = np.random.default_rng(seed)
+    rf, bmin, bmax = random_lanes_and_boxes(rng)
+    pairs = rng.permutation(LANES // 4).reshape(-1, 2).astype(np.int64)  # not neighbours, either order
+    np.testing.assert_array_equal(masks_pairs(rf, bmin, bmax, pairs), masks_scalar(rf, bmin, bmax))
 
 
 @njit(cache=True)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import re
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from numba import njit
@@ -20,7 +21,7 @@ from numba import njit
 from engine.core.triangle import F32_INF, closer, intersect_triangle, safe_inverse
 from engine.packet.kernels import (BEST_PRIM, BEST_T, BEST_U, BEST_V, KX, KY, KZ, OKX, OKY, OKZ, RF_ROWS, RI_ROWS,
                                    SX, SY, SZ, THI, TLO, load_packet)
-from engine.packet.simd4_triangle import intersect4
+from engine.packet.simd4_triangle import intersect4, intersect4x2
 
 LANES = 32
 F32_NEG_INF = np.float32(-np.inf)
@@ -67,6 +68,17 @@ def leaves_vector(rf, ri, calls, leaf_tris, v0, v1, v2, any_hit):
         first, n_tris = calls[c, 2], calls[c, 3]
         out[c, 0], out[c, 1] = intersect4(rf, ri, calls[c, 0], calls[c, 1], leaf_tris[first:first + n_tris], n_tris,
                                           v0, v1, v2, any_hit)
+    return out
+
+
+@njit(cache=True)
+def leaves_pairs(rf, ri, pairs, leaf_tris, v0, v1, v2, any_hit):
+    """Rows of pairs (lane0, lane1, mask8, first, count) through intersect4x2."""
+    out = np.zeros((pairs.shape[0], 2), np.int64)
+    for c in range(pairs.shape[0]):
+        first, n_tris = pairs[c, 3], pairs[c, 4]
+        out[c, 0], out[c, 1] = intersect4x2(rf, ri, pairs[c, 0], pairs[c, 1], pairs[c, 2],
+                                            leaf_tris[first:first + n_tris], n_tris, v0, v1, v2, any_hit)
     return out
 
 
@@ -185,6 +197,31 @@ def test_intersect4_is_the_scalar_leaf_loop(seed, any_hit):
     np.testing.assert_array_equal(ri, ri_s)
 
 
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), any_hit=st.booleans())
+def test_intersect4x2_is_the_scalar_leaf_loop_on_two_simd_rays(seed, any_hit):
+    """A pair call equals the scalar loop on its first SIMD ray, then on its second (lanes are
+    independent), whichever SIMD rays of the packet are paired and in either order."""
+    rf, ri, calls, leaf_tris, v0, v1, v2, ts = make_case(seed)
+    rng = np.random.default_rng(seed + 1)
+    simd = rng.permutation(LANES // 4)
+    pairs = np.zeros((len(calls), 5), np.int64)
+    pairs[:, 0] = 4 * simd[rng.integers(0, len(simd), len(calls))]
+    pairs[:, 1] = (pairs[:, 0] + 4 * rng.integers(1, LANES // 4, len(calls))) % LANES  # another SIMD ray
+    pairs[:, 2] = calls[:, 1] | (np.where(rng.random(len(calls)) < 0.5, 15, rng.integers(0, 16, len(calls))) << 4)
+    pairs[:, 3:] = calls[:, 2:]
+    singles = np.zeros((2 * len(calls), 4), np.int64)
+    singles[0::2, 0], singles[1::2, 0] = pairs[:, 0], pairs[:, 1]
+    singles[0::2, 1], singles[1::2, 1] = pairs[:, 2] & 15, pairs[:, 2] >> 4
+    singles[0::2, 2:] = singles[1::2, 2:] = pairs[:, 3:]
+    rf_s, ri_s = rf.copy(), ri.copy()
+    counts = leaves_pairs(rf, ri, pairs, leaf_tris, v0, v1, v2, any_hit)
+    ref_counts = leaves_scalar(rf_s, ri_s, singles, leaf_tris, v0, v1, v2, any_hit)
+    np.testing.assert_array_equal(counts, ref_counts[0::2] + ref_counts[1::2])
+    np.testing.assert_array_equal(bits(rf), bits(rf_s))
+    np.testing.assert_array_equal(ri, ri_s)
+
+
 def test_cases_reach_the_edge_cases():
     """The generator really produces hits, ties, on-boundary t and underflowing edge functions."""
     hits = ties = on_end = 0
@@ -231,15 +268,20 @@ def test_strided_inputs():
     np.testing.assert_array_equal(ri, ri_s)
 
 
-def test_no_fast_math_and_no_fma():
+@pytest.mark.parametrize("lanes", [4, 8])
+def test_no_fast_math_and_no_fma(lanes):
     """Bit-identity by construction: plain IEEE ops, nothing LLVM may fuse or reassociate."""
     rf, ri, calls, leaf_tris, v0, v1, v2, _ = make_case(0)
-    fresh = njit(leaves_vector.py_func)  # not from the disk cache, which keeps no IR
+    if lanes == 4:
+        fresh = njit(leaves_vector.py_func)  # not from the disk cache, which keeps no IR
+    else:
+        fresh = njit(leaves_pairs.py_func)
+        calls = np.concatenate([calls[:, :1], (calls[:, :1] + 4) % LANES, calls[:, 1:2] * 17, calls[:, 2:]], 1)
     fresh(rf, ri, calls, leaf_tris, v0, v1, v2, False)
     sig = fresh.signatures[0]
     llvm = fresh.inspect_llvm(sig)
     asm = fresh.inspect_asm(sig)
-    vector_ops = re.findall(r"= (fmul|fadd|fsub|fdiv)( [a-z ]*)?<4 x (float|double)>", llvm)
+    vector_ops = re.findall(rf"= (fmul|fadd|fsub|fdiv)( [a-z ]*)?<{lanes} x (float|double)>", llvm)
     assert len(vector_ops) >= 20
     assert all(not (flags or "").strip() for _, flags, _ in vector_ops), {flags for _, flags, _ in vector_ops}
     assert not re.search(r"llvm\.fma|llvm\.fmuladd", llvm)

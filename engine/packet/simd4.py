@@ -11,6 +11,8 @@ emit the <4 x float> operations themselves, as the paper's SSE code does:
   (b0, b1). Returns the 4-bit mask of the lanes that hit. Every operation, operand order and
   compare matches ``engine.core.triangle.slab_test`` (numba's min/max are selects on ordered
   compares), so each lane's answer is exactly slab_test's.
+- ``slab4x2(rf, lane0, lane1, ...)``: the same test of two SIMD rays at once, as one <8 x float>
+  test (AVX2 has 8 float lanes): an 8-bit mask, lane0's lanes in the low 4 bits.
 - ``planes4_box(fr, b0x, ..., b1z)`` / ``planes4_triangle(fr, ax, ..., cz)``: a box / triangle
   against the four planes of a packet frustum stored in SoA order (fr: f32[16] = nx[4], ny[4],
   nz[4], d[4]); True when it lies wholly outside one of them. Same arithmetic as the scalar
@@ -36,12 +38,6 @@ _ZERO4 = ir.Constant(ir.VectorType(_I32, 4), [0, 0, 0, 0])
 _ROW_OX, _ROW_OY, _ROW_OZ, _ROW_IX, _ROW_IY, _ROW_IZ, _ROW_TLO, _ROW_THI = range(8)
 
 
-def _splat(builder, scalar):
-    """<4 x float> with every lane = scalar."""
-    one = builder.insert_element(ir.Constant(_V4, ir.Undefined), scalar, ir.Constant(_I32, 0))
-    return builder.shuffle_vector(one, ir.Constant(_V4, ir.Undefined), _ZERO4)
-
-
 def _min(builder, a, b):
     """numba's min(a, b) for floats: b < a ? b : a."""
     return builder.select(builder.fcmp_ordered("<", b, a), b, a)
@@ -50,11 +46,6 @@ def _min(builder, a, b):
 def _max(builder, a, b):
     """numba's max(a, b) for floats: b > a ? b : a."""
     return builder.select(builder.fcmp_ordered(">", b, a), b, a)
-
-
-def _fabs(builder, v):
-    fabs = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V4, [_V4]), "llvm.fabs.v4f32")
-    return builder.call(fabs, [v])
 
 
 def _float32_args(context, builder, sig, args, first):
@@ -80,26 +71,43 @@ def _check_scalars(values):
             raise TypingError(f"expected a number, got {v}")
 
 
-@intrinsic
-def slab4(typingctx, rf, lane0, b0x, b0y, b0z, b1x, b1y, b1z):
-    """4-bit mask of the lanes lane0 .. lane0+3 of rf whose segment meets the box (b0, b1)."""
-    _check_f32_array(rf, 2, "rf")
-    if not isinstance(lane0, types.Integer):
-        raise TypingError(f"lane0 must be an integer, got {lane0}")
-    _check_scalars((b0x, b0y, b0z, b1x, b1y, b1z))
-    sig = types.int64(rf, lane0, b0x, b0y, b0z, b1x, b1y, b1z)
+def _concat(builder, halves):
+    """One vector of the lanes of ``halves`` (<4 x T> each), in order."""
+    if len(halves) == 1:
+        return halves[0]
+    return builder.shuffle_vector(halves[0], halves[1], ir.Constant(ir.VectorType(_I32, 8), list(range(8))))
+
+
+def _splat_n(builder, scalar, width):
+    """<width x float> with every lane = scalar."""
+    vector = ir.VectorType(_F32, width)
+    one = builder.insert_element(ir.Constant(vector, ir.Undefined), scalar, ir.Constant(_I32, 0))
+    return builder.shuffle_vector(one, ir.Constant(vector, ir.Undefined),
+                                  ir.Constant(ir.VectorType(_I32, width), [0] * width))
+
+
+def _fabs_n(builder, v, width):
+    vector = ir.VectorType(_F32, width)
+    fabs = cgutils.get_or_insert_function(builder.module, ir.FunctionType(vector, [vector]), f"llvm.fabs.v{width}f32")
+    return builder.call(fabs, [v])
+
+
+def _slab_codegen(n_rays):
+    """Codegen of the slab test of ``n_rays`` SIMD rays (args: rf, n_rays lane offsets, box)."""
+    width = 4 * n_rays
 
     def codegen(context, builder, signature, args):
         arr = context.make_array(signature.args[0])(context, builder, args[0])
         itemsize = ir.Constant(_I64, 4)
         row_elems = builder.udiv(builder.extract_value(arr.strides, 0), itemsize)
-        offset = context.cast(builder, args[1], signature.args[1], types.int64)
+        offsets = [context.cast(builder, args[1 + k], signature.args[1 + k], types.int64) for k in range(n_rays)]
 
         def row(k):
-            return _vector_row(builder, arr.data, row_elems, k, offset)
+            return _concat(builder, [_vector_row(builder, arr.data, row_elems, k, o) for o in offsets])
 
-        lo = [_splat(builder, v) for v in _float32_args(context, builder, signature, args, 2)[:3]]
-        hi = [_splat(builder, v) for v in _float32_args(context, builder, signature, args, 2)[3:]]
+        box = _float32_args(context, builder, signature, args, 1 + n_rays)
+        lo = [_splat_n(builder, v, width) for v in box[:3]]
+        hi = [_splat_n(builder, v, width) for v in box[3:]]
         origin = [row(_ROW_OX), row(_ROW_OY), row(_ROW_OZ)]
         inverse = [row(_ROW_IX), row(_ROW_IY), row(_ROW_IZ)]
         tn = tf = None
@@ -109,13 +117,36 @@ def slab4(typingctx, rf, lane0, b0x, b0y, b0z, b1x, b1y, b1z):
             near, far = _min(builder, t0, t1), _max(builder, t0, t1)
             tn = near if tn is None else _max(builder, tn, near)
             tf = far if tf is None else _min(builder, tf, far)
-        slack = _splat(builder, ir.Constant(_F32, float(SLAB_SLACK)))
-        tn = _max(builder, builder.fsub(tn, builder.fmul(_fabs(builder, tn), slack)), row(_ROW_TLO))
-        tf = _min(builder, builder.fadd(tf, builder.fmul(_fabs(builder, tf), slack)), row(_ROW_THI))
+        slack = _splat_n(builder, ir.Constant(_F32, float(SLAB_SLACK)), width)
+        tn = _max(builder, builder.fsub(tn, builder.fmul(_fabs_n(builder, tn, width), slack)), row(_ROW_TLO))
+        tf = _min(builder, builder.fadd(tf, builder.fmul(_fabs_n(builder, tf, width), slack)), row(_ROW_THI))
         hit = builder.fcmp_ordered("<=", tn, tf)
-        return builder.zext(builder.bitcast(hit, ir.IntType(4)), _I64)
+        return builder.zext(builder.bitcast(hit, ir.IntType(width)), _I64)
 
-    return sig, codegen
+    return codegen
+
+
+@intrinsic
+def slab4(typingctx, rf, lane0, b0x, b0y, b0z, b1x, b1y, b1z):
+    """4-bit mask of the lanes lane0 .. lane0+3 of rf whose segment meets the box (b0, b1)."""
+    _check_f32_array(rf, 2, "rf")
+    if not isinstance(lane0, types.Integer):
+        raise TypingError(f"lane0 must be an integer, got {lane0}")
+    _check_scalars((b0x, b0y, b0z, b1x, b1y, b1z))
+    return types.int64(rf, lane0, b0x, b0y, b0z, b1x, b1y, b1z), _slab_codegen(1)
+
+
+@intrinsic
+def slab4x2(typingctx, rf, lane0, lane1, b0x, b0y, b0z, b1x, b1y, b1z):
+    """``slab4`` of two SIMD rays (lanes lane0 .. lane0+3 and lane1 .. lane1+3, anywhere in the
+    packet) in one 8-wide test: bits 0-3 are lane0's mask, bits 4-7 lane1's. AVX2 holds 8 float
+    lanes, so two SIMD rays cost about what one does."""
+    _check_f32_array(rf, 2, "rf")
+    for lane in (lane0, lane1):
+        if not isinstance(lane, types.Integer):
+            raise TypingError(f"lane0, lane1 must be integers, got {lane}")
+    _check_scalars((b0x, b0y, b0z, b1x, b1y, b1z))
+    return types.int64(rf, lane0, lane1, b0x, b0y, b0z, b1x, b1y, b1z), _slab_codegen(2)
 
 
 def _plane_vectors(context, builder, fr_type, fr_value):
@@ -140,7 +171,7 @@ def planes4_box(typingctx, fr, b0x, b0y, b0z, b1x, b1y, b1z):
 
     def codegen(context, builder, signature, args):
         nx, ny, nz, d = _plane_vectors(context, builder, signature.args[0], args[0])
-        b = [_splat(builder, v) for v in _float32_args(context, builder, signature, args, 1)]
+        b = [_splat_n(builder, v, 4) for v in _float32_args(context, builder, signature, args, 1)]
         total = None
         for axis, n in enumerate((nx, ny, nz)):
             # The corner farthest along n: per axis the larger of the two products.
@@ -160,7 +191,7 @@ def planes4_triangle(typingctx, fr, ax, ay, az, bx, by, bz, cx, cy, cz):
 
     def codegen(context, builder, signature, args):
         nx, ny, nz, d = _plane_vectors(context, builder, signature.args[0], args[0])
-        coords = [_splat(builder, v) for v in _float32_args(context, builder, signature, args, 1)]
+        coords = [_splat_n(builder, v, 4) for v in _float32_args(context, builder, signature, args, 1)]
         farthest = None
         for corner in range(3):
             x, y, z = coords[3 * corner: 3 * corner + 3]

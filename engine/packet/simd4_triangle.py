@@ -10,6 +10,10 @@ With ``any_hit`` a lane dies (THI = -inf) at its first hit. Returns (ray-triangl
 lanes that died), counted as the scalar loop counts them. A triangle that no live lane sees
 inside its edges costs no division and no update (the common case: a branch, not a select).
 
+``intersect4x2(rf, ri, lane0, lane1, mask, ...)`` runs the same test on two SIMD rays at once (8
+lanes: AVX2's width), mask bits 4-7 selecting lane1's lanes; the leaf loops pair their SIMD rays
+with it.
+
 Why it is bit-identical to ``engine.core.triangle.intersect_triangle``: each vector element goes
 through the same IEEE operations in the same order (f32 translate and shear, the three edge
 functions as f64 products and difference rounded once to f32, f32 det, scaled t, 1/det), with
@@ -32,14 +36,10 @@ from numba.extending import intrinsic
 _F32 = ir.FloatType()
 _F64 = ir.DoubleType()
 _I1 = ir.IntType(1)
-_I4 = ir.IntType(4)
 _I32 = ir.IntType(32)
 _I64 = ir.IntType(64)
 _V4F = ir.VectorType(_F32, 4)
-_V4D = ir.VectorType(_F64, 4)
 _V4I = ir.VectorType(_I32, 4)
-_V4B = ir.VectorType(_I1, 4)
-_ZERO4 = ir.Constant(_V4I, [0, 0, 0, 0])
 
 #: Rows of the packet-local blocks this reads and writes (``engine.packet.kernels`` checks them).
 ROWS_F = {"TLO": 6, "THI": 7, "SX": 8, "SY": 9, "SZ": 10, "OKX": 11, "OKY": 12, "OKZ": 13,
@@ -47,36 +47,63 @@ ROWS_F = {"TLO": 6, "THI": 7, "SX": 8, "SY": 9, "SZ": 10, "OKX": 11, "OKY": 12, 
 ROWS_I = {"KX": 0, "KY": 1, "KZ": 2, "BEST_PRIM": 3}
 
 
-def _splat(builder, scalar, vtype):
-    """A vtype vector with every lane = scalar."""
-    one = builder.insert_element(ir.Constant(vtype, ir.Undefined), scalar, ir.Constant(_I32, 0))
-    return builder.shuffle_vector(one, ir.Constant(vtype, ir.Undefined), _ZERO4)
+class _Width:
+    """The vector types of one test of ``n_rays`` SIMD rays (4 n_rays lanes)."""
 
+    def __init__(self, n_rays):
+        self.n_rays = n_rays
+        self.lanes = lanes = 4 * n_rays
+        self.f = ir.VectorType(_F32, lanes)
+        self.d = ir.VectorType(_F64, lanes)
+        self.i = ir.VectorType(_I32, lanes)
+        self.b = ir.VectorType(_I1, lanes)
+        self.bits = ir.IntType(lanes)
 
-def _vconst(vtype, value):
-    return ir.Constant(vtype, [value] * 4)
+    def splat(self, builder, scalar, vtype):
+        """A vtype vector with every lane = scalar."""
+        one = builder.insert_element(ir.Constant(vtype, ir.Undefined), scalar, ir.Constant(_I32, 0))
+        return builder.shuffle_vector(one, ir.Constant(vtype, ir.Undefined),
+                                      ir.Constant(ir.VectorType(_I32, self.lanes), [0] * self.lanes))
+
+    def const(self, vtype, value):
+        return ir.Constant(vtype, [value] * self.lanes)
+
+    def any(self, builder, mask):
+        return builder.icmp_unsigned("!=", builder.bitcast(mask, self.bits), ir.Constant(self.bits, 0))
+
+    def popcount(self, builder, mask):
+        name = f"llvm.ctpop.i{self.lanes}"
+        ctpop = cgutils.get_or_insert_function(builder.module, ir.FunctionType(self.bits, [self.bits]), name)
+        return builder.zext(builder.call(ctpop, [builder.bitcast(mask, self.bits)]), _I64)
+
+    def edge(self, builder, ax, by, ay, bx):
+        """f32(f64(ax) * f64(by) - f64(ay) * f64(bx)): the f32 products are exact in f64, so the
+        one rounding is the subtraction's, as in the scalar kernel."""
+        ext = [builder.fpext(x, self.d) for x in (ax, by, ay, bx)]
+        return builder.fptrunc(builder.fsub(builder.fmul(ext[0], ext[1]), builder.fmul(ext[2], ext[3])), self.f)
+
+    def load(self, builder, pointers):
+        """The lanes at ``pointers`` (one <4 x T>* per SIMD ray) as one vector."""
+        halves = [builder.load(p, align=4) for p in pointers]
+        if len(halves) == 1:
+            return halves[0]
+        return builder.shuffle_vector(halves[0], halves[1], ir.Constant(ir.VectorType(_I32, 8), list(range(8))))
+
+    def store(self, builder, value, pointers):
+        """Store ``value``'s lanes back, four to each pointer."""
+        if len(pointers) == 1:
+            builder.store(value, pointers[0], align=4)
+            return
+        for k, p in enumerate(pointers):
+            half = builder.shuffle_vector(value, ir.Constant(value.type, ir.Undefined),
+                                          ir.Constant(_V4I, list(range(4 * k, 4 * k + 4))))
+            builder.store(half, p, align=4)
 
 
 def _row_ptr(builder, data, row_elems, row, offset, vtype):
     """Pointer to the 4 lanes data[row * row_elems + offset ...] as a vtype*."""
     index = builder.add(builder.mul(ir.Constant(_I64, row), row_elems), offset)
     return builder.bitcast(builder.gep(data, [index]), vtype.as_pointer())
-
-
-def _any(builder, mask):
-    return builder.icmp_unsigned("!=", builder.bitcast(mask, _I4), ir.Constant(_I4, 0))
-
-
-def _popcount(builder, mask):
-    ctpop = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_I4, [_I4]), "llvm.ctpop.i4")
-    return builder.zext(builder.call(ctpop, [builder.bitcast(mask, _I4)]), _I64)
-
-
-def _edge(builder, ax, by, ay, bx):
-    """f32(f64(ax) * f64(by) - f64(ay) * f64(bx)): the f32 products are exact in f64, so the
-    one rounding is the subtraction's, as in the scalar kernel."""
-    ext = [builder.fpext(x, _V4D) for x in (ax, by, ay, bx)]
-    return builder.fptrunc(builder.fsub(builder.fmul(ext[0], ext[1]), builder.fmul(ext[2], ext[3])), _V4F)
 
 
 def _check(value, dtype, ndim, what, any_layout=False):
@@ -86,44 +113,69 @@ def _check(value, dtype, ndim, what, any_layout=False):
         raise TypingError(f"{what} must be a {layout}{dtype} array of {ndim} dimension(s), got {value}")
 
 
-@intrinsic
-def intersect4(typingctx, rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit):
-    """(tests, died): the leaf's triangles against the selected live lanes; see the module doc."""
+def _typing(rf, ri, lanes, mask, leaf_tris, n_tris, v0, v1, v2, any_hit):
     _check(rf, types.float32, 2, "rf")
     _check(ri, types.int32, 2, "ri")
     _check(leaf_tris, types.int32, 1, "leaf_tris", any_layout=True)
     for v in (v0, v1, v2):
         _check(v, types.float32, 2, "v0, v1, v2", any_layout=True)
-    for x in (lane0, mask, n_tris):
+    for x in (*lanes, mask, n_tris):
         if not isinstance(x, types.Integer):
             raise TypingError(f"expected an integer, got {x}")
     if not isinstance(any_hit, types.Boolean):
         raise TypingError(f"any_hit must be a boolean, got {any_hit}")
-    sig = types.UniTuple(types.int64, 2)(rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit)
+    return types.UniTuple(types.int64, 2)(rf, ri, *lanes, mask, leaf_tris, n_tris, v0, v1, v2, any_hit)
+
+
+@intrinsic
+def intersect4(typingctx, rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, any_hit):
+    """(tests, died): the leaf's triangles against the selected live lanes; see the module doc."""
+    return _typing(rf, ri, (lane0,), mask, leaf_tris, n_tris, v0, v1, v2, any_hit), _intersect_codegen(_Width(1))
+
+
+@intrinsic
+def intersect4x2(typingctx, rf, ri, lane0, lane1, mask, leaf_tris, n_tris, v0, v1, v2, any_hit):
+    """``intersect4`` of two SIMD rays at once (lanes lane0 .. lane0+3 and lane1 .. lane1+3,
+    anywhere in the packet), as one 8-lane test: ``mask`` bits 0-3 select lane0's lanes, bits
+    4-7 lane1's; (tests, died) are the sums of the two SIMD rays'. Each lane's result is the
+    4-wide test's, bit for bit: lanes never mix."""
+    return (_typing(rf, ri, (lane0, lane1), mask, leaf_tris, n_tris, v0, v1, v2, any_hit),
+            _intersect_codegen(_Width(2)))
+
+
+def _intersect_codegen(w: _Width):
+    """Codegen of the leaf test of ``w.n_rays`` SIMD rays (arguments as ``intersect4x2``'s, with
+    as many lane offsets as SIMD rays)."""
 
     def codegen(context, builder, signature, args):
-        a_rf, a_ri, a_lane0, a_mask, a_tris, a_n, a_v0, a_v1, a_v2, a_any = args
         s = signature.args
-        rf_arr = context.make_array(s[0])(context, builder, a_rf)
-        ri_arr = context.make_array(s[1])(context, builder, a_ri)
-        tris_arr = context.make_array(s[4])(context, builder, a_tris)
-        verts = [context.make_array(s[6 + k])(context, builder, a) for k, a in enumerate((a_v0, a_v1, a_v2))]
+        k = w.n_rays
+        a_rf, a_ri = args[0], args[1]
+        a_lanes = args[2:2 + k]
+        a_mask, a_tris, a_n, a_v0, a_v1, a_v2, a_any = args[2 + k:]
+        s_rf, s_ri = s[0], s[1]
+        s_lanes = s[2:2 + k]
+        s_mask, s_tris, s_n, s_v0, s_v1, s_v2, s_any = s[2 + k:]
+        rf_arr = context.make_array(s_rf)(context, builder, a_rf)
+        ri_arr = context.make_array(s_ri)(context, builder, a_ri)
+        tris_arr = context.make_array(s_tris)(context, builder, a_tris)
+        verts = [context.make_array(t)(context, builder, a) for t, a in zip((s_v0, s_v1, s_v2), (a_v0, a_v1, a_v2))]
         four = ir.Constant(_I64, 4)
         rf_row = builder.udiv(builder.extract_value(rf_arr.strides, 0), four)
         ri_row = builder.udiv(builder.extract_value(ri_arr.strides, 0), four)
-        lane0_ = context.cast(builder, a_lane0, s[2], types.int64)
-        mask_ = context.cast(builder, a_mask, s[3], types.int64)
-        n_ = context.cast(builder, a_n, s[5], types.int64)
-        any_hit_ = context.cast(builder, a_any, s[9], types.boolean)
+        lanes_ = [context.cast(builder, a, t, types.int64) for a, t in zip(a_lanes, s_lanes)]
+        mask_ = context.cast(builder, a_mask, s_mask, types.int64)
+        n_ = context.cast(builder, a_n, s_n, types.int64)
+        any_hit_ = context.cast(builder, a_any, s_any, types.boolean)
 
         def fptr(name):
-            return _row_ptr(builder, rf_arr.data, rf_row, ROWS_F[name], lane0_, _V4F)
+            return [_row_ptr(builder, rf_arr.data, rf_row, ROWS_F[name], o, _V4F) for o in lanes_]
 
         def iptr(name):
-            return _row_ptr(builder, ri_arr.data, ri_row, ROWS_I[name], lane0_, _V4I)
+            return [_row_ptr(builder, ri_arr.data, ri_row, ROWS_I[name], o, _V4I) for o in lanes_]
 
-        def load(ptr):
-            return builder.load(ptr, align=4)
+        def load(ptrs):
+            return w.load(builder, ptrs)
 
         # Loop invariants: the lanes' shear, origin and segment start, and which axis each picks.
         ok = [load(fptr(k)) for k in ("OKX", "OKY", "OKZ")]
@@ -132,11 +184,11 @@ def intersect4(typingctx, rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, an
         axes = []
         for name in ("KX", "KY", "KZ"):
             k = load(iptr(name))
-            axes.append((builder.icmp_signed("==", k, _ZERO4),
-                         builder.icmp_signed("==", k, _vconst(_V4I, 1))))
-        lane_bits = ir.Constant(ir.VectorType(_I64, 4), [1, 2, 4, 8])
-        selected = builder.icmp_unsigned("!=", builder.and_(_splat(builder, mask_, ir.VectorType(_I64, 4)), lane_bits),
-                                         ir.Constant(ir.VectorType(_I64, 4), [0] * 4))
+            axes.append((builder.icmp_signed("==", k, w.const(w.i, 0)),
+                         builder.icmp_signed("==", k, w.const(w.i, 1))))
+        lane_bits = ir.Constant(ir.VectorType(_I64, w.lanes), [1 << b for b in range(w.lanes)])
+        selected = builder.icmp_unsigned("!=", builder.and_(w.splat(builder, mask_, ir.VectorType(_I64, w.lanes)), lane_bits),
+                                         ir.Constant(ir.VectorType(_I64, w.lanes), [0] * w.lanes))
         thi0 = load(fptr("THI"))
         # The scalar loop skips a lane that is not selected or not live (not TLO <= THI).
         active = builder.and_(selected, builder.fcmp_ordered("<=", tlo, thi0))
@@ -159,16 +211,16 @@ def intersect4(typingctx, rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, an
         builder.position_at_end(header)
         j = builder.load(state["j"])
         alive = builder.load(state["alive"])
-        builder.cbranch(builder.and_(builder.icmp_signed("<", j, n_), _any(builder, alive)), body, done)
+        builder.cbranch(builder.and_(builder.icmp_signed("<", j, n_), w.any(builder, alive)), body, done)
 
         builder.position_at_end(body)
-        tri32 = builder.load(cgutils.get_item_pointer(context, builder, s[4], tris_arr, [j]))
+        tri32 = builder.load(cgutils.get_item_pointer(context, builder, s_tris, tris_arr, [j]))
         tri = builder.sext(tri32, _I64)
         # Corner coordinates, translated by each lane's own permuted origin.
         corners = []
-        for arr, arr_type in zip(verts, s[6:9]):
-            xyz = [_splat(builder, builder.load(cgutils.get_item_pointer(context, builder, arr_type, arr,
-                                                                          [tri, ir.Constant(_I64, c)])), _V4F)
+        for arr, arr_type in zip(verts, (s_v0, s_v1, s_v2)):
+            xyz = [w.splat(builder, builder.load(cgutils.get_item_pointer(context, builder, arr_type, arr,
+                                                                          [tri, ir.Constant(_I64, c)])), w.f)
                    for c in range(3)]
             corner = []
             for (is0, is1), o in zip(axes, ok):
@@ -182,10 +234,10 @@ def intersect4(typingctx, rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, an
         by = builder.fsub(by_, builder.fmul(sy, bz_))
         cx = builder.fsub(cx_, builder.fmul(sx, cz_))
         cy = builder.fsub(cy_, builder.fmul(sy, cz_))
-        eu = _edge(builder, cx, by, cy, bx)
-        ev = _edge(builder, ax, cy, ay, cx)
-        ew = _edge(builder, bx, ay, by, ax)
-        zero = _vconst(_V4F, 0.0)
+        eu = w.edge(builder, cx, by, cy, bx)
+        ev = w.edge(builder, ax, cy, ay, cx)
+        ew = w.edge(builder, bx, ay, by, ax)
+        zero = w.const(w.f, 0.0)
 
         def any_of(op):
             return builder.or_(builder.or_(builder.fcmp_ordered(op, eu, zero), builder.fcmp_ordered(op, ev, zero)),
@@ -200,10 +252,10 @@ def intersect4(typingctx, rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, an
         candidate = builder.and_(alive, builder.not_(builder.or_(mixed, flat)))
         update = builder.append_basic_block("tri4.update")
         skip = builder.append_basic_block("tri4.skip")
-        builder.cbranch(_any(builder, candidate), update, skip)
+        builder.cbranch(w.any(builder, candidate), update, skip)
 
         builder.position_at_end(skip)
-        builder.store(builder.add(builder.load(state["tests"]), _popcount(builder, alive)), state["tests"])
+        builder.store(builder.add(builder.load(state["tests"]), w.popcount(builder, alive)), state["tests"])
         builder.store(builder.add(j, ir.Constant(_I64, 1)), state["j"])
         builder.branch(header)
 
@@ -211,7 +263,7 @@ def intersect4(typingctx, rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, an
         scaled_t = builder.fadd(builder.fadd(builder.fmul(eu, builder.fmul(sz, az_)),
                                              builder.fmul(ev, builder.fmul(sz, bz_))),
                                 builder.fmul(ew, builder.fmul(sz, cz_)))
-        rcp = builder.fdiv(_vconst(_V4F, 1.0), det)
+        rcp = builder.fdiv(w.const(w.f, 1.0), det)
         t = builder.fmul(scaled_t, rcp)
         thi = builder.load(state["thi"])
         inside = builder.and_(builder.fcmp_ordered(">=", t, tlo), builder.fcmp_ordered("<=", t, thi))
@@ -219,11 +271,11 @@ def intersect4(typingctx, rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, an
         # intersect_lanes' update: a finite hit that ``closer`` prefers (smaller t, then index).
         best_t = builder.load(state["best_t"])
         best_prim = builder.load(state["best_prim"])
-        tri4 = _splat(builder, tri32, _V4I)
+        tri4 = w.splat(builder, tri32, w.i)
         closer = builder.or_(builder.fcmp_ordered("<", t, best_t),
                              builder.and_(builder.fcmp_ordered("==", t, best_t),
                                           builder.icmp_signed("<", tri4, best_prim)))
-        finite = builder.fcmp_ordered("<", t, _vconst(_V4F, float("inf")))
+        finite = builder.fcmp_ordered("<", t, w.const(w.f, float("inf")))
         take = builder.and_(builder.and_(hit, alive), builder.and_(finite, closer))
         u = builder.fmul(ev, rcp)
         v = builder.fmul(ew, rcp)
@@ -232,22 +284,22 @@ def intersect4(typingctx, rf, ri, lane0, mask, leaf_tris, n_tris, v0, v1, v2, an
         builder.store(builder.select(take, u, builder.load(state["best_u"])), state["best_u"])
         builder.store(builder.select(take, v, builder.load(state["best_v"])), state["best_v"])
         # Closest hit: the segment shrinks to t. Any hit: the lane dies.
-        new_thi = builder.select(any_hit_, _vconst(_V4F, float("-inf")), t)
+        new_thi = builder.select(any_hit_, w.const(w.f, float("-inf")), t)
         builder.store(builder.select(take, new_thi, thi), state["thi"])
-        dying = builder.and_(take, _splat(builder, any_hit_, _V4B))
+        dying = builder.and_(take, w.splat(builder, any_hit_, w.b))
         builder.store(builder.and_(alive, builder.not_(dying)), state["alive"])
-        builder.store(builder.add(builder.load(state["tests"]), _popcount(builder, alive)), state["tests"])
-        builder.store(builder.add(builder.load(state["died"]), _popcount(builder, dying)), state["died"])
+        builder.store(builder.add(builder.load(state["tests"]), w.popcount(builder, alive)), state["tests"])
+        builder.store(builder.add(builder.load(state["died"]), w.popcount(builder, dying)), state["died"])
         builder.store(builder.add(j, ir.Constant(_I64, 1)), state["j"])
         builder.branch(header)
 
         builder.position_at_end(done)
         # Unselected lanes get back the values just read.
-        builder.store(builder.load(state["thi"]), fptr("THI"), align=4)
+        w.store(builder, builder.load(state["thi"]), fptr("THI"))
         for name in ("best_t", "best_u", "best_v"):
-            builder.store(builder.load(state[name]), fptr(name.upper()), align=4)
-        builder.store(builder.load(state["best_prim"]), iptr("BEST_PRIM"), align=4)
+            w.store(builder, builder.load(state[name]), fptr(name.upper()))
+        w.store(builder, builder.load(state["best_prim"]), iptr("BEST_PRIM"))
         return context.make_tuple(builder, signature.return_type,
                                   [builder.load(state["tests"]), builder.load(state["died"])])
 
-    return sig, codegen
+    return codegen

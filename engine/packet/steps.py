@@ -23,7 +23,7 @@ from __future__ import annotations
 from numba import njit
 
 from engine.packet.frustum_cull import frustum_misses_box
-from engine.packet.kernels import ALL_LANES, lane_count, live_mask4, slab_mask4
+from engine.packet.kernels import ALL_LANES, lane_count, live_mask4, slab_mask4, slab_mask4x2
 from engine.packet.strategies import CULLED, ENTERED, MASKED, MISSED, PARTITION, RANGED, SIMD
 
 
@@ -59,18 +59,34 @@ def last_hit(rf, ia, hi, box):
 
 
 @njit(cache=True, inline="always")
+def keep_if_hit(ids, masks, j, i, mask, live):
+    """partRays' step for the SIMD ray i = ids[j] with lane mask ``mask``: move it to the
+    front when it hit; returns the new live count."""
+    if mask != 0:
+        ids[j] = ids[live]
+        ids[live] = i
+        masks[live] = mask
+        live += 1
+    return live
+
+
+@njit(cache=True, inline="always")
 def part_rays(rf, ids, masks, m, box):
     """Overbeck's partRays: move the SIMD rays among ids[:m] that hit ``box`` to the front,
-    with their lane masks in masks[:live]; returns live."""
+    with their lane masks in masks[:live]; returns live. Two SIMD rays are tested at once
+    (``slab_mask4x2``, 8 lanes); the moves then happen one ray after the other, in list order,
+    so the partition is the one-at-a-time loop's. (A move only swaps ids[j] with an earlier
+    entry, so ids[j + 1], read before the moves, is still in place for its own.)"""
     live = 0
-    for j in range(m):
-        i = ids[j]
-        mask = slab_mask4(rf, 4 * i, box)
-        if mask != 0:
-            ids[j] = ids[live]
-            ids[live] = i
-            masks[live] = mask
-            live += 1
+    j = 0
+    while j + 1 < m:
+        i0, i1 = ids[j], ids[j + 1]
+        both = slab_mask4x2(rf, 4 * i0, 4 * i1, box)
+        live = keep_if_hit(ids, masks, j, i0, both & ALL_LANES, live)
+        live = keep_if_hit(ids, masks, j + 1, i1, both >> 4, live)
+        j += 2
+    if j < m:
+        live = keep_if_hit(ids, masks, j, ids[j], slab_mask4(rf, 4 * ids[j], box), live)
     return live
 
 

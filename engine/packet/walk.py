@@ -23,8 +23,8 @@ from numba import get_thread_id, njit, prange
 
 from engine.core.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI
 from engine.packet.frustum_cull import load_frustum
-from engine.packet.kernels import (STACK_SIZE, intersect_lanes, largest_leaf, leaf_triangles, load_packet,
-                                   longest_packet, node_box, packet_scratch, store_hits)
+from engine.packet.kernels import (STACK_SIZE, intersect_lanes, intersect_lanes_x2, largest_leaf, leaf_triangles,
+                                   load_packet, longest_packet, node_box, packet_scratch, store_hits)
 from engine.packet.record import record_visit
 from engine.packet.steps import leaf_ray, leaf_rays, node_step, visit_record, walk_start, walkers
 from engine.packet.strategies import ENTERED, MASKED, PARTITION, RANGED, SIMD
@@ -114,13 +114,25 @@ def walk(strategy, scene, batch, answers, counters, record):
                         n_tris = leaf_triangles(first, count, prim, node, v0, v1, v2, fr, cull, leaf_tris)
                         n_rays, tests = leaf_rays(strategy, rf, carry, n_simd, box)
                         tri_tests = 0
+                        # SIMD rays with lanes to test go two at a time (8 lanes, AVX2's width).
+                        waiting, waiting_mask = -1, 0
                         for j in range(n_rays):
                             i, mask = leaf_ray(strategy, rf, ids, masks, carry, hit_lanes, j, box)
-                            if mask != 0:
-                                done, died = intersect_lanes(rf, ri, 4 * i, mask, leaf_tris, n_tris,
-                                                             v0, v1, v2, any_hit)
-                                tri_tests += done
-                                lanes -= died
+                            if mask == 0:
+                                continue
+                            if waiting < 0:
+                                waiting, waiting_mask = i, mask
+                                continue
+                            done, died = intersect_lanes_x2(rf, ri, 4 * waiting, 4 * i, waiting_mask | (mask << 4),
+                                                            leaf_tris, n_tris, v0, v1, v2, any_hit)
+                            tri_tests += done
+                            lanes -= died
+                            waiting = -1
+                        if waiting >= 0:
+                            done, died = intersect_lanes(rf, ri, 4 * waiting, waiting_mask, leaf_tris, n_tris,
+                                                         v0, v1, v2, any_hit)
+                            tri_tests += done
+                            lanes -= died
                         if counters is not None:
                             counters[thread, COUNTER_RAY_AABB, depth] += tests
                             counters[thread, COUNTER_RAY_TRI, depth] += tri_tests
