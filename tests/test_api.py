@@ -132,6 +132,18 @@ def test_every_traversal_answers_identically_through_the_api(sphere, packet):
             assert np.array_equal(tracer.intersects_any(origins, directions), reference_any), (name, frustum)
 
 
+def test_occlusion_scratch_kept_between_queries_changes_no_answer(sphere):
+    """A packet traversal keeps its occlusion scratch from query to query: a smaller batch after
+    a larger one, and the larger again, answer as fresh tracers do."""
+    big = random_rays(sphere.bounds, 6000, seed=5)
+    small = random_rays(sphere.bounds, 700, seed=6)
+    tracer = RayTracer(sphere, traversal="partition")
+    first_big = tracer.occluded(*big)
+    assert np.array_equal(tracer.occluded(*small), RayTracer(sphere, traversal="partition").occluded(*small))
+    assert np.array_equal(tracer.occluded(*big), first_big)
+    assert 0 < first_big.sum() < len(first_big)
+
+
 @pytest.mark.parametrize("name", ["embree", "rayspace"])
 def test_other_backends_agree_through_the_api(sphere, name):
     origins, directions = random_rays(sphere.bounds, 4000, seed=4)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from engine.core.types import Frusta, check_answer_arrays, empty_hits
+from engine.core.types import Frusta, Hits, check_answer_arrays
 from engine.packet.frustum_builders import build_frusta
 from engine.packet.kernels import child_order_keys
 from engine.packet.walk import walk_packets
@@ -86,6 +86,8 @@ class PacketTraversal:
 
     strategy = None
     kernel = None
+    #: The occlusion query's scratch answers (see ``_any_hit_scratch``), per instance.
+    _scratch = None
 
     def intersect(self, bvh, tris, rays, packets, frusta, hits, stats):
         """Closest hit of every ray into ``hits`` (arrays of length R)."""
@@ -93,9 +95,18 @@ class PacketTraversal:
 
     def occluded(self, bvh, tris, rays, packets, frusta, occluded, stats):
         """occluded[r] = True when ray r hits anything in [tmin, tmax]."""
-        any_hit = empty_hits(rays.org.shape[0])  # scratch: which triangle stopped each ray
+        any_hit = self._any_hit_scratch(rays.org.shape[0])  # which triangle stopped each ray
         self._run(bvh, tris, rays, packets, frusta, True, any_hit.t, any_hit.prim, any_hit.u, any_hit.v, stats)
-        occluded[:] = any_hit.prim >= 0
+        np.greater_equal(any_hit.prim, 0, out=occluded)
+
+    def _any_hit_scratch(self, n):
+        """Hits arrays for n rays, kept by this instance from query to query: the walk writes
+        every ray's answer, and fresh arrays of a frame's shadow rays (21 MB on the kitchen)
+        cost a serial fill and a page fault per 4 KiB each time."""
+        if self._scratch is None or self._scratch.t.shape[0] < n:
+            self._scratch = Hits(np.empty(n, np.float32), np.empty(n, np.int32), np.empty(n, np.float32),
+                                 np.empty(n, np.float32))
+        return Hits(*(a[:n] for a in self._scratch))
 
     def walk_recorded(self, bvh, tris, rays, packets, frusta, any_hit, hits, record):
         """The walk of a batch of one packet, recorded into ``record`` (a PacketRecord) by the
