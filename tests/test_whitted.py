@@ -102,3 +102,16 @@ def test_options_of_one_config_do_not_reach_the_next():
     assert again.traversal["reflection"].pair_budget == 1 << 22 and again.traversal["primary"].robust is True
     assert after["reflection"]["rayspace"]["batches"] == full["calls"] and after["primary"]["embree"]["robust"] is True
     assert after["reflection"]["rayspace"]["peak_pairs"] == full["peak_pairs"]
+
+
+def test_a_renderer_reusing_its_arrays_renders_what_a_fresh_one_does():
+    """Answer and per-lane arrays are reused from frame to frame and not reset before a packet
+    walk (it writes every answer): a frame after a larger one, and after a different camera
+    batch layout, equals the same frame from a fresh renderer."""
+    scene = load_named("whitted")
+    config = with_overrides(Config(), packet=8)
+    renderer = WhittedRenderer(scene, config)
+    renderer.render(size=(80, 64))
+    reused = renderer.render(size=(40, 56)).image
+    fresh = WhittedRenderer(scene, config).render(size=(40, 56)).image
+    assert np.array_equal(reused, fresh)

@@ -86,6 +86,9 @@ class PacketTraversal:
 
     strategy = None
     kernel = None
+    #: The walk (and the floor kernel) stores every ray's answer, misses included, so the Tracer
+    #: need not reset reused answer arrays first.
+    writes_every_answer = True
     #: The occlusion query's scratch answers (see ``_any_hit_scratch``), per instance.
     _scratch = None
 

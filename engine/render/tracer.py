@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from engine.core.types import RAY_KINDS, Hits, RayBatch, empty_hits, new_stats
+from engine.core.types import RAY_KINDS, RayBatch, empty_hits, new_stats
 
 
 @dataclass
@@ -58,7 +58,9 @@ class Tracer:
     def trace(self, kind: str, query: str, rays: RayBatch, packets, tally: Tally | None = None, answer=None):
         """Hits (query "intersect") or bool[R] occlusion flags (query "occluded") of ``rays``
         (R rays in ``packets``), in batch order. ``answer``: arrays of that shape to answer
-        into (reset here to all misses), instead of new ones."""
+        into (reset here to all misses, unless the traversal declares ``writes_every_answer``:
+        the packet walks store every ray's answer, and the serial reset of a frame's primary
+        answers alone is 16 MB of writes), instead of new ones."""
         traversal = self.traversal[kind]
         stats = tally.stats_for(kind) if tally is not None else None
         n = rays.org.shape[0]
@@ -67,7 +69,7 @@ class Tracer:
         if query == "intersect":
             if answer is None:
                 answer = empty_hits(n)
-            else:
+            elif not getattr(traversal, "writes_every_answer", False):
                 answer.t.fill(np.inf), answer.prim.fill(-1), answer.u.fill(0), answer.v.fill(0)
             traversal.intersect(self.bvh, self.tris, rays, packets, frusta, answer, stats)
         elif query == "occluded":
