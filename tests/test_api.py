@@ -175,7 +175,6 @@ def test_intersects_location_matches_trimesh(mesh):
 
 
 def test_trimesh_pair_and_scene_inputs_give_the_same_answers(sphere):
-
     origins, directions = random_rays(sphere.bounds, 2000, seed=6)
     a = RayTracer(sphere).intersect(origins, directions)
     b = RayTracer((sphere.vertices, sphere.faces)).intersect(origins, directions)
