@@ -25,8 +25,9 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SOURCE_PACKAGES = ("engine", "traversals", "frusta", "scenes", "validation")
 RANKS = {
-    "engine.core": 0, "engine.packet": 1, "engine.rayspace": 1, "engine.query": 1, "traversals": 2, "frusta": 2,
-    "scenes": 2, "engine.render": 3, "engine.gpu": 3.5, "validation": 4, "engine.bench": 5, "engine.debug": 5, "engine.animate": 5,
+    "engine.core": 0, "engine.packet": 1, "engine.rayspace": 1, "traversals": 2, "frusta": 2, "scenes": 2,
+    "engine.query": 2,  # trimesh's interface: its own per-ray walk, and the packet walk for coherent rays
+    "engine.render": 3, "engine.gpu": 3.5, "validation": 4, "engine.bench": 5, "engine.debug": 5, "engine.animate": 5,
     "engine": 6,  # engine/__init__.py, engine/api.py, engine/cli.py: one layer of public faces
 }
 

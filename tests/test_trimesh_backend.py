@@ -82,6 +82,53 @@ def test_first_and_any_hit_equal_trimesh_default_backend(which, order, request):
     assert index_tri.dtype == index_ray.dtype == np.int64
 
 
+def pinhole_rays(mesh, side, bad=0):
+    """Camera rays (f64) of a side x side image looking at the mesh from outside, row by row;
+    ``bad`` of them get a NaN or zero direction."""
+    center, size = mesh.bounds.mean(axis=0), mesh.extents.max()
+    eye = center + np.array([0.3, 0.4, 2.5]) * size
+    ys, xs = np.meshgrid(np.linspace(-0.4, 0.4, side), np.linspace(-0.4, 0.4, side), indexing="ij")
+    forward = (center - eye) / np.linalg.norm(center - eye)
+    right = np.cross(forward, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    directions = forward + xs.reshape(-1, 1) * right + ys.reshape(-1, 1) * up
+    origins = np.repeat(eye[None], side * side, axis=0)
+    directions[:bad:2] = np.nan
+    directions[1:bad:2] = 0.0
+    return origins, directions
+
+
+@pytest.mark.parametrize("which", ["sphere", "bunny"])
+def test_coherent_rays_take_the_packet_walk_with_the_per_ray_walks_answers(which, request, monkeypatch):
+    """Camera rays go through the packet walk (engine.query.coherent) and answer exactly as the
+    per-ray walk does; scattered rays stay on the per-ray walk."""
+    import engine.query.coherent as coherent
+    import engine.query.intersector as intersector
+
+    mesh = request.getfixturevalue(which)
+    origins, directions = pinhole_rays(mesh, 96, bad=6)
+    scattered = rays_at(mesh, 20000, seed=4)
+    assert coherent.is_coherent(origins, directions, mesh.extents.max())
+    assert not coherent.is_coherent(*scattered, mesh.extents.max())
+    calls = []
+    monkeypatch.setattr(intersector, "packet_first_hits",
+                        lambda *a: calls.append(1) or coherent.packet_first_hits(*a))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        packed = RayMeshIntersector(mesh).intersects_first(origins, directions)
+        packed_any = RayMeshIntersector(mesh).intersects_any(origins, directions)
+    assert len(calls) == 2 and all(issubclass(w.category, BadRayWarning) for w in caught) and len(caught) == 2
+    monkeypatch.setattr(intersector, "is_coherent", lambda *a: False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", BadRayWarning)
+        per_ray = RayMeshIntersector(mesh).intersects_first(origins, directions)
+        per_ray_any = RayMeshIntersector(mesh).intersects_any(origins, directions)
+    assert np.array_equal(packed, per_ray) and np.array_equal(packed_any, per_ray_any)
+    assert (packed[:6] == -1).all() and (packed >= 0).sum() > 1000
+    assert len(calls) == 2
+
+
 # -- every hit -------------------------------------------------------------------------------
 @pytest.mark.parametrize("which,order", [("box", "input"), ("sphere", "morton"), ("bunny", "input"),
                                          ("bunny", "morton")])

@@ -38,7 +38,8 @@ import numpy as np
 from engine.core.bvh import build_bvh
 from engine.core.bvh_refit import refit_bvh
 from engine.core.scene import make_triangles
-from engine.core.types import BVH
+from engine.core.types import BVH, Triangles
+from engine.query.coherent import is_coherent, packet_first_hits
 from engine.query.contains import DIRECTIONS, contains_kernel
 from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
 from engine.query.frame import MeshFrame, mesh_frame
@@ -72,6 +73,7 @@ class _Structure(NamedTuple):
     v0: np.ndarray         # f32[P,3] local corners in the BVH's prim order (leaves contiguous)
     v1: np.ndarray
     v2: np.ndarray
+    tris: Triangles        # the local float32 triangles in face order (the packet walk's)
 
 
 class _Rays(NamedTuple):
@@ -168,7 +170,7 @@ class RayMeshIntersector:
             bvh = build_bvh(tris, leaf_size=self._leaf_size, bins=self._bins)
         corners = (np.ascontiguousarray(c[bvh.prim]) for c in (tris.v0, tris.v1, tris.v2))
         wide = collapse(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
-        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, wide, *corners)
+        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, wide, *corners, tris)
         return self._structure_cache
 
     def __getstate__(self):
@@ -223,7 +225,11 @@ class RayMeshIntersector:
         u = np.empty(n, np.float32)
         v = np.empty(n, np.float32)
         ok = np.empty(n, np.bool_)
-        first_hit_kernel(*self._tree(s), *self._frame_args(s, rays), rays.rows, any_hit, tri, u, v, ok)
+        if is_coherent(rays.origins, rays.directions, s.frame.scale):
+            packet_first_hits(s.bvh, s.tris, rays.origins, rays.directions, s.frame.center, s.frame.scale,
+                              rays.rows, any_hit, tri, u, v, ok)
+        else:
+            first_hit_kernel(*self._tree(s), *self._frame_args(s, rays), rays.rows, any_hit, tri, u, v, ok)
         self._warn_bad(ok)
         return tri, u, v
 
