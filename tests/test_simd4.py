@@ -13,7 +13,7 @@ from numba import njit
 
 from engine.core.triangle import F32_INF, HUGE_INV, safe_inverse, slab_test
 from engine.packet.kernels import IX, OX, RF_ROWS, THI, TLO
-from engine.packet.simd4 import planes4_box, planes4_triangle, slab4, slab4x2
+from engine.packet.simd4 import planes4_box, planes4_triangle, slab1x4, slab4, slab4x2
 
 LANES = 32
 BOXES = 40
@@ -90,6 +90,52 @@ def test_slab4x2_is_slab_test_on_two_simd_rays_in_any_order(seed):
     rf, bmin, bmax = random_lanes_and_boxes(rng)
     pairs = rng.permutation(LANES // 4).reshape(-1, 2).astype(np.int64)  # not neighbours, either order
     np.testing.assert_array_equal(masks_pairs(rf, bmin, bmax, pairs), masks_scalar(rf, bmin, bmax))
+
+
+@njit(cache=True)
+def children_vector(lo, hi, org, inv, t_lo, t_hi):
+    """f32[R, W, 4]: slab1x4 of every ray and wide node."""
+    out = np.zeros((org.shape[0], lo.shape[0], 4), np.float32)
+    for r in range(org.shape[0]):
+        for w in range(lo.shape[0]):
+            out[r, w, 0], out[r, w, 1], out[r, w, 2], out[r, w, 3] = slab1x4(
+                lo, hi, w, org[r, 0], org[r, 1], org[r, 2], inv[r, 0], inv[r, 1], inv[r, 2], t_lo[r], t_hi[r])
+    return out
+
+
+@njit(cache=True)
+def children_scalar(bmin, bmax, org, inv, t_lo, t_hi):
+    """f32[R, W, 4]: slab_test of every ray and box 4 w + s (boxes: f32[4W, 3])."""
+    out = np.zeros((org.shape[0], bmin.shape[0] // 4, 4), np.float32)
+    for r in range(org.shape[0]):
+        for b in range(bmin.shape[0]):
+            out[r, b // 4, b % 4] = slab_test(org[r, 0], org[r, 1], org[r, 2], inv[r, 0], inv[r, 1], inv[r, 2],
+                                              t_lo[r], t_hi[r], bmin, bmax, b)
+    return out
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1))
+def test_slab1x4_is_slab_test_on_four_child_boxes(seed):
+    """The mesh queries' 4-wide node test: each slot's entry distance is slab_test's, bit for bit,
+    empty slots (lo +inf, hi -inf) included."""
+    rng = np.random.default_rng(seed)
+    _, bmin, bmax = random_lanes_and_boxes(rng)
+    empty = rng.random(BOXES) < 0.1
+    bmin[empty], bmax[empty] = np.inf, -np.inf
+    lo = np.ascontiguousarray(bmin.reshape(-1, 4, 3).transpose(0, 2, 1))  # f32[W, 3, 4], axis-major
+    hi = np.ascontiguousarray(bmax.reshape(-1, 4, 3).transpose(0, 2, 1))
+    d = rng.normal(size=(LANES, 3)).astype(np.float32)
+    d[rng.random((LANES, 3)) < 0.15] = 0.0
+    org = (rng.normal(size=(LANES, 3)) * 2).astype(np.float32)
+    inv = safe_inverse(d)
+    t_lo = np.where(rng.random(LANES) < 0.5, 0.0, rng.uniform(0, 2, LANES)).astype(np.float32)
+    t_hi = (t_lo + rng.exponential(3, LANES)).astype(np.float32)
+    t_hi[rng.random(LANES) < 0.3] = np.inf
+    vector = children_vector(lo, hi, org, inv, t_lo, t_hi)
+    scalar = children_scalar(bmin, bmax, org, inv, t_lo, t_hi)
+    np.testing.assert_array_equal(vector.view(np.uint32), scalar.view(np.uint32))
+    assert np.isfinite(vector).any() and np.isinf(vector).any()
 
 
 @njit(cache=True)

@@ -15,8 +15,9 @@ BVH's ``prim`` order (row i is triangle prim[i]), so a leaf's corners are contig
 import numpy as np
 from numba import njit
 
-from engine.core.triangle import F32_INF, F32_ONE, HUGE_INV, SLAB_SLACK, closer, ray_shear
+from engine.core.triangle import F32_INF, F32_ONE, HUGE_INV, closer, ray_shear
 from engine.core.triangle import intersect_triangle as _shared_triangle_test
+from engine.packet.simd4 import slab1x4
 from engine.query.wide import WIDTH
 from engine.core.types import MAX_BVH_DEPTH
 
@@ -105,24 +106,10 @@ def walk(lo, hi, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz, t_lo, t_
                         return n, best_t, best_tri, best_u, best_v
                     t_hi = t  # CLOSEST: nothing beyond this hit matters any more
             continue
-        # The four children's slab tests (the arithmetic of engine.core.triangle.slab_test), in a
-        # branch-free loop the compiler vectorises; a missed or empty slot gets inf.
-        for s in range(WIDTH):
-            t0 = (lo[node, 0, s] - ox) * ix
-            t1 = (hi[node, 0, s] - ox) * ix
-            tn = min(t0, t1)
-            tf = max(t0, t1)
-            t0 = (lo[node, 1, s] - oy) * iy
-            t1 = (hi[node, 1, s] - oy) * iy
-            tn = max(tn, min(t0, t1))
-            tf = min(tf, max(t0, t1))
-            t0 = (lo[node, 2, s] - oz) * iz
-            t1 = (hi[node, 2, s] - oz) * iz
-            tn = max(tn, min(t0, t1))
-            tf = min(tf, max(t0, t1))
-            tn = max(tn - abs(tn) * SLAB_SLACK, t_lo)
-            tf = min(tf + abs(tf) * SLAB_SLACK, t_hi)
-            near[s] = tn if tn <= tf else F32_INF
+        # The four children's slab tests (the arithmetic of engine.core.triangle.slab_test) as
+        # one <4 x float> test: numba leaves a 4-iteration loop scalar (engine.packet.simd4).
+        # A missed or empty slot gets inf.
+        near[0], near[1], near[2], near[3] = slab1x4(lo, hi, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi)
         base = top
         for s in range(WIDTH):
             tn = near[s]
