@@ -21,7 +21,7 @@ from numba import njit
 from engine.core.triangle import F32_INF, closer, intersect_triangle, safe_inverse
 from engine.packet.kernels import (BEST_PRIM, BEST_T, BEST_U, BEST_V, KX, KY, KZ, OKX, OKY, OKZ, RF_ROWS, RI_ROWS,
                                    SX, SY, SZ, THI, TLO, load_packet)
-from engine.packet.simd4_triangle import intersect4, intersect4x2
+from engine.packet.simd4_triangle import intersect4, intersect4x2, triangles1x4
 
 LANES = 32
 F32_NEG_INF = np.float32(-np.inf)
@@ -220,6 +220,51 @@ def test_intersect4x2_is_the_scalar_leaf_loop_on_two_simd_rays(seed, any_hit):
     np.testing.assert_array_equal(counts, ref_counts[0::2] + ref_counts[1::2])
     np.testing.assert_array_equal(bits(rf), bits(rf_s))
     np.testing.assert_array_equal(ri, ri_s)
+
+
+@njit(cache=True)
+def windows_vector(rf, ri, windows, v0, v1, v2):
+    """f32[LANES, W, 12]: triangles1x4 of every lane and window (first, n) of triangles."""
+    out = np.zeros((rf.shape[1], windows.shape[0], 12), np.float32)
+    for r in range(rf.shape[1]):
+        for k in range(windows.shape[0]):
+            res = triangles1x4(v0, v1, v2, windows[k, 0], windows[k, 1], rf[OKX, r], rf[OKY, r], rf[OKZ, r],
+                               ri[KX, r], ri[KY, r], ri[KZ, r], rf[SX, r], rf[SY, r], rf[SZ, r], rf[TLO, r], rf[THI, r])
+            for j in range(12):
+                out[r, k, j] = res[j]
+    return out
+
+
+@njit(cache=True)
+def windows_scalar(rf, ri, windows, v0, v1, v2):
+    out = np.zeros((rf.shape[1], windows.shape[0], 12), np.float32)
+    for r in range(rf.shape[1]):
+        for k in range(windows.shape[0]):
+            for j in range(4):
+                t, u, v = F32_INF, np.float32(0.0), np.float32(0.0)
+                if j < windows[k, 1]:
+                    t, u, v = intersect_triangle(rf[OKX, r], rf[OKY, r], rf[OKZ, r], ri[KX, r], ri[KY, r], ri[KZ, r],
+                                                 rf[SX, r], rf[SY, r], rf[SZ, r], rf[TLO, r], rf[THI, r],
+                                                 v0, v1, v2, windows[k, 0] + j)
+                out[r, k, j], out[r, k, 4 + j], out[r, k, 8 + j] = t, u, v
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1))
+def test_triangles1x4_is_intersect_triangle_on_four_triangles(seed):
+    """One ray against a window of 1-4 consecutive triangles: each slot is intersect_triangle's
+    answer bit for bit, slots past the window are misses."""
+    rf, ri, calls, leaf_tris, v0, v1, v2, ts = make_case(seed)
+    live = rf[TLO] <= rf[THI]
+    rf, ri = rf[:, live].copy(), ri[:, live].copy()
+    rng = np.random.default_rng(seed)
+    windows = np.zeros((16, 2), np.int64)
+    windows[:, 1] = rng.integers(1, 5, 16)
+    windows[:, 0] = rng.integers(0, len(v0) - windows[:, 1] + 1)
+    vector = windows_vector(rf, ri, windows, v0, v1, v2)
+    np.testing.assert_array_equal(bits(vector), bits(windows_scalar(rf, ri, windows, v0, v1, v2)))
+    assert np.isfinite(vector[:, :, :4]).any()
 
 
 def test_cases_reach_the_edge_cases():

@@ -11,21 +11,20 @@ Modes (integer constants, so one compiled helper serves every kernel and reaches
 
 Triangles are the watertight test's float32 corners in the mesh's local frame, stored in the
 BVH's ``prim`` order (row i is triangle prim[i]), so a leaf's corners are contiguous in memory.
+A node's four child boxes are one <4 x float> test (``engine.packet.simd4.slab1x4``) and a leaf's
+triangles are tested four at a time (``engine.packet.simd4_triangle.triangles1x4``), each lane the
+scalar watertight test's operations: numba leaves such small loops scalar.
 """
 import numpy as np
 from numba import njit
 
 from engine.core.triangle import F32_INF, F32_ONE, HUGE_INV, closer, ray_shear
-from engine.core.triangle import intersect_triangle as _shared_triangle_test
 from engine.packet.simd4 import slab1x4
+from engine.packet.simd4_triangle import triangles1x4
 from engine.query.wide import WIDTH
 from engine.core.types import MAX_BVH_DEPTH
 
 CLOSEST, ANY, COLLECT = 0, 1, 2
-
-# The shared watertight test, compiled again to be inlined into the walk: a call per triangle
-# passes three arrays (reference counts included), which costs as much as the test itself.
-intersect_triangle = njit(inline="always")(_shared_triangle_test.py_func)
 
 #: Entries of the per-thread traversal stack: at most WIDTH - 1 left behind per level.
 STACK_SIZE = WIDTH * MAX_BVH_DEPTH + 2
@@ -88,7 +87,13 @@ def walk(lo, hi, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz, t_lo, t_
         leaf = stack[top, 1]
         if leaf > 0:
             for i in range(node, node + leaf):
-                t, u, v = intersect_triangle(okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi, v0, v1, v2, i)
+                # The next (up to) four triangles in one <4 x float> test; within a group a hit
+                # does not shrink the others' segment, but ``closer`` drops any hit beyond it.
+                j = (i - node) % 4
+                if j == 0:
+                    tuv = triangles1x4(v0, v1, v2, i, min(4, node + leaf - i), okx, oky, okz, kx, ky, kz,
+                                       sx, sy, sz, t_lo, t_hi)
+                t, u, v = tuv[j], tuv[4 + j], tuv[8 + j]
                 if t == F32_INF:
                     continue
                 tri = prim[i]
