@@ -68,26 +68,47 @@ def scattered_packet(rs, seed=3, n=16):
     return one_packet(org, dirs, np.full(n * n, np.inf))
 
 
+def numpy_measures(bvh, rays, start, stop):
+    """(live, footprint) of rays start .. stop by the definition in ``engine.packet.choose``."""
+    diagonal = float(np.linalg.norm(bvh.bmax[0].astype(np.float64) - bvh.bmin[0]))
+    width = diagonal / math.sqrt((bvh.bmin.shape[0] + 1) / 2)
+    live = rays.tmin[start:stop] <= rays.tmax[start:stop]
+    org = rays.org[start:stop][live].astype(np.float64)
+    d = rays.dir[start:stop][live].astype(np.float64)
+    norm = np.linalg.norm(d, axis=1)
+    unit = d / norm[:, None]
+    reach = np.minimum((rays.tmax[start:stop][live] - rays.tmin[start:stop][live]) * norm, diagonal).mean()
+    origins = np.linalg.norm(org.max(axis=0) - org.min(axis=0))
+    directions = np.linalg.norm(unit.max(axis=0) - unit.min(axis=0))
+    return live.mean(), (origins + directions * reach) / width, width
+
+
 def test_measures_of_a_camera_packet_are_its_cone(rayset):
     diagonal = float(np.linalg.norm(rayset.bvh.bmax[0] - rayset.bvh.bmin[0]))
     half = math.radians(2.0)
-    rays, packets = camera_packet(rayset, half, 0.5 * diagonal)
-    live, footprint = measured(rayset.bvh, rays, packets)
-    assert live[0] == 1.0
-    # One origin: the footprint is the cone's width over the reach, as a fraction of the diagonal.
-    assert footprint[0] == pytest.approx(2 * math.sin(half) * 0.5, rel=1e-3)
-    # An infinite segment reaches the scene diagonal, no farther.
-    rays, packets = camera_packet(rayset, half, np.inf)
-    assert measured(rayset.bvh, rays, packets)[1][0] == pytest.approx(2 * math.sin(half), rel=1e-3)
+    for reach in (0.5 * diagonal, np.inf):
+        rays, packets = camera_packet(rayset, half, reach)
+        live, footprint = measured(rayset.bvh, rays, packets)
+        expected_live, expected, width = numpy_measures(rayset.bvh, rays, 0, rays.org.shape[0])
+        assert live[0] == expected_live == 1.0
+        assert footprint[0] == pytest.approx(expected, rel=1e-5)
+        # One origin: the directions' box spans the cone's chord (2 sin of the half-angle) and
+        # a little more (its depth), over the reach (an infinite segment counts as the diagonal).
+        chord = footprint[0] * width / min(reach, diagonal)
+        assert 2 * math.sin(half) - 1e-6 <= chord <= 2 * math.sin(half) + (1 - math.cos(half)) + 1e-6
 
 
 def test_dead_lanes_lower_the_live_fraction_and_are_not_measured(rayset):
-    rays, packets = camera_packet(rayset, math.radians(2.0), np.inf)
+    rays, packets = scattered_packet(rayset)
     tmax = rays.tmax.copy()
     tmax[::2] = -1.0  # half the lanes dead
-    live, footprint = measured(rayset.bvh, rays._replace(tmax=tmax), packets)
-    assert live[0] == 0.5
-    assert footprint[0] <= 2 * math.sin(math.radians(2.0)) + 1e-6
+    rays = rays._replace(tmax=tmax)
+    live, footprint = measured(rayset.bvh, rays, packets)
+    expected_live, expected, _ = numpy_measures(rayset.bvh, rays, 0, rays.org.shape[0])
+    assert live[0] == expected_live == 0.5
+    assert footprint[0] == pytest.approx(expected, rel=1e-5)
+    rays = rays._replace(tmax=np.full_like(tmax, -1.0))
+    assert measured(rayset.bvh, rays, packets)[0][0] == 0.0
 
 
 def test_fitted_chooser_picks_ranged_for_a_camera_packet_and_partition_for_a_scattered_one(rayset):

@@ -1,7 +1,7 @@
 """Fit the ``auto`` traversal's thresholds and measure ``auto`` against Ranged and Partition.
 
     python tools/fit_auto.py [--scenes erw6,bart-museum,bart-kitchen,spd-rings] [--packets 8,16]
-                             [--size 256] [--repeat 5] [--measure-repeat 5]
+                             [--size 256] [--repeat 5] [--measure-repeat 5] [--threads 0]
                              [--thresholds engine/packet/auto_thresholds.json]
                              [--report docs/auto-fit.md]
 
@@ -30,6 +30,7 @@ def main(argv=None) -> int:
     parser.add_argument("--size", type=int, default=auto_fit.SIZE)
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--measure-repeat", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=0, help="threads for the frame measurement (0: all)")
     parser.add_argument("--thresholds", default=str(ROOT / "engine/packet/auto_thresholds.json"))
     parser.add_argument("--report", default=str(ROOT / "docs/auto-fit.md"))
     args = parser.parse_args(argv)
@@ -38,13 +39,14 @@ def main(argv=None) -> int:
     except ValueError:
         print(f"fit_auto: --packets must be comma-separated integers, got {args.packets!r}", file=sys.stderr)
         return 2
-    if args.size < 16 or args.repeat < 1 or args.measure_repeat < 0:
-        print("fit_auto: --size must be >= 16, --repeat >= 1, --measure-repeat >= 0", file=sys.stderr)
+    if args.size < 16 or args.repeat < 1 or args.measure_repeat < 0 or args.threads < 0:
+        print("fit_auto: --size must be >= 16, --repeat >= 1, --measure-repeat >= 0, --threads >= 0", file=sys.stderr)
         return 2
     command = "python tools/fit_auto.py " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     try:
         auto_fit.run(args.scenes.split(","), packets, args.size, args.repeat, args.measure_repeat,
-                     args.thresholds, args.report, command.strip(), log=lambda m: print(m, flush=True))
+                     args.thresholds, args.report, command.strip(), log=lambda m: print(m, flush=True),
+                     threads=args.threads)
     except PacketrtError as exc:
         print(f"fit_auto: {exc}", file=sys.stderr)
         return 2

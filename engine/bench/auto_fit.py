@@ -21,8 +21,8 @@ small resolution. Per (scene, packet size):
    search over every combination (``fit_limits``).
 5. **Measure.** Every batch of the frame replayed through the renderer's ``Tracer`` (frustum
    build + query, as a render times it) with ``ranged``, ``partition`` and ``auto`` (the fitted
-   thresholds), interleaved, ``measure_repeat`` times on all threads; median trace time per
-   frame and kind. ``auto``'s answers are checked equal to Partition's.
+   thresholds), interleaved, ``measure_repeat`` times on ``threads`` threads (0: all); median
+   trace time per frame and kind. ``auto``'s answers are checked equal to Partition's.
 
 Writes the thresholds file (``engine/packet/auto_thresholds.json`` by default) and a markdown
 report, both atomically.
@@ -69,7 +69,7 @@ def _copy_batch(rays, packets):
             packets._replace(offsets=np.array(packets.offsets)))
 
 
-def record_frame(scene_cache, scene_name, packet, size):
+def record_frame(scene_cache, scene_name, packet, size, threads=0):
     """(renderer, [(kind, query, rays, packets)]) of one frame of ``scene_name``: the batches of
     every kind, each from the render of its preset (``SOURCE``)."""
     from engine.render.whitted import WhittedRenderer
@@ -78,7 +78,7 @@ def record_frame(scene_cache, scene_name, packet, size):
     for preset in dict.fromkeys(SOURCE.values()):
         cell = Cell(SceneSpec(scene_name, label=scene_name), PluginSpec("partition", ("partition",) * 4),
                     PluginSpec("paper", tuple(PAPER_FRUSTUM[k] for k in RAY_KINDS)), packet, preset, size, size,
-                    embree=False)
+                    threads=threads, embree=False)
         scene = cell_scene(scene_cache.get(cell.scene), cell)
         scene = replace(scene, lights=list(scene.lights[:1]))
         recorder = BatchRecorder()
@@ -188,7 +188,7 @@ def fit_limits(cells, f_edges):
 
 # -- the run -------------------------------------------------------------------------------
 
-def collect(scenes, packets, size, repeat, log):
+def collect(scenes, packets, size, repeat, log, threads=0):
     """Record the frames, measure and time the cells. Returns (frames {(scene, packet):
     (renderer, batches)}, packets' measures per group, cell table)."""
     scene_cache = SceneCache()
@@ -196,7 +196,7 @@ def collect(scenes, packets, size, repeat, log):
     for name in scenes:
         for n in packets:
             start = time.perf_counter()
-            renderer, batches = record_frame(scene_cache, name, n, size)
+            renderer, batches = record_frame(scene_cache, name, n, size, threads)
             frames[(name, n)] = (renderer, batches)
             for kind, query, rays, pk in batches:
                 live, footprint, frusta = measures(renderer, kind, rays, pk)
@@ -341,10 +341,13 @@ def _index_of(limits, f_edges):
 
 
 def run(scenes=SCENES, packets=PACKETS, size=SIZE, repeat=5, measure_repeat=5, thresholds_out=None,
-        report_out=None, command="", log=print) -> dict:
-    """Collect, fit, write the thresholds, measure, write the report. Returns the limits."""
+        report_out=None, command="", log=print, threads=0) -> dict:
+    """Collect, fit, write the thresholds, measure (on ``threads`` threads, 0: all), write the
+    report. Returns the limits."""
     start = time.perf_counter()
-    frames, f_edges, cells = collect(scenes, packets, size, repeat, log)
+    if threads:
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    frames, f_edges, cells = collect(scenes, packets, size, repeat, log, threads)
     limits, total, _ = fit_limits(cells, f_edges)
     log(f"fitted {limits} (summed cell time {1e3 * total:.1f} ms)")
     fit_seconds = time.perf_counter() - start

@@ -30,7 +30,7 @@ from engine.packet.kernels import (STACK_SIZE, intersect_lanes, largest_leaf, le
                                    longest_packet, node_box, packet_scratch, store_hits)
 from engine.packet.record import record_visit
 from engine.packet.steps import leaf_ray, leaf_rays, node_step, visit_record, walk_start, walkers
-from engine.packet.choose import choose_packet, scene_diagonal
+from engine.packet.choose import choose_packet, scene_scales
 from engine.packet.strategies import AUTO, ENTERED, MASKED, PARTITION, RANGED, SIMD
 
 
@@ -101,7 +101,7 @@ def walk(strategy, scene, batch, auto, answers, counters, record):
             if strategy == AUTO:
                 start = offsets[k]
                 choice = choose_packet(org, dirs, tmin, tmax, start, offsets[k + 1] - start, valid[k],
-                                       scene_diagonal(bmin, bmax), limits)
+                                       scene_scales(bmin, bmax), limits)
                 choices[k] = choice
                 if choice == RANGED:
                     walk_packet(RANGED, scene, batch, work, k, answers, counters, record)
