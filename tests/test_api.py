@@ -16,7 +16,7 @@ from engine.core.triangle import safe_inverse
 from engine.core.types import RayBatch
 from validation.compare import compare_hits, compare_occlusion
 
-PACKET_TRAVERSALS = ["single", "simd", "masked", "ranged", "partition"]
+PACKET_TRAVERSALS = ["single", "simd", "masked", "ranged", "partition", "auto"]
 
 
 # -- helpers ---------------------------------------------------------------------------------

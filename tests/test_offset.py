@@ -18,7 +18,7 @@ from engine.render.whitted import WhittedRenderer
 from brute_force import kernel_answer
 from conftest import needs_shared_scenes
 
-TRAVERSALS = ["single", "simd", "masked", "ranged", "partition", "rayspace"]
+TRAVERSALS = ["single", "simd", "masked", "ranged", "partition", "auto", "rayspace"]
 FRUSTUM = {"primary": "pinhole", "shadow": "pointlight", "reflection": "general", "refraction": "general"}
 
 

@@ -68,7 +68,7 @@ def test_entry_points_are_loaded_only_when_asked(monkeypatch):
     registry.TRAVERSALS.pop("fake-from-entry-point")
 
 
-@pytest.mark.parametrize("name", ["single", "simd", "masked", "ranged", "partition", "rayspace", "embree"])
+@pytest.mark.parametrize("name", ["single", "simd", "masked", "ranged", "partition", "auto", "rayspace", "embree"])
 def test_short_answer_arrays_are_refused_not_overrun(name):
     """Kernels index answers by ray without bounds checks: every traversal checks first."""
     import numpy as np

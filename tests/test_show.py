@@ -13,8 +13,9 @@ import pytest
 from engine.cli import main
 from engine.render.config import Config, with_overrides
 from engine.debug.packet_trace import CULLED, ENTERED, PACKET_WALKS, rayspace_node, trace_packet
-from engine.debug.show import (FRUSTUM, RAY_HIT, build_picture, capture_batch, centre_packet, legend_height,
-                         node_colours)
+from engine.debug.show import (FRUSTUM, NO_PACKET, RAY_HIT, STRATEGY_COLOURS, build_picture, capture_batch,
+                               centre_packet, compose, legend_height, node_colours, packet_tiles)
+from engine.packet.strategies import CHOSEN_NAMES
 from engine.render.plugins import make_traversal
 from engine.core.triangle import slab_test
 from engine.core.types import COUNTER_NODES, RAY_KINDS, Frusta, Packets, RayBatch, empty_hits, new_stats
@@ -208,6 +209,35 @@ def test_frustum_drawing_holds_the_rays():
         assert (np.abs(side).min(axis=1) < 1e-3 * scale).all()  # each corner is on a plane
         inside = rays @ planes[:, :3].T + planes[:, 3]
         assert (inside >= -1e-4 * scale).all()
+
+
+@pytest.mark.parametrize("kind", ["primary", "reflection"])
+def test_auto_picture_colours_packets_by_their_strategy(kind):
+    """With ``auto`` the frustum and the packet map show the strategy each packet was walked by:
+    the map's tiles are those ``auto`` chooses for the batch, the drawn packet's among them."""
+    config = with_overrides(Config(), traversal=["auto"], size=(64, 64), packet=8, depth=2)
+    scene = scene_from_config(config.scene, "none")
+    renderer = WhittedRenderer(scene, config)
+    pic = build_picture(scene, config, kind, renderer=renderer)
+    chosen = pic.summary["auto_choice"]
+    assert any(line.startswith(f"auto walked this packet by {chosen}") for line in pic.legend)
+    assert pic.tiles.shape == (8, 8, 3)
+    tx, ty = pic.tile
+    assert tuple(pic.tiles[ty, tx]) == STRATEGY_COLOURS[chosen]
+    rays, packets, _, _, _ = capture_batch(renderer, kind)
+    frusta = renderer.tracer.frusta_for(kind, rays, packets)
+    choices = renderer.tracer.traversal[kind].choose(renderer.bvh, rays, packets, frusta)
+    placed = packet_tiles(rays, packets)[:, 0] >= 0  # packets with a live ray have a tile
+    drawn = [tuple(c) for c in pic.tiles.reshape(-1, 3) if tuple(c) != NO_PACKET]
+    names = list(STRATEGY_COLOURS)
+    assert sorted(drawn) == sorted(STRATEGY_COLOURS[names[c]] for c in choices[placed])
+    frustum = [line for line in pic.lines if line[0] == "frustum"]
+    for _, _, _, colours, _ in frustum:
+        assert (colours == STRATEGY_COLOURS[chosen]).all()
+    assert (STRATEGY_COLOURS[chosen], f"auto: {chosen} (frustum, map)") in pic.keys
+    assert names == list(CHOSEN_NAMES)
+    image = compose(np.zeros((120, 320, 3), np.uint8), pic)
+    assert image.shape == (120 + legend_height(pic), 320, 3)
 
 
 def test_default_packet_is_near_the_centre():

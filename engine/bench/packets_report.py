@@ -40,7 +40,7 @@ TARGET_SPEEDUP = 3.0
 TARGET_CULLING = 1.2
 TARGET_EMBREE = {"primary": 1.5, "shadow": 1.5, "reflection": 0.75, "refraction": 0.75}
 LARGE = 16
-PACKET_TRAVERSALS = frozenset({"simd", "masked", "ranged", "partition"})
+PACKET_TRAVERSALS = frozenset({"simd", "masked", "ranged", "partition", "auto"})
 COST_TERMS = ("packets", "node visits", "SIMD box tests", "SIMD triangle tests")
 
 

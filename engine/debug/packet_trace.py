@@ -16,6 +16,7 @@ node's box among
 - ``ranged``: the SIMD rays from the entry's ``ia`` on (likewise);
 - ``simd``: the one SIMD ray walking; a node's ``alive`` sums the lanes of every SIMD ray
   that entered it.
+- ``auto``: as the strategy it chose for the packet (``engine.packet.choose``).
 
 ``single`` (and ``embree``, whose own BVH is not ours to show): each ray walks alone as
 ``single`` does; ``alive`` is the number of rays that reached the node. ``single``'s kernel

@@ -17,6 +17,11 @@ and the picture shows
   (viridis, legend at the left), boxes that no live ray hit in grey, boxes the frustum
   rejected in red.
 
+For the ``auto`` traversal the frustum is drawn in the colour of the strategy ``auto`` chose for
+the packet (Masked, Ranged or Partition; ``engine.packet.choose``), and a map in the legend
+shows every packet of the batch at its screen tile in the colour of its strategy,
+the drawn packet outlined.
+
 For the ``rayspace`` traversal there is no BVH: the picture shows the cone-sphere node over the
 packet's screen tile (sphere in green, cone in magenta, cut at the node's reach) and the
 triangles that survive the cone-sphere tests down to it, in orange.
@@ -56,6 +61,11 @@ NODE_MISSED = (0.6, 0.62, 0.7)
 NODE_CULLED = (0.9, 0.15, 0.15)
 SPHERE = (0.0, 0.6, 0.2)
 COLORMAP = "viridis"
+#: ``auto``'s strategies, in the frustum and the packet map.
+STRATEGY_COLOURS = {"masked": (0.55, 0.35, 0.15), "ranged": (0.15, 0.65, 0.2), "partition": (0.0, 0.5, 0.6)}
+NO_PACKET = (0.93, 0.93, 0.93)
+#: Largest side of the packet map, pixels.
+MAP_SIDE = 96
 
 
 @dataclass
@@ -66,6 +76,8 @@ class Picture:
     focus: f64[2,3] the box the camera frames; view_dir: unit vector from the focus to the eye.
     legend: lines of text; scale: (label, maximum) of the node colour bar, or None.
     keys: [(colour, label)] for the legend swatches.
+    tiles: f64[TY,TX,3] a screen map of the batch's packets coloured by ``auto``'s choice, or
+        None; tile: (tx, ty) of the drawn packet in it.
     """
 
     lines: list = field(default_factory=list)
@@ -76,6 +88,8 @@ class Picture:
     scale: tuple = None
     keys: list = field(default_factory=list)
     summary: dict = field(default_factory=dict)
+    tiles: np.ndarray = None
+    tile: tuple = None
 
 
 # -- choosing the packet ---------------------------------------------------------------------
@@ -119,6 +133,35 @@ def centre_packet(rays, packets) -> int:
     dist = (mx - packets.width / 2) ** 2 + (my - packets.height / 2) ** 2
     dist[counts == 0] = np.inf
     return int(np.argmin(dist))
+
+
+def packet_tiles(rays, packets) -> np.ndarray:
+    """i64[K,2]: each packet's screen tile (tx, ty) from its first live ray's pixel, (-1, -1)
+    for a packet without one."""
+    offsets = np.asarray(packets.offsets, np.int64)
+    out = np.full((len(offsets) - 1, 2), -1, np.int64)
+    live = (rays.pixel >= 0) & (rays.tmin <= rays.tmax)
+    for k in range(len(offsets) - 1):
+        pixels = rays.pixel[offsets[k]:offsets[k + 1]][live[offsets[k]:offsets[k + 1]]]
+        if pixels.size:
+            p = int(pixels.min())
+            out[k] = (p % packets.width) // packets.size, (p // packets.width) // packets.size
+    return out
+
+
+def choice_map(rays, packets, choices) -> np.ndarray:
+    """f64[TY,TX,3]: the screen's packet tiles coloured by the strategy each packet was given
+    (choices i8[K], ``engine.packet.strategies`` numbers); tiles without a packet in NO_PACKET."""
+    from engine.packet.strategies import CHOSEN_NAMES
+
+    tiles = packet_tiles(rays, packets)
+    ty = -(-packets.height // packets.size)
+    tx = -(-packets.width // packets.size)
+    out = np.tile(np.asarray(NO_PACKET, np.float64), (ty, tx, 1))
+    for (x, y), choice in zip(tiles.tolist(), choices.tolist()):
+        if x >= 0:
+            out[y, x] = STRATEGY_COLOURS[CHOSEN_NAMES[choice]]
+    return out
 
 
 # -- geometry -------------------------------------------------------------------------------
@@ -393,9 +436,21 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
                 pic.lines.append((label, pts, seg, colours, width))
         pic.lines.append(_ray_lines(p0, p1, hit[lanes]))
         fvalid = bool(frusta.valid[k])
+        chosen = None
+        plugin = renderer.tracer.traversal[kind]
+        if hasattr(plugin, "choose"):   # auto: which strategy walked each packet of the batch
+            from engine.packet.strategies import CHOSEN_NAMES
+
+            choices = plugin.choose(bvh, rays, packets, frusta)
+            chosen = CHOSEN_NAMES[int(choices[k])]
+            pic.tiles, pic.tile = choice_map(rays, packets, choices), tile
+            per = np.bincount(choices, minlength=len(CHOSEN_NAMES))
+            pic.legend.append(f"auto walked this packet by {chosen}; the batch's {n_packets} packets: "
+                              + ", ".join(f"{int(per[i])} {name}" for i, name in enumerate(CHOSEN_NAMES)))
+        frustum_colour = FRUSTUM if chosen is None else STRATEGY_COLOURS[chosen]
         corners = frustum_corners(frusta.planes[k], p0, p1, rays.dir[start + lanes]) if fvalid and len(lanes) else None
         if corners is not None:
-            pic.lines.append(("frustum", corners, frustum_segments(), np.tile(FRUSTUM, (12, 1)), 1.5))
+            pic.lines.append(("frustum", corners, frustum_segments(), np.tile(frustum_colour, (12, 1)), 1.5))
         counts = {o: int((outcome == o).sum()) for o in ("entered", "missed", "culled")}
         walk_note = "" if trace.walk == traversal else f" (walked as {trace.walk})"
         pic.legend.append(f"traversal {traversal}{walk_note}, frustum {frustum_name}"
@@ -410,6 +465,8 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
                     (FRUSTUM, "frustum"), (HIT_TRIANGLE, "hit triangle"),
                     (LEAF_GREY, "triangles of entered leaves"), (NODE_MISSED, "node no ray hit"),
                     (NODE_CULLED, "node culled by frustum")]
+        if chosen is not None:
+            pic.keys[2:3] = [(STRATEGY_COLOURS[name], f"auto: {name} (frustum, map)") for name in STRATEGY_COLOURS]
         # Framed on where the packet meets geometry: its rays' ends and the leaves it entered
         # (rays from a far-away camera come in from the side of the picture).
         focus_pts = [p1]
@@ -418,7 +475,8 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
             focus_pts.append(bvh.bmax[leaves])
         pic.summary = {"packet": k, "packets": n_packets, "traversal": traversal, "walk": trace.walk,
                        "live": trace.live, "visited": len(trace.nodes), **counts,
-                       "frustum_valid": fvalid, "hits": int(hit.sum())}
+                       "frustum_valid": fvalid, "hits": int(hit.sum()),
+                       **({} if chosen is None else {"auto_choice": chosen})}
     if sampled:
         pic.legend.append(f"scene wireframe: {MAX_WIREFRAME_TRIANGLES:,} sampled triangles")
     allpts = np.vstack([np.asarray(p, np.float64).reshape(-1, 3) for p in focus_pts])
@@ -524,7 +582,13 @@ def _font(size):
 
 def legend_height(pic: Picture) -> int:
     """Pixels of the legend band above the rendering."""
-    return 10 + 16 * len(pic.legend) + 14 * ((len(pic.keys) + 2) // 3) + (30 if pic.scale else 0) + 6
+    return (10 + 16 * len(pic.legend) + 14 * ((len(pic.keys) + 2) // 3) + (30 if pic.scale else 0) + 6
+            + (_map_cell(pic) * pic.tiles.shape[0] + 8 if pic.tiles is not None else 0))
+
+
+def _map_cell(pic: Picture) -> int:
+    """Pixels per packet tile of the packet map."""
+    return max(1, MAP_SIDE // max(pic.tiles.shape[:2]))
 
 
 def compose(image: np.ndarray, pic: Picture) -> np.ndarray:
@@ -562,8 +626,26 @@ def compose(image: np.ndarray, pic: Picture) -> np.ndarray:
             text = f"{value:g}"
             draw.text((bar_x + at * bar_w - draw.textlength(text, font=small) * at, y + 12), text,
                       fill=(0, 0, 0), font=small)
+    if pic.tiles is not None:
+        _draw_map(canvas, draw, pic, x, y + (30 if pic.scale else 0) + 4)
     draw.line([0, band - 1, image.shape[1], band - 1], fill=(200, 200, 200))
     return np.asarray(canvas)
+
+
+def _draw_map(canvas, draw, pic: Picture, x0: int, y0: int) -> None:
+    """The packet map (``Picture.tiles``) with its top left at (x0, y0), the drawn packet's
+    tile outlined in black."""
+    from PIL import Image
+
+    ty, tx = pic.tiles.shape[:2]
+    cell = _map_cell(pic)
+    tiles = Image.fromarray((255 * pic.tiles).astype(np.uint8)).resize((tx * cell, ty * cell), Image.NEAREST)
+    canvas.paste(tiles, (x0, y0))
+    draw.rectangle([x0 - 1, y0 - 1, x0 + tx * cell, y0 + ty * cell], outline=(160, 160, 160))
+    if pic.tile is not None:
+        px, py = pic.tile
+        draw.rectangle([x0 + px * cell, y0 + py * cell, x0 + (px + 1) * cell - 1, y0 + (py + 1) * cell - 1],
+                       outline=(0, 0, 0))
 
 
 def write_show(scene, config, kind, packet_index, output, size=PICTURE_SIZE) -> dict:

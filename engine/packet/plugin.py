@@ -3,8 +3,8 @@ call, answers out.
 
 Each packet traversal (``traversals/simd.py`` and friends) is a subclass naming its strategy
 (``engine.packet.strategies``); ``walk_batch`` checks the batch and calls the one packet walk
-``engine.packet.walk.walk_packets`` with it, optionally counting (``Stats``) or recording the
-walk of a one-packet batch (``engine.packet.record``, for ``packetrt show``).
+``engine.packet.walk.walk_packets`` (``walk_packets_auto`` for AUTO) with it, optionally
+counting (``Stats``) or recording the walk of a one-packet batch (``engine.packet.record``, for ``packetrt show``).
 
 Each frustum builder (``frusta/pinhole.py`` and friends) is a subclass naming its builder
 (``engine.packet.frustum_builders``), whose one kernel fills ``planes`` f32[K,4,4] and
@@ -16,9 +16,12 @@ import numba
 import numpy as np
 
 from engine.core.types import Frusta, Hits, check_answer_arrays
+from engine.packet.auto_limits import fitted_limits, limits_array
+from engine.packet.choose import N_LIMITS
 from engine.packet.frustum_builders import build_frusta
 from engine.packet.kernels import child_order_keys
-from engine.packet.walk import walk_packets
+from engine.packet.strategies import AUTO
+from engine.packet.walk import walk_packets, walk_packets_auto
 
 #: Packet decks per thread: packet k goes to deck k % n_chunks, so neighbouring (similarly
 #: expensive) tiles land on different threads and the threads finish together.
@@ -49,12 +52,14 @@ def deck_count(n_packets: int) -> int:
 
 
 def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
-               counters=None, record=None, kernel=None):
+               counters=None, record=None, kernel=None, limits=None, choices=None):
     """Walk every packet of ``rays`` (in ``packets``) through ``bvh`` by ``strategy``, with its
     frustum from ``frusta`` (None: no culling), writing the best (any_hit: first) hits into
     out_t, out_prim, out_u, out_v (f32/i32[R]). counters: i64[threads,3,D] or None; record: a
     PacketRecord for a batch of one packet, or None. ``kernel``: instead of the walk, a kernel
-    of the walk's arguments without strategy and record (``engine.bench.floor``)."""
+    of the walk's arguments without strategy, AUTO's arrays and record (``engine.bench.floor``).
+    AUTO only: limits f64[N_LIMITS] the chooser's thresholds (None: the fitted ones,
+    ``engine.packet.auto_limits``); choices i8[K] receives each packet's strategy (None: not kept)."""
     check_answer_arrays(rays.org.shape[0], out_t, out_prim, out_u, out_v)
     offsets = np.ascontiguousarray(packets.offsets, np.int32)
     n_packets = offsets.shape[0] - 1
@@ -76,8 +81,18 @@ def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_p
             cached_child_order(bvh), deck_count(n_packets), any_hit, out_t, out_prim, out_u, out_v, counters)
     if kernel is not None:
         kernel(*args)
-    else:
+        return
+    if strategy != AUTO:
         walk_packets(strategy, *args, record)
+        return
+    limits = limits_array(fitted_limits()) if limits is None else np.ascontiguousarray(limits, np.float64)
+    if limits.shape != (N_LIMITS,):
+        raise ValueError(f"auto limits must be f64[{N_LIMITS}], got shape {limits.shape}")
+    if choices is None:
+        choices = np.empty(n_packets, np.int8)
+    elif choices.shape != (n_packets,) or choices.dtype != np.int8:
+        raise ValueError(f"auto choices must be i8[{n_packets}], got {choices.dtype}{list(choices.shape)}")
+    walk_packets_auto(*args, limits, choices, record)
 
 
 class PacketTraversal:

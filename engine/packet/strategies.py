@@ -8,6 +8,8 @@ The packet traversals of Overbeck, Ramamoorthi and Mark (2008) share one walk
 - ``RANGED``: the packet carries the index of its first SIMD ray that may still hit.
 - ``PARTITION``: the packet carries an in-place partitioned list of its SIMD rays that hit.
 - ``SIMD``: each 2x2 SIMD ray walks alone (the small-packet baseline).
+- ``AUTO``: each packet is walked by MASKED, RANGED or PARTITION, chosen per packet from cheap
+  measures of its rays (``engine.packet.choose``).
 
 ``STRATEGIES`` maps each strategy's name (the paper's, which is also its traversal plugin's
 config name) to its number.
@@ -18,8 +20,10 @@ node's children or triangles).
 """
 from __future__ import annotations
 
-MASKED, RANGED, PARTITION, SIMD = range(4)
+MASKED, RANGED, PARTITION, SIMD, AUTO = range(5)
 
-STRATEGIES = {"masked": MASKED, "ranged": RANGED, "partition": PARTITION, "simd": SIMD}
+STRATEGIES = {"masked": MASKED, "ranged": RANGED, "partition": PARTITION, "simd": SIMD, "auto": AUTO}
+#: The strategies ``AUTO`` chooses among, by number (index = strategy number).
+CHOSEN_NAMES = ("masked", "ranged", "partition")
 
 CULLED, MISSED, ENTERED = range(3)

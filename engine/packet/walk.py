@@ -14,7 +14,10 @@ dead (an occlusion query kills a lane at its first hit).
 ``walk_packets`` is the one compiled, disk-cached kernel (one per combination of ``counters``
 and ``record`` being None or not). It inlines ``walk`` once per strategy with the strategy a
 constant, so numba prunes the other strategies' steps from each copy: with the strategy a
-run-time number instead, the branches cost up to 5% on primary and shadow rays.
+run-time number instead, the branches cost up to 5% on primary and shadow rays. AUTO has its
+own kernel, ``walk_packets_auto``: per packet it asks ``engine.packet.choose.choose_packet``
+and runs the per-packet body ``walk_packet`` inlined once for each strategy it can choose,
+each again with a constant strategy.
 """
 from __future__ import annotations
 
@@ -27,7 +30,8 @@ from engine.packet.kernels import (STACK_SIZE, intersect_lanes, intersect_lanes_
                                    load_packet, longest_packet, node_box, packet_scratch, store_hits)
 from engine.packet.record import record_visit
 from engine.packet.steps import leaf_ray, leaf_rays, node_step, visit_record, walk_start, walkers
-from engine.packet.strategies import ENTERED, MASKED, PARTITION, RANGED, SIMD
+from engine.packet.choose import choose_packet, scene_scales
+from engine.packet.strategies import AUTO, ENTERED, MASKED, PARTITION, RANGED, SIMD
 
 
 @njit(cache=True, parallel=True)
@@ -35,7 +39,7 @@ def walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv,
                  offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
                  counters, record):
     """Closest (any_hit False) or first (any_hit True) hits of every ray, walked by ``strategy``
-    (``engine.packet.strategies``).
+    (``engine.packet.strategies``; AUTO has a kernel of its own, ``walk_packets_auto``).
 
     BVH bmin, bmax f32[N,3], first, count i32[N], prim i32[P]; triangle corners v0, v1, v2
     f32[T,3]; rays org, inv, dirs f32[R,3], tmin, tmax f32[R] in packets offsets i32[K+1] (whole
@@ -48,26 +52,40 @@ def walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv,
     scene = (bmin, bmax, first, count, prim, v0, v1, v2, order)
     batch = (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit)
     answers = (out_t, out_prim, out_u, out_v)
+    auto = (np.empty(0, np.float64), np.empty(0, np.int8))  # read by the AUTO copy only
     if strategy == MASKED:
-        walk(MASKED, scene, batch, answers, counters, record)
+        walk(MASKED, scene, batch, auto, answers, counters, record)
     elif strategy == RANGED:
-        walk(RANGED, scene, batch, answers, counters, record)
+        walk(RANGED, scene, batch, auto, answers, counters, record)
     elif strategy == PARTITION:
-        walk(PARTITION, scene, batch, answers, counters, record)
+        walk(PARTITION, scene, batch, auto, answers, counters, record)
     else:
-        walk(SIMD, scene, batch, answers, counters, record)
+        walk(SIMD, scene, batch, auto, answers, counters, record)
+
+
+@njit(cache=True, parallel=True)
+def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
+                      offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
+                      counters, limits, choices, record):
+    """``walk_packets`` by AUTO: each packet walked by the strategy ``engine.packet.choose``
+    picks for it under limits f64[N_LIMITS]; choices i8[K] receives each packet's strategy.
+    A kernel of its own, so that configs without ``auto`` never compile its three copies."""
+    scene = (bmin, bmax, first, count, prim, v0, v1, v2, order)
+    batch = (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit)
+    answers = (out_t, out_prim, out_u, out_v)
+    walk(AUTO, scene, batch, (limits, choices), answers, counters, record)
 
 
 @njit(cache=True, inline="always")
-def walk(strategy, scene, batch, answers, counters, record):
+def walk(strategy, scene, batch, auto, answers, counters, record):
     """The skeleton (see the module doc), with the arguments of ``walk_packets`` grouped as
     scene (bmin, bmax, first, count, prim, v0, v1, v2, order), batch (org, inv, dirs, tmin,
-    tmax, offsets, planes, valid, n_chunks, any_hit) and answers (out_t, out_prim, out_u,
-    out_v). counters and record stay arguments of their own: numba drops their code from the
-    copy where they are None only when they are (inlined) arguments."""
+    tmax, offsets, planes, valid, n_chunks, any_hit), auto (limits, choices) and answers
+    (out_t, out_prim, out_u, out_v). counters and record stay arguments of their own: numba
+    drops their code from the copy where they are None only when they are (inlined) arguments."""
     bmin, bmax, first, count, prim, v0, v1, v2, order = scene
     org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
-    out_t, out_prim, out_u, out_v = answers
+    limits, choices = auto
     n_packets = offsets.shape[0] - 1
     max_rays = longest_packet(offsets)
     max_leaf = largest_leaf(count)
@@ -78,68 +96,92 @@ def walk(strategy, scene, batch, answers, counters, record):
         stack_node = np.empty(STACK_SIZE, np.int32)
         stack_carry = np.empty(STACK_SIZE, np.int32)
         stack_depth = np.empty(STACK_SIZE, np.int32)
-        thread = get_thread_id()
+        work = (rf, ri, near, fr, leaf_tris, ids, masks, stack_node, stack_carry, stack_depth, get_thread_id())
         for k in range(chunk, n_packets, n_chunks):
-            start = offsets[k]
-            n = offsets[k + 1] - start
-            n_simd = n // 4
-            live = load_packet(org, inv, dirs, tmin, tmax, start, n, rf, ri, near)
-            cull = load_frustum(planes, valid, k, fr)
-            for walker in range(walkers(strategy, n_simd)):
-                lanes, carry = walk_start(strategy, rf, ids, walker, n_simd, live)
-                top = 0
-                if lanes > 0:
-                    stack_node[0], stack_carry[0], stack_depth[0] = 0, carry, 0
-                    top = 1
-                while top > 0 and lanes > 0:
-                    top -= 1
-                    node = stack_node[top]
-                    depth = stack_depth[top]
-                    carry_in = stack_carry[top]
-                    if counters is not None:
-                        counters[thread, COUNTER_NODES, depth] += 1
-                    box = node_box(bmin, bmax, node)
-                    leaf = count[node] > 0
-                    outcome, carry, tests, hit_lanes = node_step(strategy, rf, ids, masks, carry_in, n_simd, box,
-                                                                 fr, cull, leaf)
-                    if counters is not None:
-                        counters[thread, COUNTER_RAY_AABB, depth] += tests
-                    if record is not None:
-                        seen, seen_lanes = visit_record(strategy, rf, masks, carry_in, carry, hit_lanes, n_simd, box,
-                                                        outcome)
-                        record_visit(record, node, depth, seen, seen_lanes)
-                    if outcome != ENTERED:
+            if strategy == AUTO:
+                start = offsets[k]
+                choice = choose_packet(org, dirs, tmin, tmax, start, offsets[k + 1] - start, valid[k],
+                                       scene_scales(bmin, bmax), limits)
+                choices[k] = choice
+                if choice == RANGED:
+                    walk_packet(RANGED, scene, batch, work, k, answers, counters, record)
+                elif choice == PARTITION:
+                    walk_packet(PARTITION, scene, batch, work, k, answers, counters, record)
+                else:
+                    walk_packet(MASKED, scene, batch, work, k, answers, counters, record)
+            else:
+                walk_packet(strategy, scene, batch, work, k, answers, counters, record)
+
+
+@njit(cache=True, inline="always")
+def walk_packet(strategy, scene, batch, work, k, answers, counters, record):
+    """Packet k, loaded, walked by ``strategy`` (a constant: not AUTO) and its hits stored;
+    ``work`` is the worker's scratch (rf, ri, near, fr, leaf_tris, ids, masks, stack_node,
+    stack_carry, stack_depth, thread)."""
+    bmin, bmax, first, count, prim, v0, v1, v2, order = scene
+    org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
+    out_t, out_prim, out_u, out_v = answers
+    rf, ri, near, fr, leaf_tris, ids, masks, stack_node, stack_carry, stack_depth, thread = work
+    start = offsets[k]
+    n = offsets[k + 1] - start
+    n_simd = n // 4
+    live = load_packet(org, inv, dirs, tmin, tmax, start, n, rf, ri, near)
+    cull = load_frustum(planes, valid, k, fr)
+    for walker in range(walkers(strategy, n_simd)):
+        lanes, carry = walk_start(strategy, rf, ids, walker, n_simd, live)
+        top = 0
+        if lanes > 0:
+            stack_node[0], stack_carry[0], stack_depth[0] = 0, carry, 0
+            top = 1
+        while top > 0 and lanes > 0:
+            top -= 1
+            node = stack_node[top]
+            depth = stack_depth[top]
+            carry_in = stack_carry[top]
+            if counters is not None:
+                counters[thread, COUNTER_NODES, depth] += 1
+            box = node_box(bmin, bmax, node)
+            leaf = count[node] > 0
+            outcome, carry, tests, hit_lanes = node_step(strategy, rf, ids, masks, carry_in, n_simd, box,
+                                                         fr, cull, leaf)
+            if counters is not None:
+                counters[thread, COUNTER_RAY_AABB, depth] += tests
+            if record is not None:
+                seen, seen_lanes = visit_record(strategy, rf, masks, carry_in, carry, hit_lanes, n_simd, box,
+                                                outcome)
+                record_visit(record, node, depth, seen, seen_lanes)
+            if outcome != ENTERED:
+                continue
+            if leaf:
+                n_tris = leaf_triangles(first, count, prim, node, v0, v1, v2, fr, cull, leaf_tris)
+                n_rays, tests = leaf_rays(strategy, rf, carry, n_simd, box)
+                tri_tests = 0
+                # SIMD rays with lanes to test go two at a time (8 lanes, AVX2's width).
+                waiting, waiting_mask = -1, 0
+                for j in range(n_rays):
+                    i, mask = leaf_ray(strategy, rf, ids, masks, carry, hit_lanes, j, box)
+                    if mask == 0:
                         continue
-                    if leaf:
-                        n_tris = leaf_triangles(first, count, prim, node, v0, v1, v2, fr, cull, leaf_tris)
-                        n_rays, tests = leaf_rays(strategy, rf, carry, n_simd, box)
-                        tri_tests = 0
-                        # SIMD rays with lanes to test go two at a time (8 lanes, AVX2's width).
-                        waiting, waiting_mask = -1, 0
-                        for j in range(n_rays):
-                            i, mask = leaf_ray(strategy, rf, ids, masks, carry, hit_lanes, j, box)
-                            if mask == 0:
-                                continue
-                            if waiting < 0:
-                                waiting, waiting_mask = i, mask
-                                continue
-                            done, died = intersect_lanes_x2(rf, ri, 4 * waiting, 4 * i, waiting_mask | (mask << 4),
-                                                            leaf_tris, n_tris, v0, v1, v2, any_hit)
-                            tri_tests += done
-                            lanes -= died
-                            waiting = -1
-                        if waiting >= 0:
-                            done, died = intersect_lanes(rf, ri, 4 * waiting, waiting_mask, leaf_tris, n_tris,
-                                                         v0, v1, v2, any_hit)
-                            tri_tests += done
-                            lanes -= died
-                        if counters is not None:
-                            counters[thread, COUNTER_RAY_AABB, depth] += tests
-                            counters[thread, COUNTER_RAY_TRI, depth] += tri_tests
+                    if waiting < 0:
+                        waiting, waiting_mask = i, mask
                         continue
-                    near_child = first[node] + near[order[node]]
-                    far_child = 2 * first[node] + 1 - near_child
-                    stack_node[top], stack_carry[top], stack_depth[top] = far_child, carry, depth + 1
-                    stack_node[top + 1], stack_carry[top + 1], stack_depth[top + 1] = near_child, carry, depth + 1
-                    top += 2
-            store_hits(rf, ri, start, n, out_t, out_prim, out_u, out_v)
+                    done, died = intersect_lanes_x2(rf, ri, 4 * waiting, 4 * i, waiting_mask | (mask << 4),
+                                                    leaf_tris, n_tris, v0, v1, v2, any_hit)
+                    tri_tests += done
+                    lanes -= died
+                    waiting = -1
+                if waiting >= 0:
+                    done, died = intersect_lanes(rf, ri, 4 * waiting, waiting_mask, leaf_tris, n_tris,
+                                                 v0, v1, v2, any_hit)
+                    tri_tests += done
+                    lanes -= died
+                if counters is not None:
+                    counters[thread, COUNTER_RAY_AABB, depth] += tests
+                    counters[thread, COUNTER_RAY_TRI, depth] += tri_tests
+                continue
+            near_child = first[node] + near[order[node]]
+            far_child = 2 * first[node] + 1 - near_child
+            stack_node[top], stack_carry[top], stack_depth[top] = far_child, carry, depth + 1
+            stack_node[top + 1], stack_carry[top + 1], stack_depth[top + 1] = near_child, carry, depth + 1
+            top += 2
+    store_hits(rf, ri, start, n, out_t, out_prim, out_u, out_v)

@@ -1,0 +1,368 @@
+"""The ``auto`` traversal's thresholds, fitted from measurements (``tools/fit_auto.py``), and
+``auto`` measured against Ranged and Partition on the same rays.
+
+A reduced version of Overbeck et al.'s Figure 5 grid: scenes x packet sizes x ray kinds at a
+small resolution. Per (scene, packet size):
+
+1. **Rays.** One render per recursion preset records every batch the Whitted loop casts
+   (``engine.bench.runner.BatchRecorder``): primary and shadow rays from ``shadows`` (the
+   scene's first point light only, to keep the run short), reflection rays from
+   ``reflection2``, refraction rays from ``refraction2``.
+2. **Measures.** Every packet's (live, footprint, valid) by the chooser's own kernel
+   (``engine.packet.choose.measure_packets``) and the batch's paper frusta.
+3. **Cells.** The packets of one (scene, packet size, ray kind) are binned by footprint
+   (quantile edges over all packets of the run), live fraction (``LIVE_EDGES``) and frustum
+   validity; each non-empty bin becomes a sub-batch of its packets, which Masked, Ranged and
+   Partition walk in turn, interleaved, ``repeat`` times on one thread (a packet's walk does
+   not depend on the other packets of its batch). Best of the repeats per strategy.
+4. **Fit.** The chooser's rule (``engine.packet.choose``) applied to a bin is one strategy
+   for all its packets when its thresholds sit on bin edges, so the fitted thresholds are the
+   edges (and the frustum-less strategy) that minimise the summed cell times: an exhaustive
+   search over every combination (``fit_limits``).
+5. **Measure.** Every batch of the frame replayed through the renderer's ``Tracer`` (frustum
+   build + query, as a render times it) with ``ranged``, ``partition`` and ``auto`` (the fitted
+   thresholds), interleaved, ``measure_repeat`` times on ``threads`` threads (0: all); median
+   trace time per frame and kind. ``auto``'s answers are checked equal to Partition's.
+
+Writes the thresholds file (``engine/packet/auto_thresholds.json`` by default) and a markdown
+report, both atomically.
+"""
+from __future__ import annotations
+
+import datetime
+import time
+from dataclasses import replace
+
+import numba
+import numpy as np
+
+from engine.bench.machine import machine_info
+from engine.bench.matrix import Cell, PluginSpec, SceneSpec
+from engine.bench.runner import BatchRecorder, SceneCache, cell_scene
+from engine.core.atomic import write_json, write_text
+from engine.core.types import RAY_KINDS, Frusta, Packets, RayBatch, empty_hits
+from engine.packet.choose import LIMIT_NAMES, measure_packets
+from engine.packet.plugin import walk_batch
+from engine.packet.strategies import CHOSEN_NAMES, STRATEGIES
+from engine.render.config import PAPER_FRUSTUM
+from engine.render.plugins import make_traversal
+from engine.render.tracer import Tally
+
+SCENES = ("erw6", "bart-museum", "bart-kitchen", "spd-rings")
+PACKETS = (8, 16)
+SIZE = 256
+#: Ray kind -> the recursion preset whose render supplies its batches.
+SOURCE = {"primary": "shadows", "shadow": "shadows", "reflection": "reflection2", "refraction": "refraction2"}
+#: Footprint bins: this many quantiles of the run's packets.
+FOOTPRINT_BINS = 16
+#: Live-fraction bin edges (a bin is [edge, next edge)).
+LIVE_EDGES = (0.0, 0.25, 0.5, 0.75, 0.9, 1.0)
+#: A footprint threshold above every packet's footprint.
+EVERY = 1e9
+
+
+# -- rays ----------------------------------------------------------------------------------
+
+def _copy_batch(rays, packets):
+    """A batch the renderer will not overwrite (it reuses its per-lane arrays)."""
+    return (RayBatch(*(np.array(getattr(rays, f)) for f in RayBatch._fields[:-1]), rays.kind),
+            packets._replace(offsets=np.array(packets.offsets)))
+
+
+def record_frame(scene_cache, scene_name, packet, size, threads=0):
+    """(renderer, [(kind, query, rays, packets)]) of one frame of ``scene_name``: the batches of
+    every kind, each from the render of its preset (``SOURCE``)."""
+    from engine.render.whitted import WhittedRenderer
+
+    batches, renderer = [], None
+    for preset in dict.fromkeys(SOURCE.values()):
+        cell = Cell(SceneSpec(scene_name, label=scene_name), PluginSpec("partition", ("partition",) * 4),
+                    PluginSpec("paper", tuple(PAPER_FRUSTUM[k] for k in RAY_KINDS)), packet, preset, size, size,
+                    threads=threads, embree=False)
+        scene = cell_scene(scene_cache.get(cell.scene), cell)
+        scene = replace(scene, lights=list(scene.lights[:1]))
+        recorder = BatchRecorder()
+        renderer = WhittedRenderer(scene, cell.config(), observer=recorder, bvh=getattr(renderer, "bvh", None))
+        renderer.render()
+        kinds = [k for k, p in SOURCE.items() if p == preset]
+        batches += [(kind, query, *_copy_batch(rays, packets)) for kind, query, rays, packets in recorder.batches
+                    if kind in kinds]
+    return renderer, batches
+
+
+def measures(renderer, kind, rays, packets):
+    """(live f64[K], footprint f64[K], Frusta) of a batch's packets."""
+    offsets = np.ascontiguousarray(packets.offsets, np.int32)
+    n = offsets.shape[0] - 1
+    live, footprint = np.zeros(n), np.zeros(n)
+    measure_packets(renderer.bvh.bmin, renderer.bvh.bmax, rays.org, rays.dir, rays.tmin, rays.tmax, offsets,
+                    live, footprint)
+    return live, footprint, renderer.tracer.frusta_for(kind, rays, packets)
+
+
+def sub_batch(parts):
+    """One batch of the chosen packets of several batches of one kind: parts is
+    [(rays, packets, frusta, packet indices)]; returns (rays, packets, frusta)."""
+    fields = {f: [] for f in RayBatch._fields[:-1]}
+    offsets, planes, valid, total = [0], [], [], 0
+    for rays, packets, frusta, chosen in parts:
+        for k in chosen:
+            start, stop = int(packets.offsets[k]), int(packets.offsets[k + 1])
+            for f in fields:
+                fields[f].append(getattr(rays, f)[start:stop])
+            total += stop - start
+            offsets.append(total)
+            planes.append(frusta.planes[k])
+            valid.append(frusta.valid[k])
+    rays = RayBatch(*(np.ascontiguousarray(np.concatenate(fields[f])) for f in fields), parts[0][0].kind)
+    first = parts[0][1]
+    return (rays, Packets(np.array(offsets, np.int32), first.size, first.width, first.height),
+            Frusta(np.ascontiguousarray(planes, np.float32), np.ascontiguousarray(valid, np.bool_)))
+
+
+def time_strategies(renderer, rays, packets, frusta, any_hit, repeat):
+    """Best-of-``repeat`` seconds of Masked, Ranged and Partition walking a batch, interleaved:
+    f64[3] indexed by strategy number."""
+    n = rays.org.shape[0]
+    hits = empty_hits(n)
+    best = np.full(len(CHOSEN_NAMES), np.inf)
+    for rep in range(repeat + 1):  # the first round warms the caches and is not kept
+        order = range(len(CHOSEN_NAMES)) if rep % 2 else reversed(range(len(CHOSEN_NAMES)))
+        for s in order:
+            start = time.perf_counter()
+            walk_batch(STRATEGIES[CHOSEN_NAMES[s]], renderer.bvh, renderer.tris, rays, packets, frusta, any_hit,
+                       hits.t, hits.prim, hits.u, hits.v)
+            if rep:
+                best[s] = min(best[s], time.perf_counter() - start)
+    return best
+
+
+# -- the fit -------------------------------------------------------------------------------
+
+def bin_of(footprint, live, f_edges):
+    """(footprint bin, live bin) of each packet: footprint bin i holds f_edges[i-1] < f <=
+    f_edges[i] (bin len(f_edges): above the last), live bin j holds LIVE_EDGES[j] <= live <
+    LIVE_EDGES[j+1] (the last: live == 1)."""
+    fb = np.searchsorted(f_edges, footprint, side="left")
+    lb = np.clip(np.searchsorted(LIVE_EDGES, live, side="right") - 1, 0, len(LIVE_EDGES) - 1)
+    return fb, lb
+
+
+def rule_choice(fb, lb, valid, r_idx, m_idx, l_idx, invalid):
+    """The chooser's rule on bins with thresholds on edges: RANGED_MAX = f_edges[r_idx] (-1:
+    below every packet), MASKED_MAX = f_edges[m_idx], MIN_LIVE = LIVE_EDGES[l_idx]; invalid:
+    the frustum-less strategy. Returns the strategy number per cell."""
+    masked, ranged, partition = (STRATEGIES[n] for n in CHOSEN_NAMES)
+    out = np.full(fb.shape, partition)
+    live_ok = lb >= l_idx
+    out[live_ok & (fb <= r_idx)] = ranged
+    out[live_ok & (fb <= m_idx)] = masked
+    out[~valid] = invalid
+    return out
+
+
+def fit_limits(cells, f_edges):
+    """The thresholds minimising the summed cell times. cells: dict of arrays fb, lb (bins),
+    valid (bool), seconds f64[C,3] (per strategy number). Returns (limits {name: value},
+    total seconds, the index choice)."""
+    fb, lb, valid, seconds = cells["fb"], cells["lb"], cells["valid"], cells["seconds"]
+    rows = np.arange(len(fb))
+    best = (np.inf, None)
+    n_f = len(f_edges)
+    for invalid in range(len(CHOSEN_NAMES)):
+        for l_idx in range(len(LIVE_EDGES)):
+            for r_idx in range(-1, n_f + 1):  # n_f: every footprint
+                for m_idx in range(-1, r_idx + 1):
+                    total = seconds[rows, rule_choice(fb, lb, valid, r_idx, m_idx, l_idx, invalid)].sum()
+                    if total < best[0] - 1e-12:
+                        best = (total, (r_idx, m_idx, l_idx, invalid))
+    total, (r_idx, m_idx, l_idx, invalid) = best
+    def edge(i):  # -1: below every packet; n_f: above every packet (JSON has no infinity)
+        return -1.0 if i < 0 else (EVERY if i >= n_f else float(f_edges[i]))
+
+    limits = {"ranged_max_footprint": edge(r_idx), "masked_max_footprint": edge(m_idx),
+              "min_live": float(LIVE_EDGES[l_idx]), "invalid_frustum": CHOSEN_NAMES[invalid]}
+    assert set(limits) == set(LIMIT_NAMES)
+    return limits, float(total), (r_idx, m_idx, l_idx, invalid)
+
+
+# -- the run -------------------------------------------------------------------------------
+
+def collect(scenes, packets, size, repeat, log, threads=0):
+    """Record the frames, measure and time the cells. Returns (frames {(scene, packet):
+    (renderer, batches)}, packets' measures per group, cell table)."""
+    scene_cache = SceneCache()
+    frames, groups = {}, {}
+    for name in scenes:
+        for n in packets:
+            start = time.perf_counter()
+            renderer, batches = record_frame(scene_cache, name, n, size, threads)
+            frames[(name, n)] = (renderer, batches)
+            for kind, query, rays, pk in batches:
+                live, footprint, frusta = measures(renderer, kind, rays, pk)
+                groups.setdefault((name, n, kind), []).append((query, rays, pk, frusta, live, footprint))
+            log(f"{name} {n}x{n}: {len(batches)} batches recorded in {time.perf_counter() - start:.1f} s")
+    all_f = np.concatenate([b[5][b[4] > 0] for parts in groups.values() for b in parts])
+    f_edges = np.unique(np.quantile(all_f, np.linspace(0, 1, FOOTPRINT_BINS + 1)[1:-1]))
+    table = {"group": [], "fb": [], "lb": [], "valid": [], "packets": [], "seconds": []}
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)  # a cell's time is the sum of its packets' walks
+    try:
+        for (name, n, kind), parts in groups.items():
+            start = time.perf_counter()
+            renderer = frames[(name, n)][0]
+            per_part = [(bin_of(p[5], p[4], f_edges), p[3].valid) for p in parts]
+            keys = sorted({(int(a), int(b), bool(v)) for (fb, lb), valid in per_part
+                           for a, b, v in zip(fb, lb, valid)})
+            for fbin, lbin, ok in keys:
+                chosen = [(p[1], p[2], p[3], np.flatnonzero((fb == fbin) & (lb == lbin) & (valid == ok)))
+                          for p, ((fb, lb), valid) in zip(parts, per_part)]
+                chosen = [c for c in chosen if len(c[3])]
+                rays, pk, frusta = sub_batch(chosen)
+                seconds = time_strategies(renderer, rays, pk, frusta, parts[0][0] == "occluded", repeat)
+                table["group"].append((name, n, kind))
+                table["fb"].append(fbin)
+                table["lb"].append(lbin)
+                table["valid"].append(ok)
+                table["packets"].append(sum(len(c[3]) for c in chosen))
+                table["seconds"].append(seconds)
+            log(f"  {name} {n}x{n} {kind}: {len(keys)} cells timed in {time.perf_counter() - start:.1f} s")
+    finally:
+        numba.set_num_threads(threads)
+    cells = {k: (np.array(v) if k != "group" else v) for k, v in table.items()}
+    return frames, f_edges, cells
+
+
+def measure(frames, limits, repeat, log):
+    """{(scene, packet, kind): {traversal: median seconds per frame}} of replaying each frame's
+    batches with ranged, partition and auto (``limits``), interleaved; and {(scene, packet,
+    kind): auto's packets per strategy}. Auto's answers must equal Partition's."""
+    names = ("ranged", "partition", "auto")
+    out, counts = {}, {}
+    for (name, n), (renderer, batches) in frames.items():
+        plugins = {t: make_traversal(t, limits if t == "auto" else None) for t in names}
+        tracers = {t: renderer.tracer.with_traversal(dict.fromkeys(RAY_KINDS, p))
+                   for t, p in plugins.items()}
+        runs = {t: [] for t in names}
+        answers = {}
+        for rep in range(repeat + 1):
+            order = names if rep % 2 else names[::-1]
+            for t in order:
+                tally = Tally()
+                got = [tracers[t].trace(kind, query, rays, pk, tally) for kind, query, rays, pk in batches]
+                if rep:
+                    runs[t].append(dict(tally.seconds))
+                else:
+                    answers[t] = got
+        for a, b, (kind, query, _, _) in zip(answers["auto"], answers["partition"], batches):
+            same = np.array_equal(a, b) if query == "occluded" else all(
+                np.array_equal(x, y) for x, y in zip(a, b))
+            if not same:
+                raise AssertionError(f"auto's answers differ from partition's on {name} {kind}")
+        for kind in {k for k, *_ in batches}:
+            out[(name, n, kind)] = {t: float(np.median([r[kind] for r in runs[t]])) for t in names}
+        tally = Tally(count=True)  # one counting replay: auto's choices per kind
+        for kind, query, rays, pk in batches:
+            tracers["auto"].trace(kind, query, rays, pk, tally)
+        for kind, stats in tally.stats.items():
+            counts[(name, n, kind)] = stats.extra["auto"]["packets"]
+        log(f"measured {name} {n}x{n}")
+    return out, counts
+
+
+# -- outputs ---------------------------------------------------------------------------------
+
+def totals_by(cells, choice):
+    """Summed seconds per ray kind when each cell is walked by choice[c] (a strategy number)."""
+    out = {}
+    for c, (scene, n, kind) in enumerate(cells["group"]):
+        out[kind] = out.get(kind, 0.0) + float(cells["seconds"][c, choice[c]])
+    return out
+
+
+def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds) -> str:
+    """The markdown report of a fit and its measurement."""
+    s = cells["seconds"]
+    m, r, p = (STRATEGIES[x] for x in CHOSEN_NAMES)
+    n_cells = len(cells["group"])
+    fb, lb, valid = cells["fb"], cells["lb"], cells["valid"]
+    idx = _index_of(limits, f_edges)
+    fitted = rule_choice(fb, lb, valid, *idx)
+    rows = [("all Ranged", np.full(n_cells, r)), ("all Partition", np.full(n_cells, p)),
+            ("all Masked", np.full(n_cells, m)),
+            ("paper (Ranged primary, Partition others)",
+             np.array([r if g[2] == "primary" else p for g in cells["group"]])),
+            ("auto, fitted rule", fitted), ("per-cell best (lower bound)", np.argmin(s, axis=1))]
+    lines = [f"# `auto` traversal: threshold fit and measurement ({args['date']})", "",
+             "Reduced fit, not the full Figure 5 matrix: scenes " + ", ".join(args["scenes"]) +
+             f", {args['size']}x{args['size']}, packets " + ", ".join(f"{n}x{n}" for n in args["packets"]) +
+             ", every ray kind (primary + shadows of the first light, 2-bounce mirror reflections, 2-deep glass "
+             "refraction), paper frusta. Cell timings on one thread, best of "
+             f"{args['repeat']}; frame timings on {args['threads']} threads, median of {args['measure_repeat']}.",
+             "", f"Command: `{args['command']}` ({seconds:.0f} s on {args['machine']}).", "",
+             "## Fitted thresholds", "", "| limit | value |", "|---|---|"]
+    lines += [f"| `{k}` | {v:.6g} |" if isinstance(v, float) else f"| `{k}` | {v} |" for k, v in limits.items()]
+    lines += ["", f"Footprint bin edges (quantiles of {FOOTPRINT_BINS} bins): "
+              + ", ".join(f"{e:.4g}" for e in f_edges) + f"; live edges: {', '.join(map(str, LIVE_EDGES))}.",
+              "", "## Cell times summed (ms, one thread): what the fit minimised", "",
+              "| rule | " + " | ".join(RAY_KINDS) + " | total |", "|---|" + "---|" * (len(RAY_KINDS) + 1)]
+    for label, choice in rows:
+        t = totals_by(cells, choice)
+        lines.append(f"| {label} | " + " | ".join(f"{1e3 * t.get(k, 0):.1f}" for k in RAY_KINDS)
+                     + f" | {1e3 * sum(t.values()):.1f} |")
+    lines += ["", "## Frame trace time: auto against the better of Ranged and Partition", "",
+              "Median trace time per frame (frustum build + traversal, ms) per ray kind; `auto/best` is auto "
+              "over the faster of Ranged and Partition for that row (above 1: auto is slower). `choices` are "
+              "auto's packets walked by Masked / Ranged / Partition.", "",
+              "| scene | packet | kind | ranged | partition | auto | auto/best | choices M/R/P |",
+              "|---|---|---|---|---|---|---|---|"]
+    sums = {t: 0.0 for t in ("ranged", "partition", "auto", "best")}
+    for (scene, n, kind) in sorted(timing, key=lambda k: (k[0], k[1], RAY_KINDS.index(k[2]))):
+        t = timing[(scene, n, kind)]
+        best = min(t["ranged"], t["partition"])
+        c = counts.get((scene, n, kind), {})
+        sums["ranged"] += t["ranged"]
+        sums["partition"] += t["partition"]
+        sums["auto"] += t["auto"]
+        sums["best"] += best
+        lines.append(f"| {scene} | {n} | {kind} | {1e3 * t['ranged']:.2f} | {1e3 * t['partition']:.2f} | "
+                     f"{1e3 * t['auto']:.2f} | {t['auto'] / best:.3f} | "
+                     + "/".join(str(c.get(x, 0)) for x in CHOSEN_NAMES) + " |")
+    lines += [f"| **all** | | | {1e3 * sums['ranged']:.1f} | {1e3 * sums['partition']:.1f} | "
+              f"{1e3 * sums['auto']:.1f} | {sums['auto'] / sums['best']:.3f} (vs per-row best) | |", ""]
+    return "\n".join(lines) + "\n"
+
+
+def _index_of(limits, f_edges):
+    def edge_index(v):
+        return -1 if v < 0 else int(np.searchsorted(f_edges, v))
+    return (edge_index(limits["ranged_max_footprint"]), edge_index(limits["masked_max_footprint"]),
+            LIVE_EDGES.index(limits["min_live"]), CHOSEN_NAMES.index(limits["invalid_frustum"]))
+
+
+def run(scenes=SCENES, packets=PACKETS, size=SIZE, repeat=5, measure_repeat=5, thresholds_out=None,
+        report_out=None, command="", log=print, threads=0) -> dict:
+    """Collect, fit, write the thresholds, measure (on ``threads`` threads, 0: all), write the
+    report. Returns the limits."""
+    start = time.perf_counter()
+    if threads:
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    frames, f_edges, cells = collect(scenes, packets, size, repeat, log, threads)
+    limits, total, _ = fit_limits(cells, f_edges)
+    log(f"fitted {limits} (summed cell time {1e3 * total:.1f} ms)")
+    fit_seconds = time.perf_counter() - start
+    info = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "scenes": list(scenes), "packets": list(packets), "size": size, "repeat": repeat,
+            "measure_repeat": measure_repeat, "threads": numba.get_num_threads(), "command": command,
+            "machine": machine_info().get("cpu", "this machine")}
+    if thresholds_out:
+        write_json(thresholds_out, {"limits": limits, "fit": {**info, "seconds": round(fit_seconds, 1),
+                                                              "cells": len(cells["group"]),
+                                                              "footprint_edges": list(f_edges),
+                                                              "live_edges": list(LIVE_EDGES)}},
+                   "thresholds")
+    timing, counts = measure(frames, limits, measure_repeat, log) if measure_repeat else ({}, {})
+    if report_out:
+        write_text(report_out, report(info, limits, total, cells, f_edges, timing, counts,
+                                      time.perf_counter() - start))
+    return limits

@@ -1,0 +1,134 @@
+"""The ``auto`` traversal's choice: which strategy walks a packet, from cheap measures of it.
+
+Overbeck, Ramamoorthi and Mark (2008) find Ranged faster on coherent packets (one box test
+usually decides a node) and Partition faster once coherence falls (Ranged's index range fills
+with rays that miss). The ``auto`` strategy of ``engine.packet.walk`` asks ``choose_packet``
+per packet, as it is loaded, and then walks it with the answer as a compile-time constant.
+
+The measures (``packet_measures``), over the packet's live rays only:
+
+- ``live``: the fraction of its lanes that are live (tmin <= tmax);
+- ``footprint``: how many BVH leaves wide the packet is: (diagonal of the box around its
+  origins + diagonal of the box around its normalised directions * reach) / the scene's
+  typical leaf width (``scene_scales``), where ``reach`` is the mean segment length, each
+  clipped to the scene diagonal. The directions' box diagonal is about the chord of
+  the packet's direction cone (2 sin of its half-angle), so a camera packet's footprint grows
+  with its angle; a reflection packet off a curved surface, or a shadow packet whose origins
+  lie on surfaces far apart, has a large one. In leaf widths rather than scene diagonals: the
+  same angle spans many more leaves of a 500k-triangle scene than of an 800-triangle room,
+  and Ranged pays for every ray of its range that misses a leaf.
+- ``valid``: whether the packet has a frustum (the packet's ``Frusta.valid``).
+
+The rule (``choose_packet``), with the thresholds of ``LIMITS`` (fitted by
+``tools/fit_auto.py``; ``engine/packet/auto_thresholds.json``):
+
+    no frustum                                       -> INVALID_CHOICE (a strategy number)
+    live >= MIN_LIVE and footprint <= MASKED_MAX     -> MASKED
+    live >= MIN_LIVE and footprint <= RANGED_MAX     -> RANGED
+    otherwise                                        -> PARTITION
+
+limits: f64[N_LIMITS] indexed by RANGED_MAX, MASKED_MAX, MIN_LIVE, INVALID_CHOICE.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from engine.packet.strategies import MASKED, PARTITION, RANGED
+
+RANGED_MAX, MASKED_MAX, MIN_LIVE, INVALID_CHOICE = range(4)
+
+N_LIMITS = 4
+#: The names of the limits, in order (the keys of the thresholds file and the plugin's options).
+LIMIT_NAMES = ("ranged_max_footprint", "masked_max_footprint", "min_live", "invalid_frustum")
+
+
+@njit(cache=True, inline="always")
+def packet_measures(org, dirs, tmin, tmax, start, n, scales):
+    """(live, footprint) of rays start .. start+n (org, dirs f32[R,3]; tmin, tmax f32[R]) in a
+    scene of ``scales`` (diagonal, typical leaf width) (``scene_scales``); see the module doc.
+    One pass over the rays; (0, 0) with no live ray."""
+    diagonal, width = scales
+    live = 0
+    reach = 0.0
+    o_lo_x, o_lo_y, o_lo_z = np.inf, np.inf, np.inf
+    o_hi_x, o_hi_y, o_hi_z = -np.inf, -np.inf, -np.inf
+    d_lo_x, d_lo_y, d_lo_z = np.inf, np.inf, np.inf
+    d_hi_x, d_hi_y, d_hi_z = -np.inf, -np.inf, -np.inf
+    for r in range(start, start + n):
+        if not tmin[r] <= tmax[r]:
+            continue
+        dx, dy, dz = float(dirs[r, 0]), float(dirs[r, 1]), float(dirs[r, 2])
+        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if not norm > 0.0:
+            continue
+        live += 1
+        scale = 1.0 / norm
+        dx, dy, dz = dx * scale, dy * scale, dz * scale
+        d_lo_x, d_lo_y, d_lo_z = min(d_lo_x, dx), min(d_lo_y, dy), min(d_lo_z, dz)
+        d_hi_x, d_hi_y, d_hi_z = max(d_hi_x, dx), max(d_hi_y, dy), max(d_hi_z, dz)
+        ox, oy, oz = float(org[r, 0]), float(org[r, 1]), float(org[r, 2])
+        o_lo_x, o_lo_y, o_lo_z = min(o_lo_x, ox), min(o_lo_y, oy), min(o_lo_z, oz)
+        o_hi_x, o_hi_y, o_hi_z = max(o_hi_x, ox), max(o_hi_y, oy), max(o_hi_z, oz)
+        reach += min((float(tmax[r]) - float(tmin[r])) * norm, diagonal)
+    if live == 0:
+        return 0.0, 0.0
+    origins = math.sqrt((o_hi_x - o_lo_x) ** 2 + (o_hi_y - o_lo_y) ** 2 + (o_hi_z - o_lo_z) ** 2)
+    directions = math.sqrt((d_hi_x - d_lo_x) ** 2 + (d_hi_y - d_lo_y) ** 2 + (d_hi_z - d_lo_z) ** 2)
+    return live / n, (origins + directions * reach / live) / width
+
+
+@njit(cache=True, inline="always")
+def scene_scales(bmin, bmax):
+    """(diagonal of the BVH's root box, typical leaf width) of a BVH (bmin, bmax f32[N,3]); the
+    leaf width is the diagonal over the square root of the leaf count ((N + 1) / 2 in a tree of
+    two-child nodes): the leaves tile the scene's surfaces, not its volume."""
+    dx = float(bmax[0, 0]) - float(bmin[0, 0])
+    dy = float(bmax[0, 1]) - float(bmin[0, 1])
+    dz = float(bmax[0, 2]) - float(bmin[0, 2])
+    diagonal = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-30)
+    return diagonal, diagonal / math.sqrt((bmin.shape[0] + 1) / 2)
+
+
+@njit(cache=True, inline="always")
+def choose_by_measures(live, footprint, valid, limits):
+    """The strategy for a packet of measures (live, footprint, valid) under ``limits``."""
+    if not valid:
+        return int(limits[INVALID_CHOICE])
+    if live >= limits[MIN_LIVE]:
+        if footprint <= limits[MASKED_MAX]:
+            return MASKED
+        if footprint <= limits[RANGED_MAX]:
+            return RANGED
+    return PARTITION
+
+
+@njit(cache=True, inline="always")
+def choose_packet(org, dirs, tmin, tmax, start, n, valid, scales, limits):
+    """The strategy (MASKED, RANGED or PARTITION) that walks rays start .. start+n, whose
+    frustum is ``valid``, in a scene of ``scales`` (``scene_scales``), under ``limits``
+    f64[N_LIMITS] (see the module doc)."""
+    live, footprint = packet_measures(org, dirs, tmin, tmax, start, n, scales)
+    return choose_by_measures(live, footprint, valid, limits)
+
+
+@njit(cache=True, parallel=True)
+def measure_packets(bmin, bmax, org, dirs, tmin, tmax, offsets, live_out, footprint_out):
+    """Every packet's measures (for the fit and ``packetrt show``): live_out, footprint_out
+    f64[K] for the packets offsets i32[K+1] of the rays, in a scene of BVH boxes bmin, bmax."""
+    scales = scene_scales(bmin, bmax)
+    for k in prange(offsets.shape[0] - 1):
+        start = offsets[k]
+        live_out[k], footprint_out[k] = packet_measures(org, dirs, tmin, tmax, start, offsets[k + 1] - start,
+                                                        scales)
+
+
+@njit(cache=True)
+def choose_packets(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, out):
+    """out i8[K] := the strategy ``auto`` walks each packet with (as ``choose_packet``)."""
+    scales = scene_scales(bmin, bmax)
+    for k in range(offsets.shape[0] - 1):
+        start = offsets[k]
+        out[k] = choose_packet(org, dirs, tmin, tmax, start, offsets[k + 1] - start, valid[k], scales, limits)

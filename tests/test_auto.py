@@ -1,0 +1,230 @@
+"""The ``auto`` traversal: its measures are what they say, it picks Ranged for a coherent camera
+packet and Partition for a scattered one, a packet it gives to a strategy is walked exactly as
+that strategy walks it (same answers and same counters), its choices are counted per batch in
+the stats, options override the fitted thresholds and bad ones are refused, and the fit picks
+the thresholds that minimise the summed cell times."""
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import pytest
+
+from engine.core.errors import ConfigError
+from engine.core.types import Frusta, empty_hits, new_stats
+from engine.packet.auto_limits import fitted_limits, limits_array
+from engine.packet.choose import LIMIT_NAMES, measure_packets
+from engine.packet.layout import make_batch
+from engine.packet.plugin import walk_batch
+from engine.packet.strategies import AUTO, CHOSEN_NAMES, MASKED, PARTITION, RANGED
+from engine.render.plugins import make_frustum, make_traversal
+from packet_raysets import scene_rays
+from scenes.whitted import whitted_scene
+
+FRUSTUM_FOR = {"primary": "pinhole", "shadow": "pointlight", "reflection": "general", "refraction": "general"}
+
+
+@pytest.fixture(scope="module")
+def rayset():
+    return scene_rays(whitted_scene([], {"subdivisions": 1}, 0.0), 48, 48)
+
+
+def one_packet(org, dirs, tmax, n=16):
+    """A batch of one n x n packet (org, dirs f[n*n,3], tmax f[n*n]) in screen order."""
+    m = n * n
+    pixel = np.arange(m, dtype=np.int32)
+    return make_batch("primary", org, dirs, np.zeros(m), tmax, pixel, np.ones((m, 3)), n, n, n)
+
+
+def measured(bvh, rays, packets):
+    k = len(packets.offsets) - 1
+    live, footprint = np.zeros(k), np.zeros(k)
+    measure_packets(bvh.bmin, bvh.bmax, rays.org, rays.dir, rays.tmin, rays.tmax,
+                    np.ascontiguousarray(packets.offsets, np.int32), live, footprint)
+    return live, footprint
+
+
+def camera_packet(rs, half_angle, reach, n=16):
+    """n x n rays from one eye at the scene box's centre, directions on a cone of the given half
+    angle around +z (the corners exactly on it), segments of length ``reach``."""
+    centre = (rs.bounds[0] + rs.bounds[1]) / 2
+    s = np.linspace(-1.0, 1.0, n)
+    x, y = np.meshgrid(s, s)
+    # Corner rays (|x| = |y| = 1) lie on the cone: tan(half_angle) = sqrt(2) * a.
+    a = math.tan(half_angle) / math.sqrt(2)
+    dirs = np.stack([a * x.ravel(), a * y.ravel(), np.ones(n * n)], axis=1)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    return one_packet(np.tile(centre, (n * n, 1)), dirs, np.full(n * n, reach))
+
+
+def scattered_packet(rs, seed=3, n=16):
+    """n x n rays from points all over the scene box in directions all over the sphere."""
+    rng = np.random.default_rng(seed)
+    lo, hi = rs.bounds
+    org = lo + rng.random((n * n, 3)) * (hi - lo)
+    dirs = rng.normal(size=(n * n, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    return one_packet(org, dirs, np.full(n * n, np.inf))
+
+
+def numpy_measures(bvh, rays, start, stop):
+    """(live, footprint) of rays start .. stop by the definition in ``engine.packet.choose``."""
+    diagonal = float(np.linalg.norm(bvh.bmax[0].astype(np.float64) - bvh.bmin[0]))
+    width = diagonal / math.sqrt((bvh.bmin.shape[0] + 1) / 2)
+    live = rays.tmin[start:stop] <= rays.tmax[start:stop]
+    org = rays.org[start:stop][live].astype(np.float64)
+    d = rays.dir[start:stop][live].astype(np.float64)
+    norm = np.linalg.norm(d, axis=1)
+    unit = d / norm[:, None]
+    reach = np.minimum((rays.tmax[start:stop][live] - rays.tmin[start:stop][live]) * norm, diagonal).mean()
+    origins = np.linalg.norm(org.max(axis=0) - org.min(axis=0))
+    directions = np.linalg.norm(unit.max(axis=0) - unit.min(axis=0))
+    return live.mean(), (origins + directions * reach) / width, width
+
+
+def test_measures_of_a_camera_packet_are_its_cone(rayset):
+    diagonal = float(np.linalg.norm(rayset.bvh.bmax[0] - rayset.bvh.bmin[0]))
+    half = math.radians(2.0)
+    for reach in (0.5 * diagonal, np.inf):
+        rays, packets = camera_packet(rayset, half, reach)
+        live, footprint = measured(rayset.bvh, rays, packets)
+        expected_live, expected, width = numpy_measures(rayset.bvh, rays, 0, rays.org.shape[0])
+        assert live[0] == expected_live == 1.0
+        assert footprint[0] == pytest.approx(expected, rel=1e-5)
+        # One origin: the directions' box spans the cone's chord (2 sin of the half-angle) and
+        # a little more (its depth), over the reach (an infinite segment counts as the diagonal).
+        chord = footprint[0] * width / min(reach, diagonal)
+        assert 2 * math.sin(half) - 1e-6 <= chord <= 2 * math.sin(half) + (1 - math.cos(half)) + 1e-6
+
+
+def test_dead_lanes_lower_the_live_fraction_and_are_not_measured(rayset):
+    rays, packets = scattered_packet(rayset)
+    tmax = rays.tmax.copy()
+    tmax[::2] = -1.0  # half the lanes dead
+    rays = rays._replace(tmax=tmax)
+    live, footprint = measured(rayset.bvh, rays, packets)
+    expected_live, expected, _ = numpy_measures(rayset.bvh, rays, 0, rays.org.shape[0])
+    assert live[0] == expected_live == 0.5
+    assert footprint[0] == pytest.approx(expected, rel=1e-5)
+    rays = rays._replace(tmax=np.full_like(tmax, -1.0))
+    assert measured(rayset.bvh, rays, packets)[0][0] == 0.0
+
+
+def test_fitted_chooser_picks_ranged_for_a_camera_packet_and_partition_for_a_scattered_one(rayset):
+    auto = make_traversal("auto")
+    frustum = make_frustum("general")
+    rays, packets = camera_packet(rayset, math.radians(1.0), np.inf)
+    frusta = frustum.build(rays, packets, rayset.bounds)
+    assert frusta.valid.all()
+    assert auto.choose(rayset.bvh, rays, packets, frusta).tolist() == [RANGED]
+    rays, packets = scattered_packet(rayset)
+    frusta = frustum.build(rays, packets, rayset.bounds)
+    assert not frusta.valid.any()  # directions of every sign: no frustum, the fitted fallback
+    assert auto.choose(rayset.bvh, rays, packets, frusta).tolist() == [
+        CHOSEN_NAMES.index(fitted_limits()["invalid_frustum"])]
+    forced = Frusta(frusta.planes, np.ones_like(frusta.valid))  # had it a frustum: by its footprint
+    assert auto.choose(rayset.bvh, rays, packets, forced).tolist() == [PARTITION]
+
+
+def test_options_override_the_fitted_thresholds(rayset):
+    rays, packets = camera_packet(rayset, math.radians(1.0), np.inf)
+    valid = Frusta(np.zeros((1, 4, 4), np.float32), np.ones(1, np.bool_))
+    invalid = Frusta(np.zeros((1, 4, 4), np.float32), np.zeros(1, np.bool_))
+    never = make_traversal("auto", {"ranged_max_footprint": -1.0})
+    assert never.choose(rayset.bvh, rays, packets, valid).tolist() == [PARTITION]
+    masked = make_traversal("auto", {"masked_max_footprint": 10.0})
+    assert masked.choose(rayset.bvh, rays, packets, valid).tolist() == [MASKED]
+    for name in CHOSEN_NAMES:
+        plugin = make_traversal("auto", {"invalid_frustum": name})
+        assert plugin.choose(rayset.bvh, rays, packets, invalid).tolist() == [CHOSEN_NAMES.index(name)]
+    assert make_traversal("auto").limits == fitted_limits()
+
+
+@pytest.mark.parametrize("options,message", [({"ranged": 1.0}, "unknown key"),
+                                             ({"min_live": "half"}, "must be a number"),
+                                             ({"invalid_frustum": "simd"}, "must be one of")])
+def test_bad_options_are_one_line_errors(options, message):
+    with pytest.raises(ConfigError, match=message):
+        make_traversal("auto", options)
+
+
+def test_limits_file_names_every_limit():
+    limits = fitted_limits()
+    assert set(limits) == set(LIMIT_NAMES)
+    limits_array(limits)  # valid values
+
+
+FORCE = {"masked": {"masked_max_footprint": math.inf, "min_live": 0.0, "invalid_frustum": "masked"},
+         "ranged": {"ranged_max_footprint": math.inf, "masked_max_footprint": -1.0, "min_live": 0.0,
+                    "invalid_frustum": "ranged"},
+         "partition": {"ranged_max_footprint": -1.0, "masked_max_footprint": -1.0, "invalid_frustum": "partition"}}
+
+
+@pytest.mark.parametrize("kind", sorted(FRUSTUM_FOR))
+@pytest.mark.parametrize("name", CHOSEN_NAMES)
+def test_a_packet_given_to_a_strategy_is_walked_exactly_as_that_strategy_walks_it(rayset, kind, name):
+    """auto forced to one strategy gives that traversal's answers and the same counters: its
+    copy of the walk is the strategy's walk."""
+    rays, packets = rayset.rays[kind].batch(rayset.width, rayset.height, 8)
+    frusta = make_frustum(FRUSTUM_FOR[kind]).build(rays, packets, rayset.bounds)
+    results = []
+    for plugin in (make_traversal("auto", FORCE[name]), make_traversal(name)):
+        stats = new_stats(numba.get_num_threads())
+        hits = empty_hits(rays.org.shape[0])
+        plugin.intersect(rayset.bvh, rayset.tris, rays, packets, frusta, hits, stats)
+        occluded = np.zeros(rays.org.shape[0], np.bool_)
+        plugin.occluded(rayset.bvh, rayset.tris, rays, packets, frusta, occluded, stats)
+        results.append((hits, occluded, stats))
+    (hits, occluded, stats), (ref_hits, ref_occluded, ref_stats) = results
+    for field in ("prim", "t", "u", "v"):
+        np.testing.assert_array_equal(getattr(hits, field), getattr(ref_hits, field))
+    np.testing.assert_array_equal(occluded, ref_occluded)
+    np.testing.assert_array_equal(stats.counters.sum(axis=0), ref_stats.counters.sum(axis=0))
+    n_packets = len(packets.offsets) - 1
+    assert stats.extra["auto"]["packets"] == {n: (2 * n_packets if n == name else 0) for n in CHOSEN_NAMES}
+
+
+@pytest.mark.parametrize("kind", sorted(FRUSTUM_FOR))
+def test_choices_are_recorded_per_packet_and_counted_per_batch(rayset, kind):
+    """The walk's per-packet choices are the chooser's, and --stats counts them per batch."""
+    rays, packets = rayset.rays[kind].batch(rayset.width, rayset.height, 8)
+    frusta = make_frustum(FRUSTUM_FOR[kind]).build(rays, packets, rayset.bounds)
+    # Thresholds at the batch's median footprint: both strategies get packets.
+    footprint = measured(rayset.bvh, rays, packets)[1]
+    plugin = make_traversal("auto", {"ranged_max_footprint": float(np.median(footprint)), "min_live": 0.0,
+                                     "invalid_frustum": "partition"})
+    expected = plugin.choose(rayset.bvh, rays, packets, frusta)
+    if frusta.valid.all():
+        assert set(expected.tolist()) == {RANGED, PARTITION}
+    choices = np.full(len(expected), -1, np.int8)
+    hits = empty_hits(rays.org.shape[0])
+    walk_batch(AUTO, rayset.bvh, rayset.tris, rays, packets, frusta, False, hits.t, hits.prim, hits.u, hits.v,
+               limits=plugin._limits, choices=choices)
+    np.testing.assert_array_equal(choices, expected)
+    stats = new_stats(numba.get_num_threads())
+    for _ in range(2):
+        plugin.intersect(rayset.bvh, rayset.tris, rays, packets, frusta, empty_hits(rays.org.shape[0]), stats)
+    per = {name: int((expected == i).sum()) for i, name in enumerate(CHOSEN_NAMES)}
+    assert stats.extra["auto"]["per_batch"] == [per, per]
+    assert stats.extra["auto"]["packets"] == {name: 2 * n for name, n in per.items()}
+
+
+def test_the_fit_picks_the_thresholds_that_minimise_the_summed_time():
+    """Synthetic cells: Ranged is faster below footprint bin 5 with live >= 0.75, Partition
+    elsewhere, Masked never; frustum-less cells are fastest by Partition."""
+    from engine.bench.auto_fit import LIVE_EDGES, fit_limits
+
+    f_edges = np.linspace(0.01, 0.3, 12)
+    fb, lb, valid, seconds = [], [], [], []
+    for f in range(len(f_edges) + 1):
+        for live in range(len(LIVE_EDGES)):
+            for ok in (True, False):
+                ranged_wins = f <= 5 and live >= 3 and ok
+                fb.append(f), lb.append(live), valid.append(ok)
+                seconds.append([3.0, 1.0 if ranged_wins else 2.0, 1.5 if ranged_wins else 1.0])
+    cells = {"fb": np.array(fb), "lb": np.array(lb), "valid": np.array(valid), "seconds": np.array(seconds)}
+    limits, total, _ = fit_limits(cells, f_edges)
+    assert limits == {"ranged_max_footprint": float(f_edges[5]), "masked_max_footprint": -1.0,
+                      "min_live": LIVE_EDGES[3], "invalid_frustum": "partition"}
+    assert total == pytest.approx(cells["seconds"].min(axis=1).sum())

@@ -1,0 +1,57 @@
+"""Fit the ``auto`` traversal's thresholds and measure ``auto`` against Ranged and Partition.
+
+    python tools/fit_auto.py [--scenes erw6,bart-museum,bart-kitchen,spd-rings] [--packets 8,16]
+                             [--size 256] [--repeat 5] [--measure-repeat 5] [--threads 0]
+                             [--thresholds engine/packet/auto_thresholds.json]
+                             [--report docs/auto-fit.md]
+
+A reduced, reproducible fit (``engine.bench.auto_fit``): the named scenes at one small
+resolution, the given packet sizes, every ray kind. Needs the BART scenes on
+``PACKETRT_SCENE_PATH``. ``--measure-repeat 0`` fits without the frame measurement.
+"""
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def main(argv=None) -> int:
+    from engine.bench import auto_fit
+    from engine.core.errors import PacketrtError
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenes", default=",".join(auto_fit.SCENES))
+    parser.add_argument("--packets", default=",".join(map(str, auto_fit.PACKETS)))
+    parser.add_argument("--size", type=int, default=auto_fit.SIZE)
+    parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--measure-repeat", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=0, help="threads for the frame measurement (0: all)")
+    parser.add_argument("--thresholds", default=str(ROOT / "engine/packet/auto_thresholds.json"))
+    parser.add_argument("--report", default=str(ROOT / "docs/auto-fit.md"))
+    args = parser.parse_args(argv)
+    try:
+        packets = [int(p) for p in args.packets.split(",")]
+    except ValueError:
+        print(f"fit_auto: --packets must be comma-separated integers, got {args.packets!r}", file=sys.stderr)
+        return 2
+    if args.size < 16 or args.repeat < 1 or args.measure_repeat < 0 or args.threads < 0:
+        print("fit_auto: --size must be >= 16, --repeat >= 1, --measure-repeat >= 0, --threads >= 0", file=sys.stderr)
+        return 2
+    command = "python tools/fit_auto.py " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+    try:
+        auto_fit.run(args.scenes.split(","), packets, args.size, args.repeat, args.measure_repeat,
+                     args.thresholds, args.report, command.strip(), log=lambda m: print(m, flush=True),
+                     threads=args.threads)
+    except PacketrtError as exc:
+        print(f"fit_auto: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,77 @@
+"""``auto``: each packet is walked by Ranged, Partition or Masked, chosen per packet.
+
+Overbeck, Ramamoorthi and Mark (2008) find Ranged the faster traversal on coherent packets and
+Partition on incoherent ones, and pick one per ray kind. ``auto`` picks one per packet, from
+measures taken as the packet is loaded (``engine.packet.choose``): the fraction of its lanes
+that are live, its footprint (the spread of its origins plus the widening of its direction
+cone over its rays' reach, relative to the scene's diagonal) and whether it has a frustum. The
+packet is then walked by the chosen strategy's own copy of the one packet walk
+(``engine.packet.walk``), so its hits are the other traversals' hits, bit for bit.
+
+Options (``[options.auto]``), each defaulting to the fitted value in
+``engine/packet/auto_thresholds.json`` (``tools/fit_auto.py``):
+
+- ``ranged_max_footprint``: packets at most this wide (and live enough) walk by Ranged;
+- ``masked_max_footprint``: packets at most this wide (and live enough) walk by Masked
+  (negative: never);
+- ``min_live``: the least fraction of live lanes for Ranged or Masked;
+- ``invalid_frustum``: the strategy for packets without a frustum.
+
+Statistics (``--stats``: ``extra.plugins.KIND.auto``): ``packets``, the packets walked by each
+strategy, and ``per_batch``, the same for every batch traced, in order.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from engine.core.registry import register_traversal
+from engine.packet.auto_limits import fitted_limits, limits_array
+from engine.packet.choose import LIMIT_NAMES, choose_packets
+from engine.packet.plugin import PacketTraversal, walk_batch
+from engine.packet.strategies import AUTO, CHOSEN_NAMES
+
+
+@register_traversal("auto")
+class AutoTraversal(PacketTraversal):
+    """Large packets, each walked by Ranged, Partition or Masked as its measures suggest."""
+
+    strategy = AUTO
+    OPTIONS = dict.fromkeys(LIMIT_NAMES)  # None: the fitted value
+
+    def __init__(self, **limits):
+        chosen = fitted_limits()
+        chosen.update({name: value for name, value in limits.items() if value is not None})
+        self.limits = chosen
+        self._limits = limits_array(chosen)
+
+    def choose(self, bvh, rays, packets, frusta) -> np.ndarray:
+        """i8[K]: the strategy (``engine.packet.strategies`` number) each packet would be walked
+        by, without walking (``packetrt show``, tests)."""
+        offsets = np.ascontiguousarray(packets.offsets, np.int32)
+        n_packets = offsets.shape[0] - 1
+        valid = np.zeros(n_packets, np.bool_) if frusta is None else np.ascontiguousarray(frusta.valid, np.bool_)
+        out = np.empty(n_packets, np.int8)
+        choose_packets(bvh.bmin, bvh.bmax, rays.org, rays.dir, rays.tmin, rays.tmax, offsets, valid,
+                       self._limits, out)
+        return out
+
+    def walk_recorded(self, bvh, tris, rays, packets, frusta, any_hit, hits, record):
+        walk_batch(AUTO, bvh, tris, rays, packets, frusta, any_hit, hits.t, hits.prim, hits.u, hits.v,
+                   record=record, limits=self._limits)
+
+    def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats):
+        choices = np.empty(len(packets.offsets) - 1, np.int8)
+        walk_batch(AUTO, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
+                   None if stats is None else stats.counters, limits=self._limits, choices=choices)
+        if stats is not None:
+            add_choices(stats, choices)
+
+
+def add_choices(stats, choices: np.ndarray) -> None:
+    """Count one batch's choices (i8[K]) into stats.extra["auto"]."""
+    per = np.bincount(choices, minlength=len(CHOSEN_NAMES))
+    batch = {name: int(per[i]) for i, name in enumerate(CHOSEN_NAMES)}
+    total = stats.extra.setdefault("auto", {"packets": dict.fromkeys(CHOSEN_NAMES, 0), "per_batch": []})
+    for name, n in batch.items():
+        total["packets"][name] += n
+    total["per_batch"].append(batch)
