@@ -31,7 +31,7 @@ from engine.packet.kernels import (STACK_SIZE, intersect_lanes, intersect_lanes_
 from engine.packet.record import record_visit
 from engine.packet.steps import leaf_ray, leaf_rays, node_step, visit_record, walk_start, walkers
 from engine.packet.choose import choose_packet, scene_scales
-from engine.packet.strategies import AUTO, ENTERED, MASKED, PARTITION, RANGED, SIMD
+from engine.packet.strategies import ENTERED, MASKED, PARTITION, RANGED, SIMD
 
 
 @njit(cache=True, parallel=True)
@@ -52,15 +52,14 @@ def walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv,
     scene = (bmin, bmax, first, count, prim, v0, v1, v2, order)
     batch = (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit)
     answers = (out_t, out_prim, out_u, out_v)
-    auto = (np.empty(0, np.float64), np.empty(0, np.int8))  # read by the AUTO copy only
     if strategy == MASKED:
-        walk(MASKED, scene, batch, auto, answers, counters, record)
+        walk(MASKED, scene, batch, answers, counters, record)
     elif strategy == RANGED:
-        walk(RANGED, scene, batch, auto, answers, counters, record)
+        walk(RANGED, scene, batch, answers, counters, record)
     elif strategy == PARTITION:
-        walk(PARTITION, scene, batch, auto, answers, counters, record)
+        walk(PARTITION, scene, batch, answers, counters, record)
     else:
-        walk(SIMD, scene, batch, auto, answers, counters, record)
+        walk(SIMD, scene, batch, answers, counters, record)
 
 
 @njit(cache=True, parallel=True)
@@ -73,44 +72,56 @@ def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs
     scene = (bmin, bmax, first, count, prim, v0, v1, v2, order)
     batch = (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit)
     answers = (out_t, out_prim, out_u, out_v)
-    walk(AUTO, scene, batch, (limits, choices), answers, counters, record)
+    n_packets = offsets.shape[0] - 1
+    max_rays = longest_packet(offsets)
+    max_leaf = largest_leaf(count)
+    scales = scene_scales(bmin, bmax)
+    for chunk in prange(n_chunks):
+        work = worker_scratch(max_rays, max_leaf)
+        for k in range(chunk, n_packets, n_chunks):
+            start = offsets[k]
+            choice = choose_packet(org, dirs, tmin, tmax, start, offsets[k + 1] - start, valid[k], scales, limits)
+            choices[k] = choice
+            if choice == RANGED:
+                walk_packet(RANGED, scene, batch, work, k, answers, counters, record)
+            elif choice == PARTITION:
+                walk_packet(PARTITION, scene, batch, work, k, answers, counters, record)
+            else:
+                walk_packet(MASKED, scene, batch, work, k, answers, counters, record)
 
 
 @njit(cache=True, inline="always")
-def walk(strategy, scene, batch, auto, answers, counters, record):
-    """The skeleton (see the module doc), with the arguments of ``walk_packets`` grouped as
-    scene (bmin, bmax, first, count, prim, v0, v1, v2, order), batch (org, inv, dirs, tmin,
-    tmax, offsets, planes, valid, n_chunks, any_hit), auto (limits, choices) and answers
-    (out_t, out_prim, out_u, out_v). counters and record stay arguments of their own: numba
-    drops their code from the copy where they are None only when they are (inlined) arguments."""
-    bmin, bmax, first, count, prim, v0, v1, v2, order = scene
-    org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
-    limits, choices = auto
+def worker_scratch(max_rays, max_leaf):
+    """One worker's scratch for ``walk_packet``: (rf, ri, near, fr, leaf_tris, ids, masks,
+    stack_node, stack_carry, stack_depth, thread)."""
+    rf, ri, near, fr, leaf_tris = packet_scratch(max_rays, max_leaf)
+    ids = np.empty(max_rays // 4 + 1, np.int32)
+    masks = np.empty(max_rays // 4 + 1, np.int32)
+    stack_node = np.empty(STACK_SIZE, np.int32)
+    stack_carry = np.empty(STACK_SIZE, np.int32)
+    stack_depth = np.empty(STACK_SIZE, np.int32)
+    return rf, ri, near, fr, leaf_tris, ids, masks, stack_node, stack_carry, stack_depth, get_thread_id()
+
+
+@njit(cache=True, inline="always")
+def walk(strategy, scene, batch, answers, counters, record):
+    """The skeleton (see the module doc) for one strategy (a constant, not AUTO), with the
+    arguments of ``walk_packets`` grouped as scene (bmin, bmax, first, count, prim, v0, v1, v2,
+    order), batch (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit) and
+    answers (out_t, out_prim, out_u, out_v). counters and record stay arguments of their own:
+    numba drops their code from the copy where they are None only when they are (inlined)
+    arguments. It holds no AUTO branch: ``walk_packets`` would then compile AUTO's three
+    copies inside each of its four (a cold default render compiled for 245 s with it, 68 s
+    without)."""
+    count = scene[3]
+    offsets, n_chunks = batch[5], batch[8]  # (the rest is walk_packet's)
     n_packets = offsets.shape[0] - 1
     max_rays = longest_packet(offsets)
     max_leaf = largest_leaf(count)
     for chunk in prange(n_chunks):
-        rf, ri, near, fr, leaf_tris = packet_scratch(max_rays, max_leaf)
-        ids = np.empty(max_rays // 4 + 1, np.int32)
-        masks = np.empty(max_rays // 4 + 1, np.int32)
-        stack_node = np.empty(STACK_SIZE, np.int32)
-        stack_carry = np.empty(STACK_SIZE, np.int32)
-        stack_depth = np.empty(STACK_SIZE, np.int32)
-        work = (rf, ri, near, fr, leaf_tris, ids, masks, stack_node, stack_carry, stack_depth, get_thread_id())
+        work = worker_scratch(max_rays, max_leaf)
         for k in range(chunk, n_packets, n_chunks):
-            if strategy == AUTO:
-                start = offsets[k]
-                choice = choose_packet(org, dirs, tmin, tmax, start, offsets[k + 1] - start, valid[k],
-                                       scene_scales(bmin, bmax), limits)
-                choices[k] = choice
-                if choice == RANGED:
-                    walk_packet(RANGED, scene, batch, work, k, answers, counters, record)
-                elif choice == PARTITION:
-                    walk_packet(PARTITION, scene, batch, work, k, answers, counters, record)
-                else:
-                    walk_packet(MASKED, scene, batch, work, k, answers, counters, record)
-            else:
-                walk_packet(strategy, scene, batch, work, k, answers, counters, record)
+            walk_packet(strategy, scene, batch, work, k, answers, counters, record)
 
 
 @njit(cache=True, inline="always")
