@@ -39,6 +39,7 @@ from engine.core.bvh import build_bvh
 from engine.core.bvh_refit import refit_bvh
 from engine.core.scene import make_triangles
 from engine.core.types import BVH, Triangles
+from engine.packet.kernels import child_order_keys
 from engine.query.coherent import is_coherent, packet_first_hits
 from engine.query.contains import DIRECTIONS, contains_kernel
 from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
@@ -74,6 +75,7 @@ class _Structure(NamedTuple):
     v1: np.ndarray
     v2: np.ndarray
     tris: Triangles        # the local float32 triangles in face order (the packet walk's)
+    order_keys: np.ndarray  # the packet walk's child_order_keys of bvh (made once: 0.5 ms a query)
 
 
 class _Rays(NamedTuple):
@@ -170,7 +172,8 @@ class RayMeshIntersector:
             bvh = build_bvh(tris, leaf_size=self._leaf_size, bins=self._bins)
         corners = (np.ascontiguousarray(c[bvh.prim]) for c in (tris.v0, tris.v1, tris.v2))
         wide = collapse(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
-        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, wide, *corners, tris)
+        keys = child_order_keys(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
+        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, wide, *corners, tris, keys)
         return self._structure_cache
 
     def __getstate__(self):
@@ -226,8 +229,8 @@ class RayMeshIntersector:
         v = np.empty(n, np.float32)
         ok = np.empty(n, np.bool_)
         if is_coherent(rays.origins, rays.directions, s.frame.scale):
-            packet_first_hits(s.bvh, s.tris, rays.origins, rays.directions, s.frame.center, s.frame.scale,
-                              rays.rows, any_hit, tri, u, v, ok)
+            packet_first_hits(s.bvh, s.tris, s.order_keys, rays.origins, rays.directions, s.frame.center,
+                              s.frame.scale, rays.rows, any_hit, tri, u, v, ok)
         else:
             first_hit_kernel(*self._tree(s), *self._frame_args(s, rays), rays.rows, any_hit, tri, u, v, ok)
         self._warn_bad(ok)
