@@ -16,8 +16,8 @@ and ``record`` being None or not). It inlines ``walk`` once per strategy with th
 constant, so numba prunes the other strategies' steps from each copy: with the strategy a
 run-time number instead, the branches cost up to 5% on primary and shadow rays. AUTO has its
 own kernel, ``walk_packets_auto``: per packet it asks ``engine.packet.choose.choose_packet``
-and runs the packet body ``walk_packet_range`` (on a range of one packet) inlined once for each
-strategy it can choose, each again with a constant strategy.
+and then runs ``walk`` once for each strategy it can choose, each again with a constant
+strategy and walking only the packets chosen for it.
 
 The packet body unpacks its grouped arguments once per range of packets, not once per packet:
 the 2x2 SIMD baseline has 262,144 packets in a 1024^2 batch, and unpacking per packet made its
@@ -59,13 +59,13 @@ def walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv,
     batch = (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit)
     answers = (out_t, out_prim, out_u, out_v)
     if strategy == MASKED:
-        walk(MASKED, scene, batch, answers, counters, record)
+        walk(MASKED, scene, batch, answers, counters, record, None)
     elif strategy == RANGED:
-        walk(RANGED, scene, batch, answers, counters, record)
+        walk(RANGED, scene, batch, answers, counters, record, None)
     elif strategy == PARTITION:
-        walk(PARTITION, scene, batch, answers, counters, record)
+        walk(PARTITION, scene, batch, answers, counters, record, None)
     else:
-        walk(SIMD, scene, batch, answers, counters, record)
+        walk(SIMD, scene, batch, answers, counters, record, None)
 
 
 @njit(cache=True, parallel=True)
@@ -74,26 +74,22 @@ def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs
                       counters, limits, choices, record):
     """``walk_packets`` by AUTO: each packet walked by the strategy ``engine.packet.choose``
     picks for it under limits f64[N_LIMITS]; choices i8[K] receives each packet's strategy.
-    A kernel of its own, so that configs without ``auto`` never compile its three copies."""
+    A kernel of its own, so that configs without ``auto`` never compile its three copies.
+
+    All packets are chosen first, in parallel; then one pass per strategy walks the packets
+    chosen for it. Choosing and walking packet by packet unpacked the walk's arguments once per
+    packet (see the module doc)."""
     scene = (bmin, bmax, first, count, prim, v0, v1, v2, order)
     batch = (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit)
     answers = (out_t, out_prim, out_u, out_v)
     n_packets = offsets.shape[0] - 1
-    max_rays = longest_packet(offsets)
-    max_leaf = largest_leaf(count)
     scales = scene_scales(bmin, bmax)
-    for chunk in prange(n_chunks):
-        work = worker_scratch(max_rays, max_leaf)
-        for k in range(chunk, n_packets, n_chunks):
-            start = offsets[k]
-            choice = choose_packet(org, dirs, tmin, tmax, start, offsets[k + 1] - start, valid[k], scales, limits)
-            choices[k] = choice
-            if choice == RANGED:
-                walk_packet_range(RANGED, scene, batch, work, k, k + 1, 1, answers, counters, record)
-            elif choice == PARTITION:
-                walk_packet_range(PARTITION, scene, batch, work, k, k + 1, 1, answers, counters, record)
-            else:
-                walk_packet_range(MASKED, scene, batch, work, k, k + 1, 1, answers, counters, record)
+    for k in prange(n_packets):
+        start = offsets[k]
+        choices[k] = choose_packet(org, dirs, tmin, tmax, start, offsets[k + 1] - start, valid[k], scales, limits)
+    walk(RANGED, scene, batch, answers, counters, record, choices)
+    walk(PARTITION, scene, batch, answers, counters, record, choices)
+    walk(MASKED, scene, batch, answers, counters, record, choices)
 
 
 @njit(cache=True, inline="always")
@@ -110,7 +106,7 @@ def worker_scratch(max_rays, max_leaf):
 
 
 @njit(cache=True, inline="always")
-def walk(strategy, scene, batch, answers, counters, record):
+def walk(strategy, scene, batch, answers, counters, record, chosen):
     """The skeleton (see the module doc) for one strategy (a constant, not AUTO), with the
     arguments of ``walk_packets`` grouped as scene (bmin, bmax, first, count, prim, v0, v1, v2,
     order), batch (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit) and
@@ -118,7 +114,8 @@ def walk(strategy, scene, batch, answers, counters, record):
     numba drops their code from the copy where they are None only when they are (inlined)
     arguments. It holds no AUTO branch: ``walk_packets`` would then compile AUTO's three
     copies inside each of its four (a cold default render compiled for 245 s with it, 68 s
-    without)."""
+    without). chosen: None (every packet), or i8[K] and only the packets k with chosen[k] ==
+    strategy are walked (AUTO's passes)."""
     bmin, bmax, first, count, prim, v0, v1, v2, order = scene
     org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
     out_t, out_prim, out_u, out_v = answers
@@ -131,19 +128,22 @@ def walk(strategy, scene, batch, answers, counters, record):
         # its own rather than tuples of them.
         walk_packet_range(strategy, (bmin, bmax, first, count, prim, v0, v1, v2, order),
                           (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit), work, chunk,
-                          n_packets, n_chunks, (out_t, out_prim, out_u, out_v), counters, record)
+                          n_packets, n_chunks, (out_t, out_prim, out_u, out_v), counters, record, chosen)
 
 
 @njit(cache=True, inline="always")
-def walk_packet_range(strategy, scene, batch, work, begin, end, step, answers, counters, record):
-    """Packets range(begin, end, step), each loaded, walked by ``strategy`` (a constant: not
-    AUTO) and its hits stored; ``work`` is the worker's scratch (rf, ri, near, fr, leaf_tris,
-    ids, masks, stack_node, stack_carry, stack_depth, thread)."""
+def walk_packet_range(strategy, scene, batch, work, begin, end, step, answers, counters, record, chosen):
+    """Packets range(begin, end, step) (those with chosen[k] == strategy when chosen is not
+    None), each loaded, walked by ``strategy`` (a constant: not AUTO) and its hits stored;
+    ``work`` is the worker's scratch (rf, ri, near, fr, leaf_tris, ids, masks, stack_node,
+    stack_carry, stack_depth, thread)."""
     bmin, bmax, first, count, prim, v0, v1, v2, order = scene
     org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
     out_t, out_prim, out_u, out_v = answers
     rf, ri, near, fr, leaf_tris, ids, masks, stack_node, stack_carry, stack_depth, thread = work
     for k in range(begin, end, step):
+        if chosen is not None and chosen[k] != strategy:
+            continue
         start = offsets[k]
         n = offsets[k + 1] - start
         n_simd = n // 4
