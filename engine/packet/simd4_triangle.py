@@ -227,25 +227,8 @@ def _intersect_codegen(w: _Width):
                 picked = builder.select(is0, xyz[0], builder.select(is1, xyz[1], xyz[2]))
                 corner.append(builder.fsub(picked, o))
             corners.append(corner)
-        (ax_, ay_, az_), (bx_, by_, bz_), (cx_, cy_, cz_) = corners
-        ax = builder.fsub(ax_, builder.fmul(sx, az_))
-        ay = builder.fsub(ay_, builder.fmul(sy, az_))
-        bx = builder.fsub(bx_, builder.fmul(sx, bz_))
-        by = builder.fsub(by_, builder.fmul(sy, bz_))
-        cx = builder.fsub(cx_, builder.fmul(sx, cz_))
-        cy = builder.fsub(cy_, builder.fmul(sy, cz_))
-        eu = w.edge(builder, cx, by, cy, bx)
-        ev = w.edge(builder, ax, cy, ay, cx)
-        ew = w.edge(builder, bx, ay, by, ax)
-        zero = w.const(w.f, 0.0)
-
-        def any_of(op):
-            return builder.or_(builder.or_(builder.fcmp_ordered(op, eu, zero), builder.fcmp_ordered(op, ev, zero)),
-                               builder.fcmp_ordered(op, ew, zero))
-
-        mixed = builder.and_(any_of("<"), any_of(">"))
-        det = builder.fadd(builder.fadd(eu, ev), ew)
-        flat = builder.fcmp_ordered("==", det, zero)
+        az_, bz_, cz_ = (corner[2] for corner in corners)
+        eu, ev, ew, det, mixed, flat = _sheared_edges(builder, w, corners, sx, sy)
         # Most tests end here: no live lane sees the triangle's edges with one sign (or every
         # such lane sees it edge-on). Skipping the division and the update for them changes no
         # lane's result: those lanes' ``hit`` below would be false.
@@ -305,6 +288,34 @@ def _intersect_codegen(w: _Width):
     return codegen
 
 
+def _sheared_edges(builder, w, corners, sx, sy):
+    """The watertight test's 2D step on the translated, permuted corners [[ax, ay, az], [bx, by,
+    bz], [cx, cy, cz]] (vectors of ``w``'s width): shear by sx, sy, then the edge functions.
+    Returns (eu, ev, ew, det, mixed, flat): mixed, a lane sees edges of both signs; flat, det == 0
+    (either way the lane misses). The same operations, in the same order, as
+    ``engine.core.triangle.intersect_triangle``."""
+    (ax_, ay_, az_), (bx_, by_, bz_), (cx_, cy_, cz_) = corners
+    ax = builder.fsub(ax_, builder.fmul(sx, az_))
+    ay = builder.fsub(ay_, builder.fmul(sy, az_))
+    bx = builder.fsub(bx_, builder.fmul(sx, bz_))
+    by = builder.fsub(by_, builder.fmul(sy, bz_))
+    cx = builder.fsub(cx_, builder.fmul(sx, cz_))
+    cy = builder.fsub(cy_, builder.fmul(sy, cz_))
+    eu = w.edge(builder, cx, by, cy, bx)
+    ev = w.edge(builder, ax, cy, ay, cx)
+    ew = w.edge(builder, bx, ay, by, ax)
+    zero = w.const(w.f, 0.0)
+
+    def any_of(op):
+        return builder.or_(builder.or_(builder.fcmp_ordered(op, eu, zero), builder.fcmp_ordered(op, ev, zero)),
+                           builder.fcmp_ordered(op, ew, zero))
+
+    mixed = builder.and_(any_of("<"), any_of(">"))
+    det = builder.fadd(builder.fadd(eu, ev), ew)
+    flat = builder.fcmp_ordered("==", det, zero)
+    return eu, ev, ew, det, mixed, flat
+
+
 @intrinsic
 def triangles1x4(typingctx, v0, v1, v2, first, n, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
     """One ray against up to four consecutive triangles first .. first+n-1 (n in 1..4) of
@@ -353,25 +364,9 @@ def triangles1x4(typingctx, v0, v1, v2, first, n, okx, oky, okz, kx, ky, kz, sx,
             return vector
 
         corners = [[builder.fsub(corner(arr, axis), o) for axis, o in zip(axes, ok)] for arr in arrays]
-        (ax_, ay_, az_), (bx_, by_, bz_), (cx_, cy_, cz_) = corners
-        ax = builder.fsub(ax_, builder.fmul(sx_, az_))
-        ay = builder.fsub(ay_, builder.fmul(sy_, az_))
-        bx = builder.fsub(bx_, builder.fmul(sx_, bz_))
-        by = builder.fsub(by_, builder.fmul(sy_, bz_))
-        cx = builder.fsub(cx_, builder.fmul(sx_, cz_))
-        cy = builder.fsub(cy_, builder.fmul(sy_, cz_))
-        eu = w.edge(builder, cx, by, cy, bx)
-        ev = w.edge(builder, ax, cy, ay, cx)
-        ew = w.edge(builder, bx, ay, by, ax)
+        az_, bz_, cz_ = (corner[2] for corner in corners)
+        eu, ev, ew, det, mixed, flat = _sheared_edges(builder, w, corners, sx_, sy_)
         zero = w.const(w.f, 0.0)
-
-        def any_of(op):
-            return builder.or_(builder.or_(builder.fcmp_ordered(op, eu, zero), builder.fcmp_ordered(op, ev, zero)),
-                               builder.fcmp_ordered(op, ew, zero))
-
-        mixed = builder.and_(any_of("<"), any_of(">"))
-        det = builder.fadd(builder.fadd(eu, ev), ew)
-        flat = builder.fcmp_ordered("==", det, zero)
         scaled_t = builder.fadd(builder.fadd(builder.fmul(eu, builder.fmul(sz_, az_)),
                                              builder.fmul(ev, builder.fmul(sz_, bz_))),
                                 builder.fmul(ew, builder.fmul(sz_, cz_)))
