@@ -2,11 +2,12 @@
 
 Overbeck, Ramamoorthi and Mark (2008) find Ranged the faster traversal on coherent packets and
 Partition on incoherent ones, and pick one per ray kind. ``auto`` picks one per packet, from
-measures taken as the packet is loaded (``engine.packet.choose``): the fraction of its lanes
-that are live, its footprint (the spread of its origins plus the widening of its direction
-cone over its rays' reach, relative to the scene's diagonal) and whether it has a frustum. The
-packet is then walked by the chosen strategy's own copy of the one packet walk
-(``engine.packet.walk``), so its hits are the other traversals' hits, bit for bit.
+measures of its rays taken in a pass before the walk (``engine.packet.choose``): the fraction
+of its lanes that are live, its footprint (the spread of its origins plus the widening of its
+direction cone over its rays' reach, in the scene's typical leaf widths) and whether it has a
+frustum. The packets are then walked, one pass per strategy, by the chosen strategy's own copy
+of the one packet walk (``engine.packet.walk``), so their hits are the other traversals' hits,
+bit for bit.
 
 Options (``[options.auto]``), each defaulting to the fitted value in
 ``engine/packet/auto_thresholds.json`` (``tools/fit_auto.py``):

@@ -2,8 +2,9 @@
 
 Overbeck, Ramamoorthi and Mark (2008) find Ranged faster on coherent packets (one box test
 usually decides a node) and Partition faster once coherence falls (Ranged's index range fills
-with rays that miss). The ``auto`` strategy of ``engine.packet.walk`` asks ``choose_packet``
-per packet, as it is loaded, and then walks it with the answer as a compile-time constant.
+with rays that miss). The ``auto`` kernel of ``engine.packet.walk`` asks ``choose_packet``
+for every packet in a pass before the walk, and then walks each strategy's packets with the
+strategy a compile-time constant.
 
 The measures (``packet_measures``), over the packet's live rays only:
 
