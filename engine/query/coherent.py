@@ -31,6 +31,7 @@ from engine.packet.plugin import deck_count
 from engine.packet.strategies import RANGED
 from engine.packet.walk import walk_packets
 from engine.query.frame import local_ray
+from engine.query.walk import safe_inverse1
 
 #: Rays per packet. Rays come in the caller's order, often image rows, and a packet of 64 is a
 #: short strip of a row: on 447 x 447 camera rays, one core, first hits ran at 9.14 / 7.40
@@ -107,8 +108,7 @@ def packet_lanes(origins, directions, center, scale, rows, org, dirs, inv, tmin,
             org[k, 0], org[k, 1], org[k, 2] = ox, oy, oz
             dirs[k, 0], dirs[k, 1], dirs[k, 2] = dx, dy, dz
             for a in range(3):
-                d = dirs[k, a]
-                inv[k, a] = (-HUGE_INV if np.signbit(d) else HUGE_INV) if d == 0 else np.float32(1.0) / d
+                inv[k, a] = safe_inverse1(dirs[k, a])  # of the stored float32 component
             tmin[k] = 0.0
             tmax[k] = np.inf
         else:
