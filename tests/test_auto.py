@@ -228,3 +228,19 @@ def test_the_fit_picks_the_thresholds_that_minimise_the_summed_time():
     assert limits == {"ranged_max_footprint": float(f_edges[5]), "masked_max_footprint": -1.0,
                       "min_live": LIVE_EDGES[3], "invalid_frustum": "partition"}
     assert total == pytest.approx(cells["seconds"].min(axis=1).sum())
+
+
+@pytest.mark.parametrize("packet", [4, 16])
+def test_a_whitted_frame_by_auto_audits_clean_against_embree(tmp_path, packet):
+    """Every ray of a whole Whitted frame (camera, shadow, reflection and refraction rays of the
+    default scene) walked by ``auto`` is checked against Embree: no mismatch."""
+    import json
+
+    from engine.cli import main
+
+    report = tmp_path / "audit.json"
+    assert main(["audit", "--size", "64x64", "--traversal", "auto", "--packet", str(packet),
+                 "--json", str(report)]) == 0
+    data = json.loads(report.read_text())
+    assert data["mismatches"] == [] and data["agreement"] == 1.0
+    assert all(data["by_kind"][kind]["checked"] > 0 for kind in ("primary", "shadow", "reflection", "refraction"))
