@@ -14,7 +14,7 @@ import pytest
 from engine.core.errors import ConfigError
 from engine.core.types import Frusta, empty_hits, new_stats
 from engine.packet.auto_limits import fitted_limits, limits_array
-from engine.packet.choose import LIMIT_NAMES, measure_packets
+from engine.packet.choose import LIMIT_NAMES, SAMPLED_LANES, measure_packets
 from engine.packet.layout import make_batch
 from engine.packet.plugin import walk_batch
 from engine.packet.strategies import AUTO, CHOSEN_NAMES, MASKED, PARTITION, RANGED
@@ -68,16 +68,23 @@ def scattered_packet(rs, seed=3, n=16):
     return one_packet(org, dirs, np.full(n * n, np.inf))
 
 
-def numpy_measures(bvh, rays, start, stop):
-    """(live, footprint) of rays start .. stop by the definition in ``engine.packet.choose``."""
+def numpy_measures(bvh, rays, start, stop, every_lane=False):
+    """(live, footprint) of rays start .. stop by the definition in ``engine.packet.choose``:
+    on SAMPLED_LANES lanes evenly spaced from the first to the last (``every_lane``: on all)."""
     diagonal = float(np.linalg.norm(bvh.bmax[0].astype(np.float64) - bvh.bmin[0]))
     width = diagonal / math.sqrt((bvh.bmin.shape[0] + 1) / 2)
-    live = rays.tmin[start:stop] <= rays.tmax[start:stop]
-    org = rays.org[start:stop][live].astype(np.float64)
-    d = rays.dir[start:stop][live].astype(np.float64)
+    n = stop - start
+    if n <= SAMPLED_LANES or every_lane:
+        lanes = np.arange(start, stop)
+    else:
+        lanes = start + (np.arange(SAMPLED_LANES) * (n - 1)) // (SAMPLED_LANES - 1)
+    tmin, tmax = rays.tmin[lanes], rays.tmax[lanes]
+    live = tmin <= tmax
+    org = rays.org[lanes][live].astype(np.float64)
+    d = rays.dir[lanes][live].astype(np.float64)
     norm = np.linalg.norm(d, axis=1)
     unit = d / norm[:, None]
-    reach = np.minimum((rays.tmax[start:stop][live] - rays.tmin[start:stop][live]) * norm, diagonal).mean()
+    reach = np.minimum((tmax[live] - tmin[live]) * norm, diagonal).mean()
     origins = np.linalg.norm(org.max(axis=0) - org.min(axis=0))
     directions = np.linalg.norm(unit.max(axis=0) - unit.min(axis=0))
     return live.mean(), (origins + directions * reach) / width, width
@@ -96,6 +103,17 @@ def test_measures_of_a_camera_packet_are_its_cone(rayset):
         # a little more (its depth), over the reach (an infinite segment counts as the diagonal).
         chord = footprint[0] * width / min(reach, diagonal)
         assert 2 * math.sin(half) - 1e-6 <= chord <= 2 * math.sin(half) + (1 - math.cos(half)) + 1e-6
+
+
+def test_the_sampled_diagonal_of_a_camera_packet_measures_the_whole_packet(rayset):
+    # The sample of a 16 x 16 packet is its diagonal: its x and y extremes are the packet's, and
+    # only the directions' z extent (the cone's depth, the centre ray) is a little short.
+    for half in (math.radians(0.5), math.radians(2.0), math.radians(10.0)):
+        rays, packets = camera_packet(rayset, half, np.inf)
+        sampled = measured(rayset.bvh, rays, packets)[1][0]
+        every = numpy_measures(rayset.bvh, rays, 0, rays.org.shape[0], every_lane=True)[1]
+        assert sampled == pytest.approx(every, rel=2e-3)
+        assert sampled <= every * (1 + 1e-6)
 
 
 def test_dead_lanes_lower_the_live_fraction_and_are_not_measured(rayset):

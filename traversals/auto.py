@@ -2,8 +2,8 @@
 
 Overbeck, Ramamoorthi and Mark (2008) find Ranged the faster traversal on coherent packets and
 Partition on incoherent ones, and pick one per ray kind. ``auto`` picks one per packet, from
-measures of its rays taken in a pass before the walk (``engine.packet.choose``): the fraction
-of its lanes that are live, its footprint (the spread of its origins plus the widening of its
+measures of 16 of its lanes taken in a pass before the walk (``engine.packet.choose``): the
+fraction of them that are live, its footprint (the spread of its origins plus the widening of its
 direction cone over its rays' reach, in the scene's typical leaf widths) and whether it has a
 frustum. The packets are then walked, one pass per strategy, by the chosen strategy's own copy
 of the one packet walk (``engine.packet.walk``), so their hits are the other traversals' hits,

@@ -6,9 +6,14 @@ with rays that miss). The ``auto`` kernel of ``engine.packet.walk`` asks ``choos
 for every packet in a pass before the walk, and then walks each strategy's packets with the
 strategy a compile-time constant.
 
-The measures (``packet_measures``), over the packet's live rays only:
+The measures (``packet_measures``) are taken on a sample of the packet's lanes: SAMPLED_LANES
+of them, evenly spaced from its first lane to its last (every lane of a smaller packet). In an
+n x n camera packet, stored row by row, a stride of n + 1 lanes walks the diagonal, whose ends
+are two opposite corners: the sample's boxes are the whole packet's. Measuring every lane cost
+5.6 ns a ray, 16% of a Ranged walk of erw6's camera rays; the sample costs about 130 ns a
+packet, 2 ns a ray of a 8 x 8 packet and 0.5 of a 16 x 16 one. Over the sample's live rays:
 
-- ``live``: the fraction of its lanes that are live (tmin <= tmax);
+- ``live``: the fraction of the sampled lanes that are live (tmin <= tmax);
 - ``footprint``: how many BVH leaves wide the packet is: (diagonal of the box around its
   origins + diagonal of the box around its normalised directions * reach) / the scene's
   typical leaf width (``scene_scales``), where ``reach`` is the mean segment length, each
@@ -42,6 +47,9 @@ from engine.packet.strategies import MASKED, PARTITION, RANGED
 RANGED_MAX, MASKED_MAX, MIN_LIVE, INVALID_CHOICE = range(4)
 
 N_LIMITS = 4
+#: Lanes of a packet the measures look at (see the module doc): 16 is the diagonal of a 16 x 16
+#: packet (a stride of 17) and every lane of a 4 x 4 one.
+SAMPLED_LANES = 16
 #: The names of the limits, in order (the keys of the thresholds file and the plugin's options).
 LIMIT_NAMES = ("ranged_max_footprint", "masked_max_footprint", "min_live", "invalid_frustum")
 
@@ -49,8 +57,8 @@ LIMIT_NAMES = ("ranged_max_footprint", "masked_max_footprint", "min_live", "inva
 @njit(cache=True, inline="always")
 def packet_measures(org, dirs, tmin, tmax, start, n, scales):
     """(live, footprint) of rays start .. start+n (org, dirs f32[R,3]; tmin, tmax f32[R]) in a
-    scene of ``scales`` (diagonal, typical leaf width) (``scene_scales``); see the module doc.
-    One pass over the rays; (0, 0) with no live ray."""
+    scene of ``scales`` (diagonal, typical leaf width) (``scene_scales``), measured on the
+    lanes ``sampled_lane`` picks; see the module doc. (0, 0) with no live ray sampled."""
     diagonal, width = scales
     live = 0
     reach = 0.0
@@ -58,7 +66,9 @@ def packet_measures(org, dirs, tmin, tmax, start, n, scales):
     o_hi_x, o_hi_y, o_hi_z = -np.inf, -np.inf, -np.inf
     d_lo_x, d_lo_y, d_lo_z = np.inf, np.inf, np.inf
     d_hi_x, d_hi_y, d_hi_z = -np.inf, -np.inf, -np.inf
-    for r in range(start, start + n):
+    sampled = min(n, SAMPLED_LANES)
+    for j in range(sampled):
+        r = sampled_lane(start, n, j)
         if not tmin[r] <= tmax[r]:
             continue
         dx, dy, dz = float(dirs[r, 0]), float(dirs[r, 1]), float(dirs[r, 2])
@@ -78,7 +88,16 @@ def packet_measures(org, dirs, tmin, tmax, start, n, scales):
         return 0.0, 0.0
     origins = math.sqrt((o_hi_x - o_lo_x) ** 2 + (o_hi_y - o_lo_y) ** 2 + (o_hi_z - o_lo_z) ** 2)
     directions = math.sqrt((d_hi_x - d_lo_x) ** 2 + (d_hi_y - d_lo_y) ** 2 + (d_hi_z - d_lo_z) ** 2)
-    return live / n, (origins + directions * reach / live) / width
+    return live / sampled, (origins + directions * reach / live) / width
+
+
+@njit(cache=True, inline="always")
+def sampled_lane(start, n, j):
+    """The j-th of the min(n, SAMPLED_LANES) lanes measured of rays start .. start+n: evenly
+    spaced, the first and the last lane among them."""
+    if n <= SAMPLED_LANES:
+        return start + j
+    return start + (j * (n - 1)) // (SAMPLED_LANES - 1)
 
 
 @njit(cache=True, inline="always")

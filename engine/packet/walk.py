@@ -84,12 +84,23 @@ def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs
     answers = (out_t, out_prim, out_u, out_v)
     n_packets = offsets.shape[0] - 1
     scales = scene_scales(bmin, bmax)
+    n_ranged = 0
+    n_partition = 0
+    n_masked = 0
     for k in prange(n_packets):
         start = offsets[k]
-        choices[k] = choose_packet(org, dirs, tmin, tmax, start, offsets[k + 1] - start, valid[k], scales, limits)
-    walk(RANGED, scene, batch, answers, counters, record, choices)
-    walk(PARTITION, scene, batch, answers, counters, record, choices)
-    walk(MASKED, scene, batch, answers, counters, record, choices)
+        choice = choose_packet(org, dirs, tmin, tmax, start, offsets[k + 1] - start, valid[k], scales, limits)
+        choices[k] = choice
+        n_ranged += choice == RANGED
+        n_partition += choice == PARTITION
+        n_masked += choice == MASKED
+    # A strategy no packet chose costs no parallel pass (a launch and each worker's scratch).
+    if n_ranged > 0:
+        walk(RANGED, scene, batch, answers, counters, record, choices)
+    if n_partition > 0:
+        walk(PARTITION, scene, batch, answers, counters, record, choices)
+    if n_masked > 0:
+        walk(MASKED, scene, batch, answers, counters, record, choices)
 
 
 @njit(cache=True, inline="always")
