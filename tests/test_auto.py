@@ -262,3 +262,22 @@ def test_a_whitted_frame_by_auto_audits_clean_against_embree(tmp_path, packet):
     data = json.loads(report.read_text())
     assert data["mismatches"] == [] and data["agreement"] == 1.0
     assert all(data["by_kind"][kind]["checked"] > 0 for kind in ("primary", "shadow", "reflection", "refraction"))
+
+
+def test_the_fit_draws_auto_against_ranged_and_partition_row_by_row(tmp_path):
+    from PIL import Image
+
+    from engine.bench.auto_fit import figure
+
+    def timing_of(n_rows):
+        kinds = ("primary", "shadow", "reflection", "refraction")
+        return {("erw6", 8 * (1 + i // 4), kinds[i % 4]): {"ranged": 1.0, "partition": 1.2,
+                                                          "auto": 0.97 if i % 2 else 1.08}
+                for i in range(n_rows)}
+
+    few = figure(timing_of(2), {("erw6", 8, "primary"): {"ranged": 3, "partition": 1}}, tmp_path / "few.png")
+    many = figure(timing_of(8), {}, tmp_path / "many.png")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["few.png", "many.png"]  # no temporary left
+    with Image.open(few) as a, Image.open(many) as b:
+        assert a.format == b.format == "PNG"
+        assert b.height > a.height  # a bar per row

@@ -24,14 +24,16 @@ small resolution. Per (scene, packet size):
    thresholds), interleaved, ``measure_repeat`` times on ``threads`` threads (0: all); median
    trace time per frame and kind. ``auto``'s answers are checked equal to Partition's.
 
-Writes the thresholds file (``engine/packet/auto_thresholds.json`` by default) and a markdown
-report, both atomically.
+Writes the thresholds file (``engine/packet/auto_thresholds.json`` by default), a markdown
+report and, beside it, a figure of the measurement (``figure``: the report's name with .png),
+each atomically.
 """
 from __future__ import annotations
 
 import datetime
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numba
 import numpy as np
@@ -280,8 +282,9 @@ def totals_by(cells, choice):
     return out
 
 
-def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds) -> str:
-    """The markdown report of a fit and its measurement."""
+def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds, plot=None) -> str:
+    """The markdown report of a fit and its measurement; ``plot``: the figure of the
+    measurement (``figure``) beside the report, shown in it."""
     s = cells["seconds"]
     m, r, p = (STRATEGIES[x] for x in CHOSEN_NAMES)
     n_cells = len(cells["group"])
@@ -314,6 +317,7 @@ def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds) 
               "Median trace time per frame (frustum build + traversal, ms) per ray kind; `auto/best` is auto "
               "over the faster of Ranged and Partition for that row (above 1: auto is slower). `choices` are "
               "auto's packets walked by Masked / Ranged / Partition.", "",
+              *([f"![auto over the better of Ranged and Partition per row]({plot.name})", ""] if plot else []),
               "| scene | packet | kind | ranged | partition | auto | auto/best | choices M/R/P |",
               "|---|---|---|---|---|---|---|---|"]
     sums = {t: 0.0 for t in ("ranged", "partition", "auto", "best")}
@@ -331,6 +335,42 @@ def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds) 
     lines += [f"| **all** | | | {1e3 * sums['ranged']:.1f} | {1e3 * sums['partition']:.1f} | "
               f"{1e3 * sums['auto']:.1f} | {sums['auto'] / sums['best']:.3f} (vs per-row best) | |", ""]
     return "\n".join(lines) + "\n"
+
+
+def figure(timing, counts, path):
+    """``path`` (PNG): per (scene, packet, ray kind) row of ``timing`` ({(scene, n, kind):
+    {traversal: seconds}}), Ranged, Partition and auto over the better of Ranged and Partition,
+    on one axis around 1; a green auto bar is a row where auto beat both, a red one where it lost.
+    Returns the path."""
+    from engine.bench.figures import pyplot, save
+
+    plt = pyplot()
+    keys = sorted(timing, key=lambda k: (k[0], k[1], RAY_KINDS.index(k[2])))
+    best = [min(timing[k]["ranged"], timing[k]["partition"]) for k in keys]
+    ratio = {t: [timing[k][t] / b for k, b in zip(keys, best)] for t in ("ranged", "partition", "auto")}
+    ys = np.arange(len(keys))
+    fig, ax = plt.subplots(figsize=(7.5, 0.24 * len(keys) + 1.4))
+    colours = ["tab:green" if r < 1.0 else "tab:red" for r in ratio["auto"]]
+    ax.barh(ys, [r - 1.0 for r in ratio["auto"]], left=1.0, height=0.6, color=colours, label="auto")
+    ax.plot(ratio["ranged"], ys, "|", color="tab:blue", markersize=9, mew=2, label="Ranged")
+    ax.plot(ratio["partition"], ys, "|", color="tab:orange", markersize=9, mew=2, label="Partition")
+    ax.axvline(1.0, color="0.3", lw=0.8)
+    labels = []
+    for k in keys:
+        chosen = counts.get(k, {})
+        labels.append(f"{k[0]} {k[1]}x{k[1]} {k[2]}  (R {chosen.get('ranged', 0)} / P {chosen.get('partition', 0)})")
+    ax.set_yticks(ys, labels, fontsize=7)
+    ax.invert_yaxis()
+    high = max(max(v) for v in ratio.values())
+    ax.set_xlim(min(0.9, min(ratio["auto"]) - 0.02), min(high + 0.05, 2.0))
+    ax.set_xlabel("trace time per frame over the better of Ranged and Partition (below 1: auto beat both)",
+                  fontsize=8)
+    ax.tick_params(axis="x", labelsize=7)
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title("auto against Ranged and Partition, row by row (packets auto walked by each in brackets)",
+                 fontsize=9)
+    fig.tight_layout()
+    return save(fig, path)
 
 
 def _index_of(limits, f_edges):
@@ -363,6 +403,9 @@ def run(scenes=SCENES, packets=PACKETS, size=SIZE, repeat=5, measure_repeat=5, t
                    "thresholds")
     timing, counts = measure(frames, limits, measure_repeat, log) if measure_repeat else ({}, {})
     if report_out:
+        plot = Path(report_out).with_suffix(".png") if timing else None
+        if plot is not None:
+            figure(timing, counts, plot)
         write_text(report_out, report(info, limits, total, cells, f_edges, timing, counts,
-                                      time.perf_counter() - start))
+                                      time.perf_counter() - start, plot))
     return limits
