@@ -129,6 +129,44 @@ def test_coherent_rays_take_the_packet_walk_with_the_per_ray_walks_answers(which
     assert len(calls) == 2
 
 
+def test_camera_rays_are_recognised_by_their_row_length_and_walked_in_tiles(bunny, monkeypatch):
+    """A row-by-row image of a width that is no multiple of the tile (101 x 83) is recognised;
+    its rays are walked tile by tile (every ray once) with the per-ray walk's answers; shuffled
+    rays, parallel rays and too few rows are not taken for an image."""
+    import engine.query.coherent as coherent
+    import engine.query.intersector as intersector
+
+    side_x, side_y = 101, 83
+    origins, directions = pinhole_rays(bunny, side_x)
+    # Keep 83 rows of the 101 x 101 image, then spoil one ray with NaN (a bad ray is a miss).
+    origins, directions = origins[: side_x * side_y].copy(), directions[: side_x * side_y].copy()
+    directions[5 * side_x + 7] = np.nan
+    assert coherent.row_length(directions) == side_x
+    rows = coherent.tiled_rows(len(directions), side_x)
+    assert len(rows) % coherent.PACKET_RAYS == 0
+    assert np.array_equal(np.sort(rows[rows >= 0]), np.arange(len(directions)))
+    assert rows[:coherent.TILE].tolist() == list(range(coherent.TILE))  # a tile's first row
+    assert rows[coherent.TILE] == side_x  # then the next image row
+    shuffled = np.random.default_rng(0).permutation(len(directions))
+    assert coherent.row_length(directions[shuffled]) == 0
+    assert coherent.row_length(np.tile([0.0, 0.0, 1.0], (5000, 1))) == 0
+    assert coherent.row_length(directions[: side_x * 4]) == 0  # fewer rows than a tile
+
+    packed_rows = []
+    monkeypatch.setattr(intersector, "packet_first_hits",
+                        lambda *a: packed_rows.append(a[7]) or coherent.packet_first_hits(*a))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", BadRayWarning)
+        tiled = RayMeshIntersector(bunny).intersects_first(origins, directions)
+        tiled_any = RayMeshIntersector(bunny).intersects_any(origins, directions)
+        assert len(packed_rows) == 2 and np.array_equal(packed_rows[0], rows)
+        monkeypatch.setattr(intersector, "is_coherent", lambda *a: False)
+        per_ray = RayMeshIntersector(bunny).intersects_first(origins, directions)
+        per_ray_any = RayMeshIntersector(bunny).intersects_any(origins, directions)
+    assert np.array_equal(tiled, per_ray) and np.array_equal(tiled_any, per_ray_any)
+    assert tiled[5 * side_x + 7] == -1 and (tiled >= 0).sum() > 1000
+
+
 # -- every hit -------------------------------------------------------------------------------
 @pytest.mark.parametrize("which,order", [("box", "input"), ("sphere", "morton"), ("bunny", "input"),
                                          ("bunny", "morton")])

@@ -40,7 +40,7 @@ from engine.core.bvh_refit import refit_bvh
 from engine.core.scene import make_triangles
 from engine.core.types import BVH, Triangles
 from engine.packet.kernels import child_order_keys
-from engine.query.coherent import is_coherent, packet_first_hits
+from engine.query.coherent import is_coherent, packet_first_hits, row_length, tiled_rows
 from engine.query.contains import DIRECTIONS, contains_kernel
 from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
 from engine.query.frame import MeshFrame, mesh_frame
@@ -229,8 +229,12 @@ class RayMeshIntersector:
         v = np.empty(n, np.float32)
         ok = np.empty(n, np.bool_)
         if is_coherent(rays.origins, rays.directions, s.frame.scale):
+            rows = rays.rows
+            width = row_length(rays.directions) if self._order == "input" else 0
+            if width:  # an image given row by row: walked in tiles, as the render path walks it
+                rows = tiled_rows(n, width)
             packet_first_hits(s.bvh, s.tris, s.order_keys, rays.origins, rays.directions, s.frame.center,
-                              s.frame.scale, rays.rows, any_hit, tri, u, v, ok)
+                              s.frame.scale, rows, any_hit, tri, u, v, ok)
         else:
             first_hit_kernel(*self._tree(s), *self._frame_args(s, rays), rays.rows, any_hit, tri, u, v, ok)
         self._warn_bad(ok)
