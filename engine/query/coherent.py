@@ -109,17 +109,26 @@ def is_coherent(origins: np.ndarray, directions: np.ndarray, scale: float) -> bo
 @njit(cache=True)
 def direction_steps(directions, count, out):
     """out[i] (f64[count]) := distance between the unit directions of rays i and i + 1
-    (directions f64[>count,3]); inf where either ray has a zero or non-finite direction."""
+    (directions f64[>count,3]); inf where either ray has a zero or non-finite direction. Each
+    ray is normalised once and carried to the next step."""
+    good, x, y, z = unit_direction(directions, 0)
     for i in range(count):
-        a = np.sqrt(directions[i, 0] ** 2 + directions[i, 1] ** 2 + directions[i, 2] ** 2)
-        b = np.sqrt(directions[i + 1, 0] ** 2 + directions[i + 1, 1] ** 2 + directions[i + 1, 2] ** 2)
-        if not (a > 0.0 and b > 0.0 and np.isfinite(a) and np.isfinite(b)):
+        next_good, next_x, next_y, next_z = unit_direction(directions, i + 1)
+        if good and next_good:
+            out[i] = np.sqrt((next_x - x) ** 2 + (next_y - y) ** 2 + (next_z - z) ** 2)
+        else:
             out[i] = np.inf
-            continue
-        dx = directions[i + 1, 0] / b - directions[i, 0] / a
-        dy = directions[i + 1, 1] / b - directions[i, 1] / a
-        dz = directions[i + 1, 2] / b - directions[i, 2] / a
-        out[i] = np.sqrt(dx * dx + dy * dy + dz * dz)
+        good, x, y, z = next_good, next_x, next_y, next_z
+
+
+@njit(cache=True, inline="always")
+def unit_direction(directions, i):
+    """(good, x, y, z): ray i's direction over its length; good False (and zeros) for a zero or
+    non-finite direction."""
+    length = np.sqrt(directions[i, 0] ** 2 + directions[i, 1] ** 2 + directions[i, 2] ** 2)
+    if not (length > 0.0 and np.isfinite(length)):
+        return False, 0.0, 0.0, 0.0
+    return True, directions[i, 0] / length, directions[i, 1] / length, directions[i, 2] / length
 
 
 def row_length(directions: np.ndarray) -> int:
