@@ -126,6 +126,13 @@ def unbounded_some(rays: RayBatch) -> RayBatch:
     return rays._replace(tmax=tmax)
 
 
+def crowded(rays: RayBatch) -> RayBatch:
+    """The queue with every ray on one of the four pixels of the first 2x2 block: a level-1
+    node with more children than a pair's 63-bit survivor mask holds."""
+    return rays._replace(pixel=np.where(rays.pixel < SIZE * SIZE, (rays.pixel % 2) + SIZE * ((rays.pixel // 7) % 2),
+                                        rays.pixel).astype(np.int32))
+
+
 def reference(rays: RayBatch, tris: Triangles, n=None):
     """(t f32[n], prim i32[n]): the shared kernel over every triangle (tests/brute_force.py)."""
     n = rays.org.shape[0] if n is None else n
@@ -174,6 +181,7 @@ def run(tmp_path_factory):
     _case(cases, "shadow_reversed", shadow, "occluded", len(shadow.org), light=rays.light)
     _case(cases, "shadow_forward", shadow, "occluded", len(shadow.org))
     _case(cases, "shadow_elsewhere", unbounded_some(shadow), "occluded", ELSEWHERE_RAYS, light=ELSEWHERE)
+    _case(cases, "crowded", crowded(secondary), "closest", len(secondary.org) - GARBAGE)
     _case(cases, "batches", shadow, "closest", len(shadow.org), light=rays.light, budget=SMALL_BUDGET)
     _case(cases, "too_small", rays.primary, "closest", len(rays.primary.org), budget=1)
     count = len(rays.primary.org)
@@ -278,6 +286,17 @@ def test_secondary_queue_with_shared_pixels_dead_rays_and_rows_past_n(run):
     make_traversal("rayspace").intersect(None, rays.tris, part, Packets(np.array([0, n], np.int32), 1, SIZE, SIZE),
                                          None, hits, None)
     assert np.array_equal(hits.prim, answers["secondary_prim"][:n])
+
+
+def test_a_block_of_more_rays_than_the_survivor_mask_holds(run):
+    """Over 63 rays in one 2x2 block: survivors past the mask's bits are found by re-testing."""
+    rays, answers, extra = run
+    batch = crowded(extra["secondary"])
+    n = len(batch.org) - GARBAGE
+    live = (batch.tmin[:n] <= batch.tmax[:n])
+    assert live.sum() > 63 and set(np.unique(batch.pixel[:n])) == {0, 1, SIZE, SIZE + 1}
+    assert ok(answers, "crowded")["rays"] == live.sum()
+    assert_closest(answers, "crowded", batch, rays.tris, n)
 
 
 @pytest.mark.parametrize("name", ["shadow_reversed", "shadow_forward", "shadow_elsewhere"])

@@ -3,9 +3,11 @@
 ``exclusive_scan(values, n, out)`` writes out[i] = values[0] + ... + values[i-1] for i < n and
 out[n] = the total, in three launches: each block scans its BLOCK items in shared memory and
 keeps its sum; one block scans the block sums (looping over them); every item adds its block's
-offset. A stream compacted through it keeps its order: the ray-space hierarchy's (node,
-triangle) streams and its pixel-block sort use it (``engine.gpu.rayspace``). The frame's queues
-are appended by atomic counters instead (``engine.gpu.frame``), which need no host round trip.
+offset. A stream compacted through it keeps its order: the ray-space hierarchy's pixel-block
+sort uses it (``engine.gpu.rayspace.hierarchy``). Where order does not matter, appending by an
+atomic counter needs no scan: the frame's queues (``engine.gpu.frame``) and the ray-space
+(node, triangle) streams (``engine.gpu.rayspace.stream``, one atomic per block over
+``inclusive_in_block``).
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ cuda = require_cuda()
 
 
 @cuda.jit(device=True)
-def _inclusive_in_block(shared, t):
+def inclusive_in_block(shared, t):
     """shared[0:BLOCK] replaced by its inclusive prefix sums (Hillis-Steele: BLOCK is small,
     log2(BLOCK) steps); every thread of the block calls it with its index t."""
     step = 1
@@ -38,7 +40,7 @@ def _scan_blocks(values, n, out, block_sums):
     x = values[i] if i < n else 0
     shared[t] = x
     cuda.syncthreads()
-    _inclusive_in_block(shared, t)
+    inclusive_in_block(shared, t)
     if i < n:
         out[i] = shared[t] - x
     if t == BLOCK - 1:
@@ -58,7 +60,7 @@ def _scan_sums(block_sums, count, total_out):
         x = block_sums[i] if i < count else 0
         shared[t] = x
         cuda.syncthreads()
-        _inclusive_in_block(shared, t)
+        inclusive_in_block(shared, t)
         if i < count:
             block_sums[i] = carry + shared[t] - x
         chunk_total = shared[BLOCK - 1]

@@ -8,8 +8,9 @@ What runs per call (``DeviceRaySpace.closest`` / ``occluded`` over a queue of n 
   then each block sorted by ray id: the CPU's slot order); leaves, then one launch per level
   merging four nodes (or a block's slots) into their parent up to the root; triangle spheres
   and the test's absolute slack.
-- ``stream``: per triangle batch, the (node, triangle) stream from the root down, one count
-  launch (children against the triangle's sphere), one scan and one scatter per level.
+- ``stream``: per triangle batch, the (node, triangle) stream from the root down: per level
+  one launch (children against the triangle's sphere, survivors appended by one atomic per
+  block) and one count read back.
 - ``final``: the watertight test of every final (ray, triangle) pair; the closest hit per ray by
   an atomic min of t, then of the index among the pairs at that t, then one exact recompute.
 

@@ -13,6 +13,11 @@ class Scratch:
     def __init__(self):
         self._arrays: dict = {}
 
+    def rows(self, name: str) -> int:
+        """Rows the array ``name`` holds now (0 before its first ``get``)."""
+        held = self._arrays.get(name)
+        return 0 if held is None else int(held.shape[0])
+
     def get(self, name: str, rows: int, dtype, cols: int = 0):
         """A device array view of at least one row: ``rows`` (x ``cols`` when cols > 0) items of
         ``dtype``. Its contents are whatever the last user left (callers initialise it)."""

@@ -80,7 +80,7 @@ class DeviceRaySpace:
         self.pair_budget = int(pair_budget)
         self.scratch = Scratch()
         self.scanner = Scanner()
-        self.stream = Stream(self.scratch, self.scanner)
+        self.stream = Stream(self.scratch)
         self.stats = new_record(0)
         self.last = new_record(0)
 
