@@ -51,7 +51,7 @@ def _expand(nodes, tris, n_pairs, level, base, centre, radius, axis, cos_a, sin_
     level - 1) up to ``capacity`` rows; level_kept[level - 1] += survivors (all of them, written
     or not); work[level - 1, :] += (child slots, tests, survivors)."""
     ahead = cuda.shared.array(BLOCK, np.int32)   # survivors per thread, then their inclusive sums
-    sums = cuda.shared.array(3, np.int64)
+    sums = cuda.shared.array(3, np.int32)         # int32: native shared atomics (int64 ones loop)
     start = cuda.shared.array(1, np.int64)
     t = cuda.threadIdx.x
     if t < 3:
@@ -62,8 +62,10 @@ def _expand(nodes, tris, n_pairs, level, base, centre, radius, axis, cos_a, sin_
     bits = np.int64(0)
     tri = 0
     first, nx, ny, stride = 0, 0, 0, 0
+    sx, sy, sz, rho = np.float32(0), np.float32(0), np.float32(0), np.float32(0)
     if p < n_pairs:
         tri = tris[p]
+        sx, sy, sz, rho = sphere_c[tri, 0], sphere_c[tri, 1], sphere_c[tri, 2], sphere_r[tri]
         first, nx, ny, stride = child_grid(block_start, level_width, level_height, level, nodes[p])
         tests = 0
         j = 0
@@ -72,22 +74,21 @@ def _expand(nodes, tris, n_pairs, level, base, centre, radius, axis, cos_a, sin_
             for jx in range(nx):
                 if radius[row + jx] >= 0:  # an empty node is no test (and fails)
                     tests += 1
-                    if node_overlap(centre, radius, axis, cos_a, sin_a, far, row + jx, sphere_c[tri, 0],
-                                    sphere_c[tri, 1], sphere_c[tri, 2], sphere_r[tri], abs_tol):
+                    if node_overlap(centre, radius, axis, cos_a, sin_a, far, row + jx, sx, sy, sz, rho, abs_tol):
                         kept += 1
                         if j < MASK_BITS:
                             bits |= np.int64(1) << j
                 j += 1
-        cuda.atomic.add(sums, WORK_SLOTS, nx * ny)
-        cuda.atomic.add(sums, WORK_TESTS, tests)
-        cuda.atomic.add(sums, WORK_KEPT, kept)
+        cuda.atomic.add(sums, WORK_SLOTS, np.int32(nx * ny))
+        cuda.atomic.add(sums, WORK_TESTS, np.int32(tests))
+        cuda.atomic.add(sums, WORK_KEPT, np.int32(kept))
     ahead[t] = kept
     cuda.syncthreads()
     inclusive_in_block(ahead, t)
     if t == BLOCK - 1:
         start[0] = cuda.atomic.add(level_kept, level - 1, np.int64(ahead[t]))
     if t < 3 and sums[t] != 0:
-        cuda.atomic.add(work, (level - 1, t), sums[t])
+        cuda.atomic.add(work, (level - 1, t), np.int64(sums[t]))
     cuda.syncthreads()
     if kept == 0:
         return
@@ -98,8 +99,7 @@ def _expand(nodes, tris, n_pairs, level, base, centre, radius, axis, cos_a, sin_
         row = first + jy * stride
         for jx in range(nx):
             if retest:
-                keep = node_overlap(centre, radius, axis, cos_a, sin_a, far, base + row + jx, sphere_c[tri, 0],
-                                    sphere_c[tri, 1], sphere_c[tri, 2], sphere_r[tri], abs_tol)
+                keep = node_overlap(centre, radius, axis, cos_a, sin_a, far, base + row + jx, sx, sy, sz, rho, abs_tol)
             else:
                 keep = ((bits >> j) & 1) == 1
             if keep:
