@@ -20,6 +20,9 @@ def _faster_simulator() -> None:
     from engine.gpu import device
 
     device.BLOCK = 32
+    from engine.gpu.rayspace import stream
+
+    stream.GRID_BLOCKS = 4   # few simulated blocks, each striding over several rows of pairs
 
 
 def _textured(scene):

@@ -26,9 +26,10 @@ import engine.gpu.device as device  # noqa: E402
 device.BLOCK = 32
 
 from engine.core.types import Triangles  # noqa: E402
-from engine.gpu.rayspace import DeviceRaySpace  # noqa: E402
+from engine.gpu.rayspace import DeviceRaySpace, stream  # noqa: E402
 from engine.gpu.scene_upload import DeviceTriangles, upload  # noqa: E402
 
+stream.GRID_BLOCKS = 4   # few simulated blocks, each striding over several rows of pairs
 SENTINEL_T = np.float32(-7.0)
 SENTINEL_PRIM = -7
 
