@@ -177,6 +177,24 @@ def test_a_frame_larger_than_the_free_gpu_memory_is_one_line(tmp_path):
     assert not out.exists()
 
 
+def test_rayspace_pair_buffers_larger_than_the_free_gpu_memory_are_one_line(tmp_path):
+    """The frame fits, but the ray-space stream's pair buffers (they hold the pair budget: 4M
+    pairs, 64 MiB, by default) do not: one line naming the budget, exit 2, no image."""
+    out = tmp_path / "never.png"
+    run = simulated("-c", "import sys\n"
+                    "from numba import cuda\n"
+                    "class Info:\n    free = 8 * 2**20\n    total = 8 * 2**20\n"
+                    "type(cuda.current_context()).get_memory_info = lambda self: Info\n"
+                    "from engine.cli import main\n"
+                    "sys.exit(main(['render', '--device', 'cuda', '--traversal', 'rayspace', '--size', '16x16', "
+                    f"'--param', 'subdivisions=0', '-o', {str(out)!r}]))", timeout=300)
+    assert run.returncode == 2, run.stderr[-2000:]
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1, lines
+    assert "GiB of GPU memory" in lines[0] and "pair_budget (now 4,194,304 pairs" in lines[0], lines[0]
+    assert not out.exists()
+
+
 def test_bench_device_cuda_on_a_cpu_matrix_is_one_line(tmp_path, capsys):
     from engine.cli import main
 

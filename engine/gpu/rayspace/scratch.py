@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.gpu.device import require_cuda
+from engine.gpu.device import DeviceUnavailable, require_cuda
 
 
 class Scratch:
-    """Named device arrays, each reallocated only when a call needs more rows than it has."""
+    """Named device arrays, each reallocated only when a call needs more rows than it has.
 
-    def __init__(self):
+    hint: what the one-line error says to do when an array does not fit the GPU's free memory.
+    """
+
+    def __init__(self, hint: str = "render smaller"):
         self._arrays: dict = {}
+        self.hint = hint
 
     def rows(self, name: str) -> int:
         """Rows the array ``name`` holds now (0 before its first ``get``)."""
@@ -25,7 +29,19 @@ class Scratch:
         rows = max(1, int(rows))
         held = self._arrays.get(name)
         if held is None or held.shape[0] < rows or held.dtype != np.dtype(dtype):
-            shape = (max(rows, 2 * (held.shape[0] if held is not None else 0)),) + ((cols,) if cols else ())
-            held = cuda.device_array(shape, dtype)
+            row_bytes = np.dtype(dtype).itemsize * max(cols, 1)
+            free = cuda.current_context().get_memory_info().free
+            if held is not None:
+                free += held.shape[0] * held.dtype.itemsize * max(cols, 1)  # given back first
+            if rows * row_bytes > free:
+                raise DeviceUnavailable(
+                    f"the ray-space traversal's {name} buffer needs {rows * row_bytes / 2**30:.2f} GiB of GPU memory "
+                    f"({rows:,} rows), more than the {free / 2**30:.2f} GiB free on the device; {self.hint}")
+            # Doubled when that fits, so a growing size reallocates a few times, not every call.
+            grown = max(rows, 2 * (held.shape[0] if held is not None else 0))
+            if grown * row_bytes > free:
+                grown = rows
+            self._arrays[name] = held = None
+            held = cuda.device_array((grown,) + ((cols,) if cols else ()), dtype)
             self._arrays[name] = held
         return held[:rows]

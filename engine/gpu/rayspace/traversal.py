@@ -78,7 +78,8 @@ class DeviceRaySpace:
                              "are not the same scene")
         self.tris = tris
         self.pair_budget = int(pair_budget)
-        self.scratch = Scratch()
+        self.scratch = Scratch(hint=f"lower [options.rayspace] pair_budget (now {int(pair_budget):,} pairs; "
+                                    "both pair buffers hold it) or render smaller")
         self.scanner = Scanner()
         self.stream = Stream(self.scratch)
         self.stats = new_record(0)
