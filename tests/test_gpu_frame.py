@@ -160,17 +160,22 @@ def test_device_refit_equals_the_cpu_refit():
     assert result["equal"] == [{"child_boxes": True, "root_row": True, "leaf_tris": True}] * 2
 
 
+def render_with_free_memory(free: int, args: list, timeout: int):
+    """``packetrt render --device cuda ARGS`` on the simulator, which is told the GPU has
+    ``free`` bytes free (it reports infinite memory of its own)."""
+    return simulated("-c", "import sys\n"
+                     "from numba import cuda\n"
+                     f"class Info:\n    free = {free}\n    total = {free}\n"
+                     "type(cuda.current_context()).get_memory_info = lambda self: Info\n"
+                     "from engine.cli import main\n"
+                     f"sys.exit(main(['render', '--device', 'cuda', *{args!r}]))", timeout=timeout)
+
+
 def test_a_frame_larger_than_the_free_gpu_memory_is_one_line(tmp_path):
     """Checked before any allocation, from the device's free memory (faked here: the
     simulator reports infinite memory)."""
     out = tmp_path / "never.png"
-    run = simulated("-c", "import sys\n"
-                    "from numba import cuda\n"
-                    "class Info:\n    free = 2**16\n    total = 2**16\n"
-                    "type(cuda.current_context()).get_memory_info = lambda self: Info\n"
-                    "from engine.cli import main\n"
-                    "sys.exit(main(['render', '--device', 'cuda', '--size', '64x64', '--param', 'subdivisions=0', "
-                    f"'-o', {str(out)!r}]))", timeout=120)
+    run = render_with_free_memory(2**16, ["--size", "64x64", "--param", "subdivisions=0", "-o", str(out)], 120)
     assert run.returncode == 2, run.stderr[-2000:]
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and "GiB of GPU memory" in lines[0] and "render smaller" in lines[0]
@@ -181,13 +186,8 @@ def test_rayspace_pair_buffers_larger_than_the_free_gpu_memory_are_one_line(tmp_
     """The frame fits, but the ray-space stream's pair buffers (they hold the pair budget: 4M
     pairs, 64 MiB, by default) do not: one line naming the budget, exit 2, no image."""
     out = tmp_path / "never.png"
-    run = simulated("-c", "import sys\n"
-                    "from numba import cuda\n"
-                    "class Info:\n    free = 8 * 2**20\n    total = 8 * 2**20\n"
-                    "type(cuda.current_context()).get_memory_info = lambda self: Info\n"
-                    "from engine.cli import main\n"
-                    "sys.exit(main(['render', '--device', 'cuda', '--traversal', 'rayspace', '--size', '16x16', "
-                    f"'--param', 'subdivisions=0', '-o', {str(out)!r}]))", timeout=300)
+    run = render_with_free_memory(8 * 2**20, ["--traversal", "rayspace", "--size", "16x16", "--param",
+                                              "subdivisions=0", "-o", str(out)], 300)
     assert run.returncode == 2, run.stderr[-2000:]
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1, lines
