@@ -13,7 +13,7 @@ from numba import njit
 
 from engine.core.triangle import F32_INF, HUGE_INV, safe_inverse, slab_test
 from engine.packet.kernels import IX, OX, RF_ROWS, THI, TLO
-from engine.packet.simd4 import planes4_box, planes4_triangle, slab1x4, slab4, slab4x2
+from engine.packet.simd4 import planes4_box, planes4_triangle, slab1x8, slab4, slab4x2
 
 LANES = 32
 BOXES = 40
@@ -93,48 +93,62 @@ def test_slab4x2_is_slab_test_on_two_simd_rays_in_any_order(seed):
 
 
 @njit(cache=True)
-def children_vector(lo, hi, org, inv, t_lo, t_hi):
-    """f32[R, W, 4]: slab1x4 of every ray and wide node."""
-    out = np.zeros((org.shape[0], lo.shape[0], 4), np.float32)
+def children_vector(box, org, inv, t_lo, t_hi):
+    """(f32[R, W, 8] entry distances, i64[R, W] masks): slab1x8 of every ray and wide node."""
+    out = np.zeros((org.shape[0], box.shape[0], 8), np.float32)
+    masks = np.zeros((org.shape[0], box.shape[0]), np.int64)
     for r in range(org.shape[0]):
-        for w in range(lo.shape[0]):
-            out[r, w, 0], out[r, w, 1], out[r, w, 2], out[r, w, 3] = slab1x4(
-                lo, hi, w, org[r, 0], org[r, 1], org[r, 2], inv[r, 0], inv[r, 1], inv[r, 2], t_lo[r], t_hi[r])
-    return out
+        for w in range(box.shape[0]):
+            mask, entry = slab1x8(box, w, org[r, 0], org[r, 1], org[r, 2], inv[r, 0], inv[r, 1], inv[r, 2],
+                                  t_lo[r], t_hi[r])
+            masks[r, w] = mask
+            for s in range(8):
+                out[r, w, s] = entry[s]
+    return out, masks
 
 
 @njit(cache=True)
 def children_scalar(bmin, bmax, org, inv, t_lo, t_hi):
-    """f32[R, W, 4]: slab_test of every ray and box 4 w + s (boxes: f32[4W, 3])."""
-    out = np.zeros((org.shape[0], bmin.shape[0] // 4, 4), np.float32)
+    """f32[R, W, 8]: slab_test of every ray and box 8 w + s (boxes: f32[8W, 3])."""
+    out = np.zeros((org.shape[0], bmin.shape[0] // 8, 8), np.float32)
     for r in range(org.shape[0]):
         for b in range(bmin.shape[0]):
-            out[r, b // 4, b % 4] = slab_test(org[r, 0], org[r, 1], org[r, 2], inv[r, 0], inv[r, 1], inv[r, 2],
+            out[r, b // 8, b % 8] = slab_test(org[r, 0], org[r, 1], org[r, 2], inv[r, 0], inv[r, 1], inv[r, 2],
                                               t_lo[r], t_hi[r], bmin, bmax, b)
     return out
 
 
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2 ** 32 - 1))
-def test_slab1x4_is_slab_test_on_four_child_boxes(seed):
-    """The mesh queries' 4-wide node test: each slot's entry distance is slab_test's, bit for bit,
-    empty slots (lo +inf, hi -inf) included."""
+def test_slab1x8_is_slab_test_on_eight_child_boxes(seed):
+    """The mesh queries' 8-wide node test: each slot's entry distance is slab_test's, bit for bit,
+    the mask has exactly the slots with a finite entry, and empty slots (NaN boxes, as
+    ``engine.query.wide`` stores them) are never hit."""
     rng = np.random.default_rng(seed)
     _, bmin, bmax = random_lanes_and_boxes(rng)
     empty = rng.random(BOXES) < 0.1
-    bmin[empty], bmax[empty] = np.inf, -np.inf
-    lo = np.ascontiguousarray(bmin.reshape(-1, 4, 3).transpose(0, 2, 1))  # f32[W, 3, 4], axis-major
-    hi = np.ascontiguousarray(bmax.reshape(-1, 4, 3).transpose(0, 2, 1))
+    box = np.concatenate([bmin, bmax], axis=1).reshape(-1, 8, 6).transpose(0, 2, 1)  # f32[W, 6, 8]
+    box = np.ascontiguousarray(box)
+    slots = np.flatnonzero(empty)
+    box[slots // 8, :, slots % 8] = np.nan
     d = rng.normal(size=(LANES, 3)).astype(np.float32)
     d[rng.random((LANES, 3)) < 0.15] = 0.0
     org = (rng.normal(size=(LANES, 3)) * 2).astype(np.float32)
+    aimed = np.flatnonzero(~empty)[:4]  # four rays aimed at the centres of non-empty boxes
+    d[:4] = (bmin[aimed] + bmax[aimed]) / 2 - org[:4]
     inv = safe_inverse(d)
     t_lo = np.where(rng.random(LANES) < 0.5, 0.0, rng.uniform(0, 2, LANES)).astype(np.float32)
     t_hi = (t_lo + rng.exponential(3, LANES)).astype(np.float32)
     t_hi[rng.random(LANES) < 0.3] = np.inf
-    vector = children_vector(lo, hi, org, inv, t_lo, t_hi)
+    t_lo[:4], t_hi[:4] = 0, np.inf
+    vector, masks = children_vector(box, org, inv, t_lo, t_hi)
     scalar = children_scalar(bmin, bmax, org, inv, t_lo, t_hi)
+    empty_slots = empty.reshape(-1, 8)
+    assert np.isinf(vector[:, empty_slots]).all()
+    scalar[:, empty_slots] = np.inf
     np.testing.assert_array_equal(vector.view(np.uint32), scalar.view(np.uint32))
+    bits = (masks[:, :, None] >> np.arange(8)) & 1
+    np.testing.assert_array_equal(bits == 1, np.isfinite(vector))
     assert np.isfinite(vector).any() and np.isinf(vector).any()
 
 

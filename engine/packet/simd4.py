@@ -13,8 +13,9 @@ emit the <4 x float> operations themselves, as the paper's SSE code does:
   compares), so each lane's answer is exactly slab_test's.
 - ``slab4x2(rf, lane0, lane1, ...)``: the same test of two SIMD rays at once, as one <8 x float>
   test (AVX2 has 8 float lanes): an 8-bit mask, lane0's lanes in the low 4 bits.
-- ``slab1x4(lo, hi, node, ox, ..., t_hi)``: one ray against the four child boxes of a node of
-  the mesh queries' 4-wide tree (``engine.query.wide``): four entry distances (inf: missed).
+- ``slab1x8(box, node, ox, ..., t_hi)``: one ray against the eight child boxes of a node of
+  the mesh queries' 8-wide tree (``engine.query.wide``), as one <8 x float> test: the mask of
+  the children hit and their eight entry distances (inf: missed).
 - ``planes4_box(fr, b0x, ..., b1z)`` / ``planes4_triangle(fr, ax, ..., cz)``: a box / triangle
   against the four planes of a packet frustum stored in SoA order (fr: f32[16] = nx[4], ny[4],
   nz[4], d[4]); True when it lies wholly outside one of them. Same arithmetic as the scalar
@@ -156,44 +157,50 @@ def _f32_inf_vector(width):
 
 
 @intrinsic
-def slab1x4(typingctx, lo, hi, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi):
-    """One ray against the four child boxes of a 4-wide node (lo, hi: f32[W,3,4], C order,
-    ``engine.query.wide``; node: its row): a tuple of four float32 entry distances, each the
-    child's ``engine.core.triangle.slab_test`` answer (inf: missed), the same operations in the
-    same order, lane by lane."""
-    for array, what in ((lo, "lo"), (hi, "hi")):
-        _check_f32_array(array, 3, what)
+def slab1x8(typingctx, box, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi):
+    """One ray against the eight child boxes of a node of the mesh queries' 8-wide tree
+    (box: f32[W,6,8], C order, rows lo x, y, z then hi x, y, z, ``engine.query.wide``; node: its
+    row), as one <8 x float> test (this machine's AVX2 width). Returns (mask, entries): bit s of
+    the int64 mask is set when child s is hit, and entries is a tuple of eight float32 entry
+    distances, each the child's ``engine.core.triangle.slab_test`` answer (inf: missed), the
+    same operations in the same order, lane by lane. A slot whose box is NaN is never hit."""
+    _check_f32_array(box, 3, "box")
     if not isinstance(node, types.Integer):
         raise TypingError(f"node must be an integer, got {node}")
     _check_scalars((ox, oy, oz, ix, iy, iz, t_lo, t_hi))
-    sig = types.UniTuple(types.float32, 4)(lo, hi, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi)
+    sig = types.Tuple((types.int64, types.UniTuple(types.float32, 8)))(box, node, ox, oy, oz, ix, iy, iz, t_lo,
+                                                                         t_hi)
+    width = 8
+    vector = ir.VectorType(_F32, width)
 
     def codegen(context, builder, signature, args):
-        four = ir.Constant(_I64, 4)
-        node_ = context.cast(builder, args[2], signature.args[2], types.int64)
+        arr = context.make_array(signature.args[0])(context, builder, args[0])
+        node_ = context.cast(builder, args[1], signature.args[1], types.int64)
+        node_elems = builder.udiv(builder.extract_value(arr.strides, 0), ir.Constant(_I64, 4))
 
-        def axis_vector(k, axis):
-            arr = context.make_array(signature.args[k])(context, builder, args[k])
-            node_elems = builder.udiv(builder.extract_value(arr.strides, 0), four)
-            axis_elems = builder.udiv(builder.extract_value(arr.strides, 1), four)
-            index = builder.add(builder.mul(node_, node_elems), builder.mul(ir.Constant(_I64, axis), axis_elems))
-            return builder.load(builder.bitcast(builder.gep(arr.data, [index]), _V4.as_pointer()), align=4)
+        def row(k):
+            index = builder.add(builder.mul(node_, node_elems), ir.Constant(_I64, k * width))
+            return builder.load(builder.bitcast(builder.gep(arr.data, [index]), vector.as_pointer()), align=4)
 
-        ray = [_splat_n(builder, v, 4) for v in _float32_args(context, builder, signature, args, 3)]
+        ray = [_splat_n(builder, v, width) for v in _float32_args(context, builder, signature, args, 2)]
         origin, inverse, (segment_lo, segment_hi) = ray[0:3], ray[3:6], ray[6:8]
         tn = tf = None
         for axis in range(3):
-            t0 = builder.fmul(builder.fsub(axis_vector(0, axis), origin[axis]), inverse[axis])
-            t1 = builder.fmul(builder.fsub(axis_vector(1, axis), origin[axis]), inverse[axis])
+            t0 = builder.fmul(builder.fsub(row(axis), origin[axis]), inverse[axis])
+            t1 = builder.fmul(builder.fsub(row(3 + axis), origin[axis]), inverse[axis])
             near, far = _min(builder, t0, t1), _max(builder, t0, t1)
             tn = near if tn is None else _max(builder, tn, near)
             tf = far if tf is None else _min(builder, tf, far)
-        slack = _splat_n(builder, ir.Constant(_F32, float(SLAB_SLACK)), 4)
-        tn = _max(builder, builder.fsub(tn, builder.fmul(_fabs_n(builder, tn, 4), slack)), segment_lo)
-        tf = _min(builder, builder.fadd(tf, builder.fmul(_fabs_n(builder, tf, 4), slack)), segment_hi)
-        entry = builder.select(builder.fcmp_ordered("<=", tn, tf), tn, _f32_inf_vector(4))
-        return context.make_tuple(builder, signature.return_type,
-                                  [builder.extract_element(entry, ir.Constant(_I32, k)) for k in range(4)])
+        slack = _splat_n(builder, ir.Constant(_F32, float(SLAB_SLACK)), width)
+        tn = _max(builder, builder.fsub(tn, builder.fmul(_fabs_n(builder, tn, width), slack)), segment_lo)
+        tf = _min(builder, builder.fadd(tf, builder.fmul(_fabs_n(builder, tf, width), slack)), segment_hi)
+        # NaN (an empty slot) fails the ordered compare: a miss.
+        hit = builder.fcmp_ordered("<=", tn, tf)
+        mask = builder.zext(builder.bitcast(hit, ir.IntType(width)), _I64)
+        entry = builder.select(hit, tn, _f32_inf_vector(width))
+        entries = context.make_tuple(builder, signature.return_type.types[1],
+                                     [builder.extract_element(entry, ir.Constant(_I32, k)) for k in range(width)])
+        return context.make_tuple(builder, signature.return_type, [mask, entries])
 
     return sig, codegen
 

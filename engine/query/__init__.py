@@ -3,7 +3,7 @@
 - ``frame``: the mesh re-expressed about its own centre and scale (float32 for the kernels,
   float64 kept for answers); each ray is moved into that frame as it is walked, bad rays marked.
 - ``order``: optional ray order, sorted in numba by direction octant and a Morton code of the origin.
-- ``wide``: the 4-wide BVH collapsed from the binary one (children's boxes side by side).
+- ``wide``: the 8-wide BVH collapsed from the binary one (children's boxes side by side).
 - ``walk``: the one inlined per-ray walk over it (closest, any, or every hit).
 - ``hits``: parallel kernels over sorted rays: first hit, any hit, all hits (count, then fill).
 - ``locations``: float64 hit points from the triangle's plane (or barycentrics).

@@ -70,7 +70,7 @@ class _Structure(NamedTuple):
     faces: np.ndarray      # i64[T,3]
     frame: MeshFrame
     bvh: BVH
-    wide: tuple            # (lo, hi, child, size) of the 4-wide tree over bvh
+    wide: tuple            # (box, child, size) of the 8-wide tree over bvh
     v0: np.ndarray         # f32[P,3] local corners in the BVH's prim order (leaves contiguous)
     v1: np.ndarray
     v2: np.ndarray

@@ -1,5 +1,5 @@
 """The per-ray BVH walk every mesh query shares (one ray, a stack, nearest child first, over
-the 4-wide tree of ``engine.query.wide``).
+the 8-wide tree of ``engine.query.wide``).
 
 Modes (integer constants, so one compiled helper serves every kernel and reaches the disk cache):
 
@@ -11,15 +11,16 @@ Modes (integer constants, so one compiled helper serves every kernel and reaches
 
 Triangles are the watertight test's float32 corners in the mesh's local frame, stored in the
 BVH's ``prim`` order (row i is triangle prim[i]), so a leaf's corners are contiguous in memory.
-A node's four child boxes are one <4 x float> test (``engine.packet.simd4.slab1x4``) and a leaf's
-triangles are tested four at a time (``engine.packet.simd4_triangle.triangles1x4``), each lane the
-scalar watertight test's operations: numba leaves such small loops scalar.
+A node's eight child boxes are one <8 x float> test (``engine.packet.simd4.slab1x8``) and a
+leaf's triangles are tested four at a time (``engine.packet.simd4_triangle.triangles1x4``), each
+lane the scalar watertight test's operations: numba leaves such small loops scalar.
 """
 import numpy as np
 from numba import njit
+from numba.cpython.unsafe.numbers import trailing_zeros
 
 from engine.core.triangle import F32_INF, F32_ONE, HUGE_INV, closer, ray_shear
-from engine.packet.simd4 import slab1x4
+from engine.packet.simd4 import slab1x8
 from engine.packet.simd4_triangle import triangles1x4
 from engine.query.wide import WIDTH
 from engine.core.types import MAX_BVH_DEPTH
@@ -40,9 +41,9 @@ def safe_inverse1(d):
 
 @njit(cache=True)
 def new_stack():
-    """Scratch for one thread's walks: (stack i32[STACK_SIZE, 2]: child and size of each entry,
-    stack_t f32[STACK_SIZE + WIDTH]: its entry distance; the last WIDTH hold a node's children's)."""
-    return np.empty((STACK_SIZE, 2), np.int32), np.empty(STACK_SIZE + WIDTH, np.float32)
+    """Scratch for one thread's walks: (stack i32[STACK_SIZE, 2]: node (or first triangle) and
+    size of each entry, stack_t f32[STACK_SIZE]: its entry distance)."""
+    return np.empty((STACK_SIZE, 2), np.int32), np.empty(STACK_SIZE, np.float32)
 
 
 @njit(cache=True)
@@ -53,10 +54,10 @@ def new_hit_buffers(cap):
 
 
 @njit(cache=True, inline="always")  # inlined: a call per ray costs as much as a short walk
-def walk(lo, hi, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz, t_lo, t_hi, mode, stack, stack_t,
+def walk(box, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz, t_lo, t_hi, mode, stack, stack_t,
          buf_t, buf_tri, buf_u, buf_v, cap):
     """Walk the ray (ox, oy, oz) + t (dx, dy, dz) (f32 scalars, local frame, non-zero direction)
-    over [t_lo, t_hi] through the 4-wide tree (lo, hi, child, size: ``engine.query.wide``).
+    over [t_lo, t_hi] through the 8-wide tree (box, child, size: ``engine.query.wide``).
 
     v0, v1, v2: f32[P,3] corners in prim order. Returns (n, t, tri, u, v): tri is a mesh face
     index (prim[i]). For CLOSEST / ANY, n is 1 on a hit and (t, tri, u, v) the hit;
@@ -74,63 +75,72 @@ def walk(lo, hi, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz, t_lo, t_
     okx = ox if kx == 0 else (oy if kx == 1 else oz)
     oky = ox if ky == 0 else (oy if ky == 1 else oz)
     okz = ox if kz == 0 else (oy if kz == 1 else oz)
-    near = stack_t[STACK_SIZE:]
-    stack[0, 0] = 0
-    stack[0, 1] = 0
-    stack_t[0] = t_lo
-    top = 1
-    while top > 0:
+    node = 0  # the current entry: a wide node (leaf 0) or a leaf's first triangle and size
+    leaf = 0
+    top = 0
+    while True:
+        if leaf > 0:
+            for i in range(node, node + leaf, 4):
+                # Up to four triangles in one <4 x float> test; within a group a hit does not
+                # shrink the others' segment, but ``closer`` drops any hit beyond it.
+                group = min(4, node + leaf - i)
+                tuv = triangles1x4(v0, v1, v2, i, group, okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi)
+                for j in range(group):
+                    t = tuv[j]
+                    if t == F32_INF:
+                        continue
+                    tri = prim[i + j]
+                    if mode == COLLECT:
+                        if n < cap:
+                            buf_t[n] = t
+                            buf_tri[n] = tri
+                            buf_u[n] = tuv[4 + j]
+                            buf_v[n] = tuv[8 + j]
+                        n += 1
+                    elif closer(t, tri, best_t, best_tri):
+                        best_t, best_tri, best_u, best_v = t, tri, tuv[4 + j], tuv[8 + j]
+                        n = 1
+                        if mode == ANY:
+                            return n, best_t, best_tri, best_u, best_v
+                        t_hi = t  # CLOSEST: nothing beyond this hit matters any more
+        else:
+            hit, entry = slab1x8(box, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi)
+            if hit != 0:
+                if hit & (hit - 1) == 0:  # one child hit: straight there, no stack traffic
+                    s = trailing_zeros(hit)
+                    leaf = size[node, s]
+                    node = child[node, s]
+                    continue
+                # Several: push them all, keeping stack[base:top] sorted far (bottom) to near
+                # (top), then take the nearest.
+                base = top
+                while hit != 0:
+                    s = trailing_zeros(hit)
+                    hit &= hit - 1
+                    tn = entry[s]
+                    j = top
+                    while j > base and stack_t[j - 1] < tn:
+                        stack[j, 0] = stack[j - 1, 0]
+                        stack[j, 1] = stack[j - 1, 1]
+                        stack_t[j] = stack_t[j - 1]
+                        j -= 1
+                    stack[j, 0] = child[node, s]
+                    stack[j, 1] = size[node, s]
+                    stack_t[j] = tn
+                    top += 1
+                top -= 1
+                node = stack[top, 0]
+                leaf = stack[top, 1]
+                continue
+        # A leaf done or a node missed: the nearest entry left that is not beyond the segment
+        # (CLOSEST shrinks it).
+        while top > 0 and stack_t[top - 1] > t_hi:
+            top -= 1
+        if top == 0:
+            return n, best_t, best_tri, best_u, best_v
         top -= 1
-        if stack_t[top] > t_hi:
-            continue  # CLOSEST: entered beyond the best hit so far
         node = stack[top, 0]
         leaf = stack[top, 1]
-        if leaf > 0:
-            for i in range(node, node + leaf):
-                # The next (up to) four triangles in one <4 x float> test; within a group a hit
-                # does not shrink the others' segment, but ``closer`` drops any hit beyond it.
-                j = (i - node) % 4
-                if j == 0:
-                    tuv = triangles1x4(v0, v1, v2, i, min(4, node + leaf - i), okx, oky, okz, kx, ky, kz,
-                                       sx, sy, sz, t_lo, t_hi)
-                t, u, v = tuv[j], tuv[4 + j], tuv[8 + j]
-                if t == F32_INF:
-                    continue
-                tri = prim[i]
-                if mode == COLLECT:
-                    if n < cap:
-                        buf_t[n] = t
-                        buf_tri[n] = tri
-                        buf_u[n] = u
-                        buf_v[n] = v
-                    n += 1
-                elif closer(t, tri, best_t, best_tri):
-                    best_t, best_tri, best_u, best_v = t, tri, u, v
-                    n = 1
-                    if mode == ANY:
-                        return n, best_t, best_tri, best_u, best_v
-                    t_hi = t  # CLOSEST: nothing beyond this hit matters any more
-            continue
-        # The four children's slab tests (the arithmetic of engine.core.triangle.slab_test) as
-        # one <4 x float> test: numba leaves a 4-iteration loop scalar (engine.packet.simd4).
-        # A missed or empty slot gets inf.
-        near[0], near[1], near[2], near[3] = slab1x4(lo, hi, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi)
-        base = top
-        for s in range(WIDTH):
-            tn = near[s]
-            if tn < F32_INF and size[node, s] >= 0:
-                # insert, keeping stack[base:top] sorted far (bottom) to near (top)
-                j = top
-                while j > base and stack_t[j - 1] < tn:
-                    stack[j, 0] = stack[j - 1, 0]
-                    stack[j, 1] = stack[j - 1, 1]
-                    stack_t[j] = stack_t[j - 1]
-                    j -= 1
-                stack[j, 0] = child[node, s]
-                stack[j, 1] = size[node, s]
-                stack_t[j] = tn
-                top += 1
-    return n, best_t, best_tri, best_u, best_v
 
 
 @njit(cache=True)
