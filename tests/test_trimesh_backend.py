@@ -339,6 +339,40 @@ def test_answers_follow_moved_vertices_and_new_faces(sphere):
     assert np.array_equal(ours.contains_points(pts)[clear], r[clear] < 1.5)
 
 
+def test_queries_reuse_their_working_arrays_but_never_return_them(sphere):
+    """The scratch an intersector keeps between queries (engine.core.scratch) changes no answer,
+    whatever the order and sizes of the batches, never backs a returned array, and a query that
+    finds it taken (another thread inside a query) works in fresh arrays."""
+    ours = RayMeshIntersector(sphere)
+    camera = pinhole_rays(sphere, 80)             # the packet walk
+    scattered = rays_at(sphere, 3000, seed=21)    # the per-ray walk
+    small = rays_at(sphere, 700, seed=22)
+    expected = {name: (RayMeshIntersector(sphere).intersects_first(*rays),
+                       RayMeshIntersector(sphere).intersects_id(*rays, multiple_hits=False),
+                       RayMeshIntersector(sphere).intersects_id(*rays))
+                for name, rays in (("camera", camera), ("scattered", scattered), ("small", small))}
+    kept = []
+    for name, rays in (("camera", camera), ("scattered", scattered), ("small", small), ("camera", camera),
+                       ("small", small), ("scattered", scattered)):
+        first = ours.intersects_first(*rays)
+        one_hit = ours.intersects_id(*rays, multiple_hits=False)
+        every_hit = ours.intersects_id(*rays)
+        want_first, want_one, want_every = expected[name]
+        assert np.array_equal(first, want_first)
+        assert all(np.array_equal(a, b) for a, b in zip(one_hit + every_hit, want_one + want_every))
+        kept.append((name, first.copy(), first))
+    for name, copied, returned in kept:  # later queries did not write into earlier answers
+        assert np.array_equal(copied, returned)
+        for buffer in ours._scratch._buffers.values():
+            assert not np.shares_memory(returned, buffer)
+    assert ours._scratch.nbytes() > 0
+    assert ours._scratch_lock.acquire(blocking=False)
+    try:
+        assert np.array_equal(ours.intersects_first(*camera), expected["camera"][0])
+    finally:
+        ours._scratch_lock.release()
+
+
 def test_pickle_and_copy_behave_like_trimesh(sphere):
     ours = RayMeshIntersector(sphere)
     origins, directions = rays_at(sphere, 2000, seed=11)

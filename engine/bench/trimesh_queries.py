@@ -90,8 +90,18 @@ def incoherent_rays(mesh, n: int, seed: int = 0):
     return origins, targets - origins
 
 
+#: Untimed warm-up before each side's timed calls: at least one call and this many seconds (at
+#: most WARM_UP_CALLS calls). On this 2-core machine a query right after the other side's
+#: one-thread calls ran up to 2x slower for about 0.1 s (both sides see the same rule).
+WARM_UP_SECONDS = 0.3
+WARM_UP_CALLS = 10
+
+
 def _median_seconds(call, repeat: int):
-    call()  # warm-up: JIT compilation, caches
+    start, calls = time.perf_counter(), 0
+    while calls == 0 or (time.perf_counter() - start < WARM_UP_SECONDS and calls < WARM_UP_CALLS):
+        call()  # JIT compilation, caches, threads and clocks up to speed
+        calls += 1
     times = []
     for _ in range(repeat):
         start = time.perf_counter()

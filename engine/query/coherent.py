@@ -34,6 +34,7 @@ import numpy as np
 from numba import njit, prange
 
 from engine.core.triangle import HUGE_INV
+from engine.packet.compact import new_array
 from engine.packet.frustum_builders import GENERAL, build_frusta
 from engine.packet.plugin import deck_count
 from engine.packet.strategies import RANGED
@@ -181,11 +182,12 @@ def tile_order(n, width, rows):
             rows[k * PACKET_RAYS + j] = ray if x < width and y < height and ray < n else -1
 
 
-def tiled_rows(n: int, width: int) -> np.ndarray:
-    """``tile_order`` of n rays in an image ``width`` wide: i64[L], L a multiple of PACKET_RAYS."""
+def tiled_rows(n: int, width: int, allocate=new_array) -> np.ndarray:
+    """``tile_order`` of n rays in an image ``width`` wide: i64[L], L a multiple of PACKET_RAYS,
+    from ``allocate(name, rows, tail, dtype)``."""
     height = -(-n // width)
     tiles = -(-width // TILE) * -(-height // TILE)
-    rows = np.empty(tiles * PACKET_RAYS, np.int64)
+    rows = allocate("tiled_rows", tiles * PACKET_RAYS, (), np.int64)
     tile_order(n, width, rows)
     return rows
 
@@ -234,26 +236,28 @@ def scatter_answers(rows, lane_prim, lane_u, lane_v, out_tri, out_u, out_v):
 
 
 def packet_first_hits(bvh, tris, order_keys, origins, directions, center, scale, rows, any_hit, out_tri, out_u,
-                      out_v, ok):
+                      out_v, ok, allocate=new_array):
     """First (any_hit: some) hit of every ray through the packet walk, into out_tri (i64[n],
     -1 = miss), out_u, out_v (f32[n]) by input ray, and ok (bool[n]) as ``first_hit_kernel``
     gives them. bvh, tris: the tree and local float32 triangles (face order); order_keys: the
     tree's ``child_order_keys`` (made once with the tree); origins, directions f64[n,3] world
-    rays; rows i64[L] the order to pack them in (-1: a dead lane; each ray once)."""
+    rays; rows i64[L] the order to pack them in (-1: a dead lane; each ray once). The lanes,
+    frusta and packet answers come from ``allocate(name, rows, tail, dtype)`` (an intersector's
+    reused scratch: fresh arrays page-fault)."""
     n = rows.shape[0]
     lanes = -(-n // 4) * 4
-    org, dirs, inv = (np.empty((lanes, 3), np.float32) for _ in range(3))
-    tmin, tmax = np.empty(lanes, np.float32), np.empty(lanes, np.float32)
+    org, dirs, inv = (allocate(name, lanes, (3,)) for name in ("org", "dirs", "inv"))
+    tmin, tmax = allocate("tmin", lanes), allocate("tmax", lanes)
     packet_lanes(origins, directions, center, float(scale), rows, org, dirs, inv, tmin, tmax, ok)
     offsets = np.append(np.arange(0, lanes, PACKET_RAYS, dtype=np.int32), np.int32(lanes))
     n_packets = offsets.shape[0] - 1
     bounds = np.stack([bvh.bmin[0], bvh.bmax[0]]).astype(np.float32)
-    planes = np.zeros((n_packets, 4, 4), np.float32)
-    valid = np.zeros(n_packets, np.bool_)
+    planes = allocate("planes", n_packets, (4, 4))  # build_frusta fills every packet's
+    valid = allocate("valid", n_packets, (), np.bool_)
     decks = deck_count(n_packets)
     build_frusta(GENERAL, org, dirs, tmin, tmax, offsets, bounds, decks, planes, valid)
-    t, prim = np.empty(lanes, np.float32), np.empty(lanes, np.int32)
-    u, v = np.empty(lanes, np.float32), np.empty(lanes, np.float32)
+    t, prim = allocate("t", lanes), allocate("prim", lanes, (), np.int32)
+    u, v = allocate("u", lanes), allocate("v", lanes)
     walk_packets(RANGED, bvh.bmin, bvh.bmax, bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
                  org, inv, dirs, tmin, tmax, offsets, planes, valid, order_keys, decks, any_hit, t, prim, u, v,
                  None, None)

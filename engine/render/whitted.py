@@ -43,7 +43,7 @@ from engine.render.config import Config
 from engine.render.direct_light import add_light, light_directions
 from engine.render.materials import MaterialTable
 from engine.render.plugins import configured
-from engine.render.scratch import Scratch
+from engine.core.scratch import Scratch
 from engine.render.spawn import gather_and_spawn, new_children
 from engine.render.surface import new_surface, shade_surface
 from engine.render.tracer import Tally, Tracer

@@ -1,11 +1,13 @@
-"""Per-lane arrays kept from one frame to the next.
+"""Per-lane arrays kept from one frame (or query) to the next.
 
 A fresh array costs a page fault for every 4 KiB the kernels first touch; on this machine that
 made a numba pass over new arrays four times slower than over reused ones (the kitchen's primary
 surface pass: 130 ms fresh against 33 ms reused, 1024x1024). So a renderer keeps its per-lane
 arrays in a ``Scratch`` and takes views of them: each key is one use that can be alive at a
 time (the Whitted loop keys by generation parity, so a generation's batches never overwrite
-their parents while they are being built). Nothing is shared between renderers.
+their parents while they are being built). A ``RayMeshIntersector`` keeps one for the internal
+arrays of its queries (lanes, frusta, packet answers), never for the arrays it returns. Nothing
+is shared between renderers or intersectors.
 """
 from __future__ import annotations
 
