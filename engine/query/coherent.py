@@ -246,18 +246,19 @@ def packet_first_hits(bvh, tris, order_keys, origins, directions, center, scale,
     reused scratch: fresh arrays page-fault)."""
     n = rows.shape[0]
     lanes = -(-n // 4) * 4
-    org, dirs, inv = (allocate(name, lanes, (3,)) for name in ("org", "dirs", "inv"))
-    tmin, tmax = allocate("tmin", lanes), allocate("tmax", lanes)
+    # Names of their own: the caller takes its answers from the same ``allocate``.
+    org, dirs, inv = (allocate(name, lanes, (3,)) for name in ("packet_org", "packet_dirs", "packet_inv"))
+    tmin, tmax = allocate("packet_tmin", lanes), allocate("packet_tmax", lanes)
     packet_lanes(origins, directions, center, float(scale), rows, org, dirs, inv, tmin, tmax, ok)
     offsets = np.append(np.arange(0, lanes, PACKET_RAYS, dtype=np.int32), np.int32(lanes))
     n_packets = offsets.shape[0] - 1
     bounds = np.stack([bvh.bmin[0], bvh.bmax[0]]).astype(np.float32)
-    planes = allocate("planes", n_packets, (4, 4))  # build_frusta fills every packet's
-    valid = allocate("valid", n_packets, (), np.bool_)
+    planes = allocate("packet_planes", n_packets, (4, 4))  # build_frusta fills every packet's
+    valid = allocate("packet_valid", n_packets, (), np.bool_)
     decks = deck_count(n_packets)
     build_frusta(GENERAL, org, dirs, tmin, tmax, offsets, bounds, decks, planes, valid)
-    t, prim = allocate("t", lanes), allocate("prim", lanes, (), np.int32)
-    u, v = allocate("u", lanes), allocate("v", lanes)
+    t, prim = allocate("packet_t", lanes), allocate("packet_prim", lanes, (), np.int32)
+    u, v = allocate("packet_u", lanes), allocate("packet_v", lanes)
     walk_packets(RANGED, bvh.bmin, bvh.bmax, bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
                  org, inv, dirs, tmin, tmax, offsets, planes, valid, order_keys, decks, any_hit, t, prim, u, v,
                  None, None)

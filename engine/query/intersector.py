@@ -271,8 +271,7 @@ class RayMeshIntersector:
             if width:  # an image given row by row: walked in tiles, as the render path walks it
                 rows = tiled_rows(n, width, allocate)
             packet_first_hits(s.bvh, s.tris, s.order_keys, rays.origins, rays.directions, s.frame.center,
-                              s.frame.scale, rows, any_hit, tri, u, v, ok, lambda name, *shape: allocate(
-                                  ("packet", name), *shape))
+                              s.frame.scale, rows, any_hit, tri, u, v, ok, allocate)
         else:
             first_hit_kernel(*self._tree(s), *self._frame_args(s, rays), rays.rows, any_hit, tri, u, v, ok)
         self._warn_bad(ok)
