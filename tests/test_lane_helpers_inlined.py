@@ -9,9 +9,9 @@ import pytest
 
 from engine.render.direct_light import add_light_lane, light_direction_lane
 from engine.render.spawn import spawn_lane
-from engine.render.surface import fill_surface_lane
+from engine.render.surface import fill_surface_lane, texel_color_lane
 
-LANE_HELPERS = [fill_surface_lane, light_direction_lane, add_light_lane, spawn_lane]
+LANE_HELPERS = [fill_surface_lane, texel_color_lane, light_direction_lane, add_light_lane, spawn_lane]
 
 
 @pytest.mark.parametrize("helper", LANE_HELPERS, ids=lambda h: h.py_func.__name__)

@@ -18,7 +18,7 @@ enqueues a whole frame without waiting for the GPU once; the image is copied bac
 Queue capacities are fixed per frame size; a generation that would overflow is detected from
 the counters at the end of the frame, and the frame is rendered again with room for it.
 
-Steps 2 and 4 call the CPU renderer's own per-lane functions (``fill_surface_lane``,
+Steps 2 and 4 call the CPU renderer's own per-lane functions (``fill_surface_lane``, ``texel_color_lane``,
 ``light_direction_lane``, ``add_light_lane``, ``spawn_lane``, ``camera_direction``) compiled
 for the device (``engine.gpu.twin``): one shading definition, two targets. Pixels receive their
 contributions through atomic adds, in whatever order the device runs them.
@@ -50,7 +50,7 @@ from engine.render.camera import camera_direction, image_plane
 from engine.render.direct_light import add_light_lane, light_direction_lane
 from engine.render.materials import MaterialTable
 from engine.render.spawn import spawn_lane
-from engine.render.surface import dot3, fill_surface_lane, texel_at, unit_wrap
+from engine.render.surface import dot3, fill_surface_lane, texel_at, texel_color_lane, unit_wrap
 from engine.render.whitted import RenderResult
 
 cuda = require_cuda()
@@ -58,6 +58,7 @@ cuda = require_cuda()
 _dot3 = device_twin(dot3)
 _texel_at = device_twin(texel_at, unit_wrap=device_twin(unit_wrap))
 _surface = device_twin(fill_surface_lane, dot3=_dot3, texel_at=_texel_at)
+_texel_color = device_twin(texel_color_lane)
 _light_direction = device_twin(light_direction_lane)
 _add_light = device_twin(add_light_lane)
 _spawn = device_twin(spawn_lane, dot3=_dot3)
@@ -138,11 +139,12 @@ def _shade(counts, gen, q_vec, q_pixel, hit_tuv, hit_prim, tri_vec, normals, uvs
                 cuda.atomic.add(image, (q_pixel[i], c), weight[i, c] * background[c])
             continue
         hit[i] = True
-        _surface(i, p, dirs, t_u, t_v, tri_vec[0], tri_vec[1], tri_vec[2], tri_vec[3], normals, uvs, tri_material,
-                 corner_magnitude, (has_normals, has_uvs), mat_vec[0], mat_texture, texels, palette,
-                 ambient_light, surf_vec[S_POINT], surf_magnitude, surf_vec[S_VIEW],
-                 surf_vec[S_NORMAL], surf_vec[S_FACING], entering, surf_material, surf_vec[S_TEXEL],
-                 surf_vec[S_COLOR], surf_vec[S_LEAVE])
+        row = _surface(i, p, dirs, t_u, t_v, tri_vec[0], tri_vec[1], tri_vec[2], tri_vec[3], normals, uvs,
+                       tri_material, corner_magnitude, (has_normals, has_uvs), mat_texture, surf_vec[S_POINT],
+                       surf_magnitude, surf_vec[S_VIEW], surf_vec[S_NORMAL], surf_vec[S_FACING], entering,
+                       surf_material, surf_vec[S_LEAVE])
+        _texel_color(i, row, surf_material[i], texels, palette, ambient_light, mat_vec[0], surf_vec[S_TEXEL],
+                     surf_vec[S_COLOR])
         for light in range(n_lights):
             _light_direction(i, surf_vec[S_LEAVE], surf_vec[S_NORMAL], surf_vec[S_FACING], lights[light],
                              light_dir[light], light_scalar[L_DIST, light], light_scalar[L_NDOTL, light],

@@ -32,7 +32,9 @@ class Surface(NamedTuple):
     normal: f32[R,3] the shading normal, facing the ray; facing: f32[R,3] the geometric normal,
     facing the ray; entering: bool[R] the ray hit the front face; material: i32[R];
     texel: f32[R,3]; color: f32[R,3] the light gathered so far (ambient, then each light);
-    leave: f32[R,3] the origin of rays leaving towards the ray's side.
+    leave: f32[R,3] the origin of rays leaving towards the ray's side; texel_row: i32[R] the row
+    of the lane's texel in the stacked texels (-1: untextured), kept between the two loops of
+    ``shade_surface``.
     """
 
     hit: np.ndarray
@@ -46,13 +48,15 @@ class Surface(NamedTuple):
     texel: np.ndarray
     color: np.ndarray
     leave: np.ndarray
+    texel_row: np.ndarray
 
 
 #: Per-lane shape tail and dtype of each Surface field.
 SURFACE_FIELDS = {"hit": ((), np.bool_), "point": ((3,), np.float32), "magnitude": ((), np.float32),
                   "view": ((3,), np.float32), "normal": ((3,), np.float32), "facing": ((3,), np.float32),
                   "entering": ((), np.bool_), "material": ((), np.int32), "texel": ((3,), np.float32),
-                  "color": ((3,), np.float32), "leave": ((3,), np.float32)}
+                  "color": ((3,), np.float32), "leave": ((3,), np.float32),
+                  "texel_row": ((), np.int32)}
 
 
 def new_surface(r: int, allocate=new_array) -> Surface:
@@ -93,14 +97,15 @@ def texel_at(start, width, height, s, t):
 
 @njit(cache=True, inline="always")
 def fill_surface_lane(i, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
-                      interpolated, ambient, texture_layout, texels, palette,
-                      ambient_light, point, magnitude, view, normal, facing, entering, material, texel, color,
+                      interpolated, texture_layout, point, magnitude, view, normal, facing, entering, material,
                       leave):
-    """Row ``i`` of a Surface (point .. leave) for a ray along dirs[i] that hit triangle ``p``
-    at barycentrics u[i], v[i]. The per-lane shading of both targets: ``shade_surface`` calls it
-    on the CPU and ``engine.gpu.frame`` compiles its device twin (``engine.gpu.twin``).
-    interpolated: (has_normals, has_uvs), one tuple because numba's inliner refuses a call of more
-    than 30 arguments, and inlined is 2.5x faster here than called (kitchen surface pass)."""
+    """Row ``i`` of a Surface (point .. leave, all but texel and color) for a ray along dirs[i]
+    that hit triangle ``p`` at barycentrics u[i], v[i]; returns the row of its texel in the
+    stacked texels, -1 when its material has no texture (``texel_color_lane`` then looks it up).
+    The per-lane shading of both targets: ``shade_surface`` calls it on the CPU and
+    ``engine.gpu.frame`` compiles its device twin (``engine.gpu.twin``). interpolated:
+    (has_normals, has_uvs), one tuple because numba's inliner refuses a call of more than 30
+    arguments, and inlined is 2.5x faster here than called (kitchen surface pass)."""
     has_normals, has_uvs = interpolated
     one = np.float32(1.0)
     length = np.float32(math.sqrt(dot3(dirs[i], dirs[i])))
@@ -141,24 +146,31 @@ def fill_surface_lane(i, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_materi
     if has_uvs and start >= 0:
         s = w * uvs[p, 0, 0] + u[i] * uvs[p, 1, 0] + v[i] * uvs[p, 2, 0]
         t = w * uvs[p, 0, 1] + u[i] * uvs[p, 1, 1] + v[i] * uvs[p, 2, 1]
-        j = texel_at(start, texture_layout[1, m], texture_layout[2, m], s, t)
-        for c in range(3):
-            texel[i, c] = palette[texels[j, c]]
+        row = texel_at(start, texture_layout[1, m], texture_layout[2, m], s, t)
     else:
-        for c in range(3):
-            texel[i, c] = one
-    for c in range(3):
-        color[i, c] = ambient_light[c] * ambient[m, c] * texel[i, c]
+        row = -1
     step = OFFSET_SCALE * max(magnitude[i], MIN_MAGNITUDE)
     for a in range(3):
         leave[i, a] = point[i, a] + step * facing[i, a]
+    return row
+
+
+@njit(cache=True, inline="always")
+def texel_color_lane(i, row, m, texels, palette, ambient_light, ambient, texel, color):
+    """Texel (white for row -1) and ambient colour of lane ``i``, material ``m``, whose texel is
+    row ``row`` of the stacked texels (``fill_surface_lane``'s answer)."""
+    for c in range(3):
+        x = palette[texels[row, c]] if row >= 0 else np.float32(1.0)
+        texel[i, c] = x
+        color[i, c] = ambient_light[c] * ambient[m, c] * x
 
 
 @njit(cache=True, parallel=True)
 def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
                   v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
                   ambient, texture_layout, texels, palette, ambient_light, background, image,
-                  hit, point, magnitude, view, normal, facing, entering, material, texel, color, leave):
+                  hit, point, magnitude, view, normal, facing, entering, material, texel, color, leave,
+                  texel_row):
     """Fill the Surface rows (hit .. leave, see ``Surface``) of a batch and add the background
     of its misses to ``image`` (f32[W*H,3]).
 
@@ -167,6 +179,10 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
     corner normals f32[T,3,3] and uvs f32[T,3,2] (or none: first dimension 0), tri_material
     i32[T], corner_magnitude f32[T] (``triangle_magnitudes``). Materials: ambient f32[M,3],
     textures as in ``engine.render.materials.MaterialTable``. ambient_light, background f32[3].
+
+    The texel gathers run in a second loop over the packet's lanes: there they are independent
+    loads back to back, so their cache misses overlap, where inside the long per-lane work of the
+    first loop each one stalled it (kitchen primary rays, one thread: 46 -> 41 ms).
     """
     has_normals = normals.shape[0] > 0
     has_uvs = uvs.shape[0] > 0
@@ -181,7 +197,10 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
                     image[pixel[i], c] += weight[i, c] * background[c]
                 continue
             hit[i] = True
-            fill_surface_lane(i, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
-                              (has_normals, has_uvs), ambient, texture_layout, texels, palette,
-                              ambient_light, point, magnitude, view, normal, facing, entering, material, texel,
-                              color, leave)
+            texel_row[i] = fill_surface_lane(i, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material,
+                                             corner_magnitude, (has_normals, has_uvs), texture_layout, point,
+                                             magnitude, view, normal, facing, entering, material, leave)
+        for i in range(offsets[k], offsets[k + 1]):
+            if hit[i]:
+                texel_color_lane(i, texel_row[i], material[i], texels, palette, ambient_light, ambient, texel,
+                                 color)
