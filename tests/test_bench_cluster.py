@@ -66,7 +66,10 @@ def test_a_worker_lost_mid_cell_loses_no_cell_and_records_none_twice(serial, tmp
 def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):
     from engine.cli import main
 
-    assert main(["bench", str(SMOKE), "--out", str(tmp_path), "--scheduler", "tcp://127.0.0.1:9"]) == 2
+    import dask
+
+    with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):  # Dask's own knob, 30 s by default
+        assert main(["bench", str(SMOKE), "--out", str(tmp_path), "--scheduler", "tcp://127.0.0.1:9"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("packetrt: error: --scheduler tcp://127.0.0.1:9: cannot reach a Dask scheduler")
 

@@ -35,7 +35,9 @@ def connect(address: str, workers: int = 1):
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
         return Client(cluster), cluster
     try:
-        return Client(address, timeout="15s"), None
+        # Dask's own connect timeout (distributed.comm.timeouts.connect, 30 s unless the user's
+        # Dask config or DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT says otherwise).
+        return Client(address), None
     except (OSError, TimeoutError, ValueError) as error:
         raise ConfigError(f"--scheduler {address}: cannot reach a Dask scheduler there "
                           f"({type(error).__name__}: {error})") from None
