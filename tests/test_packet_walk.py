@@ -128,5 +128,6 @@ def test_a_second_process_loads_every_packet_kernel_from_the_cache():
     second = runs[1].stdout.splitlines()
     assert not [line for line in second if "data saved" in line]
     loaded = [line for line in second if "data loaded" in line]
-    for kernel in ("walk.walk_packets", "walk.walk_packets_auto", "frustum_builders.build_frusta"):
+    for kernel in ("walk.walk_masked", "walk.walk_ranged", "walk.walk_partition", "walk.walk_simd",
+                   "walk.choose_packets", "frustum_builders.build_frusta"):
         assert [line for line in loaded if f"{kernel}-" in line], kernel

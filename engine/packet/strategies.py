@@ -21,6 +21,7 @@ node's children or triangles).
 from __future__ import annotations
 
 MASKED, RANGED, PARTITION, SIMD, AUTO = range(5)
+N_STRATEGIES = 5
 
 STRATEGIES = {"masked": MASKED, "ranged": RANGED, "partition": PARTITION, "simd": SIMD, "auto": AUTO}
 #: The strategies ``AUTO`` chooses among, by number (index = strategy number).

@@ -1,5 +1,5 @@
 """The packet walk: the one skeleton behind every packet traversal (Overbeck, Ramamoorthi and
-Mark 2008, Section 3), and its kernel ``walk_packets``.
+Mark 2008, Section 3), and its kernels (``walk_packets``).
 
 ``walk`` deals the packets to the threads in interleaved decks; for each packet it loads the
 rays into packet-local rows (``engine.packet.kernels.load_packet``) and its frustum, walks the
@@ -11,13 +11,14 @@ so that the near one -- from the packet's direction signs -- is popped first. SI
 SIMD ray of a packet alone (``walkers``). A walk ends when its stack is empty or every lane is
 dead (an occlusion query kills a lane at its first hit).
 
-``walk_packets`` is the one compiled, disk-cached kernel (one per combination of ``counters``
-and ``record`` being None or not). It inlines ``walk`` once per strategy with the strategy a
-constant, so numba prunes the other strategies' steps from each copy: with the strategy a
-run-time number instead, the branches cost up to 5% on primary and shadow rays. AUTO has its
-own kernel, ``walk_packets_auto``: per packet it asks ``engine.packet.choose.choose_packet``
-and then runs ``walk`` once for each strategy it can choose, each again with a constant
-strategy and walking only the packets chosen for it.
+``walk_packets`` walks a batch by one strategy through that strategy's compiled, disk-cached
+kernel (``walk_masked``, ``walk_ranged``, ``walk_partition``, ``walk_simd``; numba compiles one
+per combination of ``counters`` and ``record`` being None or not). Each inlines ``walk`` with
+its strategy a constant, so numba prunes the other strategies' steps from it: with the strategy
+a run-time number instead, the branches cost up to 5% on primary and shadow rays; and a config
+compiles only the strategies it uses. AUTO (``walk_packets_auto``) asks
+``engine.packet.choose.choose_packet`` for every packet first, then runs the kernel of each
+strategy it chose, walking only the packets chosen for it.
 
 The packet body unpacks its grouped arguments once per range of packets, not once per packet:
 the 2x2 SIMD baseline has 262,144 packets in a 1024^2 batch, and unpacking per packet made its
@@ -37,15 +38,15 @@ from engine.packet.kernels import (STACK_SIZE, intersect_lanes, intersect_lanes_
 from engine.packet.record import record_visit
 from engine.packet.steps import leaf_ray, leaf_rays, node_step, visit_record, walk_start, walkers
 from engine.packet.choose import choose_packet, scene_scales
-from engine.packet.strategies import ENTERED, MASKED, PARTITION, RANGED, SIMD
+from engine.packet.strategies import ENTERED, MASKED, N_STRATEGIES, PARTITION, RANGED, SIMD
 
 
-@njit(cache=True, parallel=True)
 def walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
                  offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
-                 counters, record):
+                 counters, record, chosen=None):
     """Closest (any_hit False) or first (any_hit True) hits of every ray, walked by ``strategy``
-    (``engine.packet.strategies``; AUTO has a kernel of its own, ``walk_packets_auto``).
+    (``engine.packet.strategies``, not AUTO: see ``walk_packets_auto``) through its kernel in
+    ``STRATEGY_KERNELS``.
 
     BVH bmin, bmax f32[N,3], first, count i32[N], prim i32[P]; triangle corners v0, v1, v2
     f32[T,3]; rays org, inv, dirs f32[R,3], tmin, tmax f32[R] in packets offsets i32[K+1] (whole
@@ -53,35 +54,68 @@ def walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv,
     (``engine.packet.kernels.child_order_keys``); n_chunks the packet decks; answers out_t,
     out_prim, out_u, out_v f32/i32[R]. counters: i64[threads,3,D] (nodes, ray-box and
     ray-triangle tests per depth, added to) or None. record: an ``engine.packet.record``
-    PacketRecord for a batch of one packet, or None.
+    PacketRecord for a batch of one packet, or None. chosen: None (every packet), or i8[K] and
+    only the packets k with chosen[k] == strategy are walked.
     """
-    scene = (bmin, bmax, first, count, prim, v0, v1, v2, order)
-    batch = (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit)
-    answers = (out_t, out_prim, out_u, out_v)
-    if strategy == MASKED:
-        walk(MASKED, scene, batch, answers, counters, record, None)
-    elif strategy == RANGED:
-        walk(RANGED, scene, batch, answers, counters, record, None)
-    elif strategy == PARTITION:
-        walk(PARTITION, scene, batch, answers, counters, record, None)
-    else:
-        walk(SIMD, scene, batch, answers, counters, record, None)
+    STRATEGY_KERNELS[strategy]((bmin, bmax, first, count, prim, v0, v1, v2, order),
+                               (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit),
+                               (out_t, out_prim, out_u, out_v), counters, record,
+                               EVERY_PACKET if chosen is None else chosen)
+
+
+# One kernel per strategy, each ``walk`` with its strategy a constant, so that numba prunes the
+# other strategies' steps from it and a config compiles only the strategies it uses (one
+# strategy compiles in about 13 s, all four in one kernel took 56 s). scene, batch, answers: the
+# groups of ``walk``; chosen: i8[K], or empty for every packet.
+@njit(cache=True, parallel=True)
+def walk_masked(scene, batch, answers, counters, record, chosen):
+    walk(MASKED, scene, batch, answers, counters, record, chosen)
 
 
 @njit(cache=True, parallel=True)
+def walk_ranged(scene, batch, answers, counters, record, chosen):
+    walk(RANGED, scene, batch, answers, counters, record, chosen)
+
+
+@njit(cache=True, parallel=True)
+def walk_partition(scene, batch, answers, counters, record, chosen):
+    walk(PARTITION, scene, batch, answers, counters, record, chosen)
+
+
+@njit(cache=True, parallel=True)
+def walk_simd(scene, batch, answers, counters, record, chosen):
+    walk(SIMD, scene, batch, answers, counters, record, chosen)
+
+
+STRATEGY_KERNELS = {MASKED: walk_masked, RANGED: walk_ranged, PARTITION: walk_partition, SIMD: walk_simd}
+#: ``chosen`` for a walk of every packet: empty, so that plain walks and AUTO's passes share one
+#: compiled kernel per strategy.
+EVERY_PACKET = np.empty(0, np.int8)
+
+
 def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
                       offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
                       counters, limits, choices, record):
     """``walk_packets`` by AUTO: each packet walked by the strategy ``engine.packet.choose``
     picks for it under limits f64[N_LIMITS]; choices i8[K] receives each packet's strategy.
-    A kernel of its own, so that configs without ``auto`` never compile its three copies.
 
-    All packets are chosen first, in parallel; then one pass per strategy walks the packets
-    chosen for it. Choosing and walking packet by packet unpacked the walk's arguments once per
-    packet (see the module doc)."""
-    scene = (bmin, bmax, first, count, prim, v0, v1, v2, order)
-    batch = (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit)
-    answers = (out_t, out_prim, out_u, out_v)
+    All packets are chosen first, in parallel (``choose_packets``); then the kernel of each
+    strategy some packet chose walks the packets chosen for it, so AUTO compiles no walk of its
+    own. Choosing and walking packet by packet unpacked the walk's arguments once per packet
+    (see the module doc)."""
+    chosen_counts = choose_packets(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices)
+    # A strategy no packet chose costs no parallel pass (a launch and each worker's scratch).
+    for strategy in (RANGED, PARTITION, MASKED):
+        if chosen_counts[strategy] > 0:
+            walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
+                         offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
+                         counters, record, choices)
+
+
+@njit(cache=True, parallel=True)
+def choose_packets(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices):
+    """choices[k] = the strategy ``engine.packet.choose.choose_packet`` picks for packet k;
+    returns how many packets chose each strategy (i64[N_STRATEGIES], indexed by strategy)."""
     n_packets = offsets.shape[0] - 1
     scales = scene_scales(bmin, bmax)
     n_ranged = 0
@@ -94,13 +128,9 @@ def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs
         n_ranged += choice == RANGED
         n_partition += choice == PARTITION
         n_masked += choice == MASKED
-    # A strategy no packet chose costs no parallel pass (a launch and each worker's scratch).
-    if n_ranged > 0:
-        walk(RANGED, scene, batch, answers, counters, record, choices)
-    if n_partition > 0:
-        walk(PARTITION, scene, batch, answers, counters, record, choices)
-    if n_masked > 0:
-        walk(MASKED, scene, batch, answers, counters, record, choices)
+    counts = np.zeros(N_STRATEGIES, np.int64)
+    counts[RANGED], counts[PARTITION], counts[MASKED] = n_ranged, n_partition, n_masked
+    return counts
 
 
 @njit(cache=True, inline="always")
@@ -123,10 +153,10 @@ def walk(strategy, scene, batch, answers, counters, record, chosen):
     order), batch (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit) and
     answers (out_t, out_prim, out_u, out_v). counters and record stay arguments of their own:
     numba drops their code from the copy where they are None only when they are (inlined)
-    arguments. It holds no AUTO branch: ``walk_packets`` would then compile AUTO's three
-    copies inside each of its four (a cold default render compiled for 245 s with it, 68 s
-    without). chosen: None (every packet), or i8[K] and only the packets k with chosen[k] ==
-    strategy are walked (AUTO's passes)."""
+    arguments. It holds no AUTO branch: each strategy's kernel would then compile AUTO's three
+    copies (a cold default render compiled for 245 s with it, 68 s without). chosen: i8[K] and
+    only the packets k with chosen[k] == strategy are walked (AUTO's passes), or empty: every
+    packet."""
     bmin, bmax, first, count, prim, v0, v1, v2, order = scene
     org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
     out_t, out_prim, out_u, out_v = answers
@@ -145,7 +175,7 @@ def walk(strategy, scene, batch, answers, counters, record, chosen):
 @njit(cache=True, inline="always")
 def walk_packet_range(strategy, scene, batch, work, begin, end, step, answers, counters, record, chosen):
     """Packets range(begin, end, step) (those with chosen[k] == strategy when chosen is not
-    None), each loaded, walked by ``strategy`` (a constant: not AUTO) and its hits stored;
+    empty), each loaded, walked by ``strategy`` (a constant: not AUTO) and its hits stored;
     ``work`` is the worker's scratch (rf, ri, near, fr, leaf_tris, ids, masks, stack_node,
     stack_carry, stack_depth, thread)."""
     bmin, bmax, first, count, prim, v0, v1, v2, order = scene
@@ -153,7 +183,7 @@ def walk_packet_range(strategy, scene, batch, work, begin, end, step, answers, c
     out_t, out_prim, out_u, out_v = answers
     rf, ri, near, fr, leaf_tris, ids, masks, stack_node, stack_carry, stack_depth, thread = work
     for k in range(begin, end, step):
-        if chosen is not None and chosen[k] != strategy:
+        if chosen.shape[0] > 0 and chosen[k] != strategy:
             continue
         start = offsets[k]
         n = offsets[k + 1] - start
