@@ -20,13 +20,30 @@ class Scratch:
 
     def __init__(self):
         self._buffers: dict = {}
+        self._constants: dict = {}  # key -> the value its buffer holds everywhere (``constant``)
 
     def take(self, key, rows: int, tail: tuple = (), dtype=np.float32) -> np.ndarray:
+        self._constants.pop(key, None)  # whoever takes it may write it
+        return self._view(key, rows, tail, dtype)
+
+    def _view(self, key, rows: int, tail: tuple, dtype) -> np.ndarray:
         buffer = self._buffers.get(key)
         if buffer is None or buffer.shape[0] < rows or buffer.shape[1:] != tail or buffer.dtype != dtype:
             buffer = np.empty((rows + rows // 8,) + tail, dtype)  # room for the next frame's few more rays
             self._buffers[key] = buffer
         return buffer[:rows]
+
+    def constant(self, key, rows: int, value, tail: tuple = (), dtype=np.float32) -> np.ndarray:
+        """A view of shape (rows, *tail) holding ``value`` everywhere, for inputs the kernels only
+        read (the unit weights of shadow rays, the endless tmax of secondary rays): its buffer is
+        filled when it is new or last held another value, not at every take, which on the kitchen
+        was megabytes of writes per batch. Nothing may write into it."""
+        buffer = self._buffers.get(key)
+        view = self._view(key, rows, tail, dtype)
+        if self._buffers[key] is not buffer or self._constants.get(key) != value:
+            self._buffers[key].fill(value)
+            self._constants[key] = value
+        return view
 
     def allocator(self, prefix):
         """``allocate(name, rows, tail, dtype)`` taking from this scratch under (prefix, name)."""

@@ -215,8 +215,7 @@ class WhittedRenderer:
             to_light, dist, ndotl, shadow_tmax = (light("to_light", r, (3,)), light("dist", r), light("ndotl", r),
                                                   light("shadow_tmax", r))
             lit = light("lit", r, (), np.bool_)
-            unit_weight = light("unit_weight", r, (3,))
-            unit_weight.fill(1)
+            unit_weight = self.scratch.constant(("light", "unit_weight"), r, 1.0, (3,))
         for light in self.scene.lights:
             light_directions(surface.hit, surface.leave, surface.normal, surface.facing,
                              np.asarray(light.position, np.float32), to_light, dist, ndotl, lit, shadow_tmax)
@@ -250,8 +249,7 @@ class WhittedRenderer:
                 into[key].append(value)
 
         for rays, packets, surface, children in parents:
-            endless = self.scratch.take(("endless", rays.kind), rays.org.shape[0])
-            endless.fill(np.inf)
+            endless = self.scratch.constant(("endless", rays.kind), rays.org.shape[0], np.inf)
             source(reflection, rays, packets, children.mirror, surface.leave, children.reflect_dir, endless,
                    children.reflect_weight)
             source(reflection, rays, packets, children.total_internal, surface.leave, children.reflect_dir,
