@@ -171,7 +171,7 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
                   ambient, texture_layout, texels, palette, ambient_light, background, image,
                   hit, point, magnitude, view, normal, facing, entering, material, texel, color, leave,
                   texel_row):
-    """Fill the Surface rows (hit .. leave, see ``Surface``) of a batch and add the background
+    """Fill the Surface rows (hit .. texel_row, see ``Surface``) of a batch and add the background
     of its misses to ``image`` (f32[W*H,3]).
 
     Batch: packets offsets i32[K+1], dirs f32[R,3], pixel i32[R] (-1: padding), weight f32[R,3];
