@@ -28,7 +28,7 @@ def _texel(texture, uv):
 
 def render_reference(renderer, width, height):
     """f32[H,W,3]: the image the numpy loop makes with ``renderer``'s scene, config and plugins."""
-    cfg, scene, tris, m = renderer.config.render, renderer.scene, renderer.tris, renderer.materials
+    cfg, scene = renderer.config.render, renderer.scene
     n = cfg.packet
     image = np.zeros((width * height, 3), np.float32)
     org, dirs = camera_rays(scene, width, height)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 from engine.core.jit_cache import ROOT, cache_dir, compiled_sources
 

@@ -330,7 +330,7 @@ def _axes(source, table: dict, where: str, required: bool) -> dict:
             values = [values]
         if not values:
             hint = {"packet": f"one of {', '.join(map(str, PACKET_SIZES))}", "recursion": ", ".join(RECURSION)}
-            _fail(source, f"{where}{axis}", f"axis is empty; give at least one value"
+            _fail(source, f"{where}{axis}", "axis is empty; give at least one value"
                                             + (f" ({hint[axis]})" if axis in hint else ""))
         parsed[axis] = [_axis_value(source, f"{where}{axis}[{i}]", axis, v) for i, v in enumerate(values)]
     return parsed

@@ -182,7 +182,7 @@ def _packet_grid(records: list, out: Path, name: str, culling_styles: bool) -> l
                 ax.set_ylabel("trace ms / frame", fontsize=8)
             if i == len(rows) - 1:
                 ax.set_xlabel("packet size", fontsize=8)
-    handles, labels = {}, {}
+    handles = {}
     for ax in axes.flat:
         for h, l in zip(*ax.get_legend_handles_labels()):
             handles.setdefault(l, h)

@@ -52,7 +52,7 @@ from engine.bench.matrix import Cell, Matrix, load_matrix
 from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require_open3d
 from engine.bench.yardstick import replay_once
 from engine.core.atomic import output_folder
-from engine.core.errors import ConfigError, PacketrtError
+from engine.core.errors import ConfigError
 from engine.core.types import RAY_KINDS
 from engine.render.config import read_toml
 from engine.render.plugins import make_traversal
