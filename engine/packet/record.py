@@ -2,7 +2,9 @@
 
 ``engine.packet.walk`` writes one when given a ``PacketRecord`` (``record=None`` compiles a
 kernel without any of it), for ``packetrt show`` (``engine.debug.packet_trace``). The walk of
-a batch runs packets on several threads, so a record is kept for batches of one packet.
+a batch runs packets on several threads, so a record is kept for batches of one packet. A
+record without room keeps nothing, not even the count: it is what a walk that counts but does
+not record is given (``engine.packet.walk.instrumented``).
 
     visits: i32[V, 4]  per visit the columns NODE, DEPTH, OUTCOME (``engine.packet.strategies``:
                        CULLED, MISSED, ENTERED) and LANES (live lanes whose segment met the box)

@@ -1,8 +1,8 @@
 """The packet walk: the one skeleton behind every packet traversal (Overbeck, Ramamoorthi and
 Mark 2008, Section 3), and its kernels (``walk_packets``).
 
-``walk`` deals the packets to the threads in interleaved decks; for each packet it loads the
-rays into packet-local rows (``engine.packet.kernels.load_packet``) and its frustum, walks the
+Each strategy's kernel deals the packets to the threads in interleaved decks; for each packet
+it loads the rays into packet-local rows (``engine.packet.kernels.load_packet``) and its frustum, walks the
 BVH depth first and stores the best hits. The walk pops a node, counts it, lets the strategy
 visit it (``engine.packet.steps.node_step``: getFirstHit, partRays, the frustum test) and, when
 the visit ENTERED, either intersects the leaf's frustum-surviving triangles with the SIMD rays
@@ -12,9 +12,10 @@ SIMD ray of a packet alone (``walkers``). A walk ends when its stack is empty or
 dead (an occlusion query kills a lane at its first hit).
 
 ``walk_packets`` walks a batch by one strategy through that strategy's compiled, disk-cached
-kernel (``walk_masked``, ``walk_ranged``, ``walk_partition``, ``walk_simd``; numba compiles one
-per combination of ``counters`` and ``record`` being None or not). Each inlines ``walk`` with
-its strategy a constant, so numba prunes the other strategies' steps from it: with the strategy
+kernel (``walk_masked``, ``walk_ranged``, ``walk_partition``, ``walk_simd``; numba compiles two
+of each: the plain walk, and the instrumented one with both counters and a record, see
+``instrumented``). Each inlines
+``walk_packet_range`` with its strategy a constant, so numba prunes the other strategies' steps from it: with the strategy
 a run-time number instead, the branches cost up to 5% on primary and shadow rays; and a config
 compiles only the strategies it uses. AUTO (``walk_packets_auto``) asks
 ``engine.packet.choose.choose_packet`` for every packet first, then runs the kernel of each
@@ -23,19 +24,20 @@ strategy it chose, walking only the packets chosen for it.
 The packet body unpacks its grouped arguments once per range of packets, not once per packet:
 the 2x2 SIMD baseline has 262,144 packets in a 1024^2 batch, and unpacking per packet made its
 primary trace 25% slower (erw6, one thread: 148 against 118 ms before ``walk_packet_range``
-existed; now 123-134 ms, the rest not found). ``walk`` also hands the parallel body single
+existed; now 123-134 ms, the rest not found). The kernels also hand the parallel body single
 arrays, not tuples of them.
 """
 from __future__ import annotations
 
 import numpy as np
+import numba
 from numba import get_thread_id, njit, prange
 
-from engine.core.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI
+from engine.core.types import COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI, MAX_BVH_DEPTH
 from engine.packet.frustum_cull import load_frustum
 from engine.packet.kernels import (STACK_SIZE, intersect_lanes, intersect_lanes_x2, largest_leaf, leaf_triangles,
                                    load_packet, longest_packet, node_box, packet_scratch, store_hits)
-from engine.packet.record import record_visit
+from engine.packet.record import new_record, record_visit
 from engine.packet.steps import leaf_ray, leaf_rays, node_step, visit_record, walk_start, walkers
 from engine.packet.choose import choose_packet, scene_scales
 from engine.packet.strategies import ENTERED, MASKED, N_STRATEGIES, PARTITION, RANGED, SIMD
@@ -57,34 +59,94 @@ def walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv,
     PacketRecord for a batch of one packet, or None. chosen: None (every packet), or i8[K] and
     only the packets k with chosen[k] == strategy are walked.
     """
+    counters, record = instrumented(counters, record)
     STRATEGY_KERNELS[strategy]((bmin, bmax, first, count, prim, v0, v1, v2, order),
                                (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit),
                                (out_t, out_prim, out_u, out_v), counters, record,
                                EVERY_PACKET if chosen is None else chosen)
 
 
-# One kernel per strategy, each ``walk`` with its strategy a constant, so that numba prunes the
-# other strategies' steps from it and a config compiles only the strategies it uses (one
-# strategy compiles in about 13 s, all four in one kernel took 56 s). scene, batch, answers: the
-# groups of ``walk``; chosen: i8[K], or empty for every packet.
+def instrumented(counters, record):
+    """(counters, record) as a walk takes them: both None (the plain walk) or both given, a
+    missing one replaced by a throwaway (zeroed counters, or a record without room, which keeps
+    nothing). So numba compiles each strategy's kernel twice, plain and instrumented, rather
+    than once per combination (four): about 12 s each on a cold cache."""
+    if counters is None and record is None:
+        return None, None
+    if counters is None:
+        counters = np.zeros((numba.config.NUMBA_NUM_THREADS, 3, MAX_BVH_DEPTH), np.int64)
+    if record is None:
+        record = new_record(0)
+    return counters, record
+
+
+# One kernel per strategy, each the skeleton with its strategy a constant, so that numba prunes
+# the other strategies' steps from it and a config compiles only the strategies it uses. The
+# four bodies are the same lines on purpose: the parallel loop is written in the kernel itself,
+# not in an inlined helper, because every level of inlining copies the whole walk's IR once more
+# (numba's inliner deep-copies it): a strategy's kernel compiled in 15 s through a helper and
+# in 11.7 s without (one signature, the default scene, cold cache). The groups are unpacked and
+# made again inside the loop, so that the parallel body receives single arrays, not tuples.
+# scene (bmin, bmax, first, count, prim, v0, v1, v2, order), batch (org, inv, dirs, tmin, tmax,
+# offsets, planes, valid, n_chunks, any_hit), answers (out_t, out_prim, out_u, out_v): the
+# arguments of ``walk_packets``; counters and record stay arguments of their own, so numba drops
+# their code where they are None; chosen: i8[K], or empty for every packet. No kernel holds an
+# AUTO branch: each would then compile AUTO's three copies (a cold default render compiled for
+# 245 s with it, 68 s without).
 @njit(cache=True, parallel=True)
 def walk_masked(scene, batch, answers, counters, record, chosen):
-    walk(MASKED, scene, batch, answers, counters, record, chosen)
+    bmin, bmax, first, count, prim, v0, v1, v2, order = scene
+    org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
+    out_t, out_prim, out_u, out_v = answers
+    max_rays = longest_packet(offsets)
+    max_leaf = largest_leaf(count)
+    for chunk in prange(n_chunks):
+        walk_packet_range(MASKED, (bmin, bmax, first, count, prim, v0, v1, v2, order),
+                          (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit),
+                          worker_scratch(max_rays, max_leaf), chunk, offsets.shape[0] - 1, n_chunks,
+                          (out_t, out_prim, out_u, out_v), counters, record, chosen)
 
 
 @njit(cache=True, parallel=True)
 def walk_ranged(scene, batch, answers, counters, record, chosen):
-    walk(RANGED, scene, batch, answers, counters, record, chosen)
+    bmin, bmax, first, count, prim, v0, v1, v2, order = scene
+    org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
+    out_t, out_prim, out_u, out_v = answers
+    max_rays = longest_packet(offsets)
+    max_leaf = largest_leaf(count)
+    for chunk in prange(n_chunks):
+        walk_packet_range(RANGED, (bmin, bmax, first, count, prim, v0, v1, v2, order),
+                          (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit),
+                          worker_scratch(max_rays, max_leaf), chunk, offsets.shape[0] - 1, n_chunks,
+                          (out_t, out_prim, out_u, out_v), counters, record, chosen)
 
 
 @njit(cache=True, parallel=True)
 def walk_partition(scene, batch, answers, counters, record, chosen):
-    walk(PARTITION, scene, batch, answers, counters, record, chosen)
+    bmin, bmax, first, count, prim, v0, v1, v2, order = scene
+    org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
+    out_t, out_prim, out_u, out_v = answers
+    max_rays = longest_packet(offsets)
+    max_leaf = largest_leaf(count)
+    for chunk in prange(n_chunks):
+        walk_packet_range(PARTITION, (bmin, bmax, first, count, prim, v0, v1, v2, order),
+                          (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit),
+                          worker_scratch(max_rays, max_leaf), chunk, offsets.shape[0] - 1, n_chunks,
+                          (out_t, out_prim, out_u, out_v), counters, record, chosen)
 
 
 @njit(cache=True, parallel=True)
 def walk_simd(scene, batch, answers, counters, record, chosen):
-    walk(SIMD, scene, batch, answers, counters, record, chosen)
+    bmin, bmax, first, count, prim, v0, v1, v2, order = scene
+    org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
+    out_t, out_prim, out_u, out_v = answers
+    max_rays = longest_packet(offsets)
+    max_leaf = largest_leaf(count)
+    for chunk in prange(n_chunks):
+        walk_packet_range(SIMD, (bmin, bmax, first, count, prim, v0, v1, v2, order),
+                          (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit),
+                          worker_scratch(max_rays, max_leaf), chunk, offsets.shape[0] - 1, n_chunks,
+                          (out_t, out_prim, out_u, out_v), counters, record, chosen)
 
 
 STRATEGY_KERNELS = {MASKED: walk_masked, RANGED: walk_ranged, PARTITION: walk_partition, SIMD: walk_simd}
@@ -147,32 +209,6 @@ def worker_scratch(max_rays, max_leaf):
 
 
 @njit(cache=True, inline="always")
-def walk(strategy, scene, batch, answers, counters, record, chosen):
-    """The skeleton (see the module doc) for one strategy (a constant, not AUTO), with the
-    arguments of ``walk_packets`` grouped as scene (bmin, bmax, first, count, prim, v0, v1, v2,
-    order), batch (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit) and
-    answers (out_t, out_prim, out_u, out_v). counters and record stay arguments of their own:
-    numba drops their code from the copy where they are None only when they are (inlined)
-    arguments. It holds no AUTO branch: each strategy's kernel would then compile AUTO's three
-    copies (a cold default render compiled for 245 s with it, 68 s without). chosen: i8[K] and
-    only the packets k with chosen[k] == strategy are walked (AUTO's passes), or empty: every
-    packet."""
-    bmin, bmax, first, count, prim, v0, v1, v2, order = scene
-    org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
-    out_t, out_prim, out_u, out_v = answers
-    n_packets = offsets.shape[0] - 1
-    max_rays = longest_packet(offsets)
-    max_leaf = largest_leaf(count)
-    for chunk in prange(n_chunks):
-        work = worker_scratch(max_rays, max_leaf)
-        # The groups are made again inside the parallel body, so that it receives each array on
-        # its own rather than tuples of them.
-        walk_packet_range(strategy, (bmin, bmax, first, count, prim, v0, v1, v2, order),
-                          (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit), work, chunk,
-                          n_packets, n_chunks, (out_t, out_prim, out_u, out_v), counters, record, chosen)
-
-
-@njit(cache=True, inline="always")
 def walk_packet_range(strategy, scene, batch, work, begin, end, step, answers, counters, record, chosen):
     """Packets range(begin, end, step) (those with chosen[k] == strategy when chosen is not
     empty), each loaded, walked by ``strategy`` (a constant: not AUTO) and its hits stored;
@@ -209,7 +245,7 @@ def walk_packet_range(strategy, scene, batch, work, begin, end, step, answers, c
                                                              fr, cull, leaf)
                 if counters is not None:
                     counters[thread, COUNTER_RAY_AABB, depth] += tests
-                if record is not None:
+                if record is not None and record[0].shape[0] > 0:  # a record without room: counting only
                     seen, seen_lanes = visit_record(strategy, rf, masks, carry_in, carry, hit_lanes, n_simd, box,
                                                     outcome)
                     record_visit(record, node, depth, seen, seen_lanes)
