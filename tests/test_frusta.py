@@ -201,3 +201,33 @@ def test_pointlight_needs_one_light():
     for tmax in (np.full(4, 5.0), np.full(4, np.inf)):
         rays, packets = one_packet(org, d, np.zeros(4), tmax)
         assert make_frustum("pointlight").build(rays, packets, BOUNDS).valid.tolist() == [False]
+
+
+@pytest.mark.parametrize("kind", ["pinhole", "general"])
+def test_pinhole_or_general_is_pinhole_where_the_rays_share_an_eye_and_general_elsewhere(kind):
+    """The mesh queries' builder (``PINHOLE_OR_GENERAL``) gives a packet from one eye the
+    pinhole frustum and any other packet the general one, plane for plane."""
+    from engine.packet.frustum_builders import GENERAL, PINHOLE, PINHOLE_OR_GENERAL, build_frusta
+
+    rng = np.random.default_rng(7)
+    packs = [random_packet(k, rng)[0] for k in ("pinhole", "general", "pinhole", "general")]
+    org = np.concatenate([p.org for p in packs])
+    dirs = np.concatenate([p.dir for p in packs])
+    tmin = np.concatenate([p.tmin for p in packs])
+    tmax = np.concatenate([p.tmax for p in packs])
+    offsets = np.arange(0, RAYS * len(packs) + 1, RAYS, dtype=np.int32)
+    bounds = np.stack([org.min(0) - 40, org.max(0) + 40]).astype(np.float32)
+
+    def frusta(builder):
+        planes = np.zeros((len(packs), 4, 4), np.float32)
+        valid = np.zeros(len(packs), np.bool_)
+        build_frusta(builder, org, dirs, tmin, tmax, offsets, bounds, 2, planes, valid)
+        return planes, valid
+
+    both, both_valid = frusta(PINHOLE_OR_GENERAL)
+    alone, alone_valid = frusta(PINHOLE if kind == "pinhole" else GENERAL)
+    mine = [0, 2] if kind == "pinhole" else [1, 3]
+    assert both_valid.all() and alone_valid[mine].all()
+    assert np.array_equal(both[mine], alone[mine])
+    if kind == "pinhole":
+        assert not alone_valid[[1, 3]].any()  # the packets the general builder took over

@@ -13,6 +13,9 @@ packet walk does, and per packet gathers its live rays as the builder needs them
 - ``GENERAL`` (``frusta/general.py``): reflection and refraction rays with scattered segment
   starts; the slab frustum between a near plane before the starts and a far one beyond the
   scene.
+- ``PINHOLE_OR_GENERAL`` (the mesh queries of ``engine.query.coherent``, whose rays may or may
+  not come from one point): ``PINHOLE`` where the packet's live rays share one origin, else
+  ``GENERAL``.
 
 A packet with no live ray, or whose rays fail its builder's condition, gets no frustum
 (valid False). The builder is a run-time number, tested once per packet (nothing next to the
@@ -28,7 +31,7 @@ from numba import njit, prange
 from engine.packet.frustum_build import abs_max3, apex_frustum, bounds_scale, farthest_corner, slab_frustum
 from engine.packet.kernels import longest_packet
 
-PINHOLE, POINTLIGHT, GENERAL = range(3)
+PINHOLE, POINTLIGHT, GENERAL, PINHOLE_OR_GENERAL = range(4)
 
 #: How far the end points of a shadow packet may scatter around the first one, relative to the
 #: shortest ray, for the rays to count as meeting at one light.
@@ -128,8 +131,10 @@ def build_frusta(builder, org, dirs, tmin, tmax, offsets, bounds, n_chunks, plan
         point = np.empty(3)
         for k in range(chunk, n_packets, n_chunks):
             lo, hi = offsets[k], offsets[k + 1]
-            if builder == PINHOLE:
+            if builder == PINHOLE or builder == PINHOLE_OR_GENERAL:
                 valid[k] = pinhole_frustum(org, dirs, tmin, tmax, lo, hi, bounds, scene_scale, g, point, planes[k])
+                if builder == PINHOLE_OR_GENERAL and not valid[k]:
+                    valid[k] = general_frustum(org, dirs, tmin, tmax, lo, hi, bounds, g, p0, planes[k])
             elif builder == POINTLIGHT:
                 valid[k] = pointlight_frustum(org, dirs, tmin, tmax, lo, hi, scene_scale, g, point, planes[k])
             else:

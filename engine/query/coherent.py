@@ -11,7 +11,10 @@ mesh's size). A batch whose median block stays under ``MAX_DIRECTION_SPREAD`` an
 ``MAX_ORIGIN_SPREAD`` goes to ``packet_first_hits``: the rays, moved into the mesh's local frame
 exactly as the per-ray walk moves them (``engine.query.frame.local_ray``), are cut in the
 intersector's order (the caller's, or ``order="morton"``) into packets of ``PACKET_RAYS`` rays,
-given general frusta and walked by Ranged. The answers are the per-ray walk's, bit for bit: the
+given frusta and walked by Ranged. A packet whose rays share one origin gets the pinhole frustum
+the render path gives camera rays, any other the general one (``PINHOLE_OR_GENERAL``): on 447 x
+447 camera rays of the bunny (two threads) the pinhole frusta are cheaper to build and cull
+more, and a query took 9.7 ms against 10.5-11.2 with general frusta. The answers are the per-ray walk's, bit for bit: the
 same float32 rays, triangles, watertight test and tie rule.
 
 Camera rays given row by row are walked in 8 x 8 tiles, as the render path walks them: a tile
@@ -35,7 +38,7 @@ from numba import njit, prange
 
 from engine.core.triangle import HUGE_INV
 from engine.packet.compact import new_array
-from engine.packet.frustum_builders import GENERAL, build_frusta
+from engine.packet.frustum_builders import PINHOLE_OR_GENERAL, build_frusta
 from engine.packet.plugin import deck_count
 from engine.packet.strategies import RANGED
 from engine.packet.walk import walk_packets
@@ -256,7 +259,7 @@ def packet_first_hits(bvh, tris, order_keys, origins, directions, center, scale,
     planes = allocate("packet_planes", n_packets, (4, 4))  # build_frusta fills every packet's
     valid = allocate("packet_valid", n_packets, (), np.bool_)
     decks = deck_count(n_packets)
-    build_frusta(GENERAL, org, dirs, tmin, tmax, offsets, bounds, decks, planes, valid)
+    build_frusta(PINHOLE_OR_GENERAL, org, dirs, tmin, tmax, offsets, bounds, decks, planes, valid)
     t, prim = allocate("packet_t", lanes), allocate("packet_prim", lanes, (), np.int32)
     u, v = allocate("packet_u", lanes), allocate("packet_v", lanes)
     walk_packets(RANGED, bvh.bmin, bvh.bmax, bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
