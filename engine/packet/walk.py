@@ -2,22 +2,22 @@
 Mark 2008, Section 3), and its kernels (``walk_packets``).
 
 Each strategy's kernel deals the packets to the threads in interleaved decks; for each packet
-it loads the rays into packet-local rows (``engine.packet.kernels.load_packet``) and its frustum, walks the
-BVH depth first and stores the best hits. The walk pops a node, counts it, lets the strategy
-visit it (``engine.packet.steps.node_step``: getFirstHit, partRays, the frustum test) and, when
-the visit ENTERED, either intersects the leaf's frustum-surviving triangles with the SIMD rays
-and lanes the strategy lists (``leaf_rays`` / ``leaf_ray``), or pushes the children far first,
-so that the near one -- from the packet's direction signs -- is popped first. SIMD walks each
-SIMD ray of a packet alone (``walkers``). A walk ends when its stack is empty or every lane is
-dead (an occlusion query kills a lane at its first hit).
+it loads the rays into packet-local rows (``engine.packet.kernels.load_packet``) and its
+frustum, walks the BVH depth first and stores the best hits. The walk pops a node, counts it,
+lets the strategy visit it (``engine.packet.steps.node_step``: getFirstHit, partRays, the
+frustum test) and, when the visit ENTERED, either intersects the leaf's frustum-surviving
+triangles with the SIMD rays and lanes the strategy lists (``leaf_rays`` / ``leaf_ray``), or
+pushes the children far first, so that the near one -- from the packet's direction signs -- is
+popped first. SIMD walks each SIMD ray of a packet alone (``walkers``). A walk ends when its
+stack is empty or every lane is dead (an occlusion query kills a lane at its first hit).
 
 ``walk_packets`` walks a batch by one strategy through that strategy's compiled, disk-cached
 kernel (``walk_masked``, ``walk_ranged``, ``walk_partition``, ``walk_simd``; numba compiles two
 of each: the plain walk, and the instrumented one with both counters and a record, see
-``instrumented``). Each inlines
-``walk_packet_range`` with its strategy a constant, so numba prunes the other strategies' steps from it: with the strategy
-a run-time number instead, the branches cost up to 5% on primary and shadow rays; and a config
-compiles only the strategies it uses. AUTO (``walk_packets_auto``) asks
+``instrumented``). Each inlines ``walk_packet_range`` with its strategy a constant, so numba
+prunes the other strategies' steps from it: with the strategy a run-time number instead, the
+branches cost up to 5% on primary and shadow rays; and a config compiles only the strategies it
+uses. AUTO (``walk_packets_auto``) asks
 ``engine.packet.choose.choose_packet`` for every packet first, then runs the kernel of each
 strategy it chose, walking only the packets chosen for it.
 
