@@ -129,6 +129,20 @@ def test_coherent_rays_take_the_packet_walk_with_the_per_ray_walks_answers(which
     assert len(calls) == 2
 
 
+
+def test_camera_rays_through_the_packet_walk_equal_trimesh_default_backend(bunny):
+    """Rays from one eye take the packet walk with pinhole frusta (``PINHOLE_OR_GENERAL``) and
+    answer as Embree does, first and any hit, tie-aware."""
+    import engine.query.coherent as coherent
+
+    origins, directions = pinhole_rays(bunny, 160)
+    assert coherent.is_coherent(origins, directions, bunny.extents.max())
+    ours, theirs = RayMeshIntersector(bunny), EmbreeIntersector(bunny)
+    first = ours.intersects_first(origins, directions)
+    assert_same_first_hits(bunny, first, theirs.intersects_first(origins, directions), origins, directions)
+    assert (first >= 0).sum() > 3000  # the bunny fills about a sixth of the view
+    assert np.array_equal(ours.intersects_any(origins, directions), theirs.intersects_any(origins, directions))
+
 def test_camera_rays_are_recognised_by_their_row_length_and_walked_in_tiles(bunny, monkeypatch):
     """A row-by-row image of a width that is no multiple of the tile (101 x 83) is recognised;
     its rays are walked tile by tile (every ray once) with the per-ray walk's answers; shuffled
