@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numba import njit
 
+from engine.packet.frustum_build import EMPTY_EXTENT, dominant_axis, grow_extent
 from engine.packet.frustum_cull import frustum_misses_box, frustum_misses_triangle, load_frustum
 from engine.core.triangle import F32_INF, intersect_triangle, ray_shear, safe_inverse, slab_test
 from engine.packet.kernels import node_box
@@ -231,3 +232,42 @@ def test_pinhole_or_general_is_pinhole_where_the_rays_share_an_eye_and_general_e
     assert np.array_equal(both[mine], alone[mine])
     if kind == "pinhole":
         assert not alone_valid[[1, 3]].any()  # the packets the general builder took over
+
+
+@njit(cache=True)
+def _axis_of(g):
+    """The builders' axis choice for the vectors g (f64[m,3]): their extent grown vector by
+    vector, as the builders grow it in their gathering pass, then ``dominant_axis``."""
+    e0, e1, e2, e3, e4, e5, e6, e7, e8 = EMPTY_EXTENT
+    for i in range(g.shape[0]):
+        e0, e1, e2, e3, e4, e5, e6, e7, e8 = grow_extent(e0, e1, e2, e3, e4, e5, e6, e7, e8,
+                                                         g[i, 0], g[i, 1], g[i, 2])
+    return dominant_axis((e0, e1, e2, e3, e4, e5, e6, e7, e8))
+
+
+def _axis_rule(g):
+    """The rule in plain numpy: among the axes along which every vector has one strict sign, the
+    one whose summed component is longest; (-1, 0.0) when there is none or a vector is not finite."""
+    if not np.isfinite(g).all():
+        return -1, 0.0
+    best = (-1, 0.0, 0.0)
+    for a in range(3):
+        total = abs(g[:, a].sum())
+        for sign in (1.0, -1.0):
+            if (sign * g[:, a] > 0).all() and total > best[2]:
+                best = (a, sign, total)
+    return best[0], best[1]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(1, 40), st.integers(0, 2**31 - 1), st.sampled_from(["cone", "scattered", "nonfinite"]))
+def test_the_dominant_axis_is_the_longest_axis_along_which_every_vector_has_one_sign(m, seed, kind):
+    rng = np.random.default_rng(seed)
+    if kind == "cone":  # rays of one packet: around one direction
+        g = rng.normal(size=3) + 0.2 * rng.normal(size=(m, 3))
+    else:
+        g = rng.normal(size=(m, 3))
+    if kind == "nonfinite":
+        g[rng.integers(m), rng.integers(3)] = rng.choice([np.inf, -np.inf, np.nan])
+    axis, sign = _axis_of(np.ascontiguousarray(g))
+    assert (axis, sign) == _axis_rule(g)

@@ -28,7 +28,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from engine.packet.frustum_build import abs_max3, apex_frustum, bounds_scale, farthest_corner, slab_frustum
+from engine.packet.frustum_build import (EMPTY_EXTENT, abs_max3, apex_frustum, bounds_scale, farthest_corner,
+                                         grow_extent, slab_frustum)
 from engine.packet.kernels import longest_packet
 
 PINHOLE, POINTLIGHT, GENERAL, PINHOLE_OR_GENERAL = range(4)
@@ -43,6 +44,7 @@ def pinhole_frustum(org, dirs, tmin, tmax, lo, hi, bounds, scene_scale, g, apex,
     """Frustum of rays lo .. hi-1 from one eye into plane (f32[4,4]); False when there is none.
     Scratch: g f64[>= hi-lo, 3] the live directions, apex f64[3]."""
     m = 0
+    e0, e1, e2, e3, e4, e5, e6, e7, e8 = EMPTY_EXTENT
     for r in range(lo, hi):
         if not tmin[r] <= tmax[r]:
             continue
@@ -50,13 +52,15 @@ def pinhole_frustum(org, dirs, tmin, tmax, lo, hi, bounds, scene_scale, g, apex,
             apex[0], apex[1], apex[2] = org[r, 0], org[r, 1], org[r, 2]
         elif org[r, 0] != apex[0] or org[r, 1] != apex[1] or org[r, 2] != apex[2]:
             return False
-        g[m, 0], g[m, 1], g[m, 2] = dirs[r, 0], dirs[r, 1], dirs[r, 2]
+        x, y, z = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
+        g[m, 0], g[m, 1], g[m, 2] = x, y, z
+        e0, e1, e2, e3, e4, e5, e6, e7, e8 = grow_extent(e0, e1, e2, e3, e4, e5, e6, e7, e8, x, y, z)
         m += 1
     if m == 0:
         return False
     scale = max(scene_scale, abs_max3(apex[0], apex[1], apex[2]))
     reach = farthest_corner(apex[0], apex[1], apex[2], bounds)
-    return apex_frustum(apex, g, m, scale, reach, 0.0, plane)
+    return apex_frustum(apex, g, m, (e0, e1, e2, e3, e4, e5, e6, e7, e8), scale, reach, 0.0, plane)
 
 
 @njit(cache=True, inline="always")
@@ -82,6 +86,7 @@ def pointlight_frustum(org, dirs, tmin, tmax, lo, hi, scene_scale, g, light, pla
     reach2 = 0.0
     scale = max(scene_scale, abs_max3(light[0], light[1], light[2]))
     m = 0
+    e0, e1, e2, e3, e4, e5, e6, e7, e8 = EMPTY_EXTENT
     for r in range(lo, hi):
         if not tmin[r] <= tmax[r]:
             continue
@@ -93,13 +98,16 @@ def pointlight_frustum(org, dirs, tmin, tmax, lo, hi, scene_scale, g, light, pla
             # Vector from the light back to where the ray's segment starts.
             g[m, a] = org[r, a] + np.float64(tmin[r]) * dirs[r, a] - light[a]
         length2 = g[m, 0] * g[m, 0] + g[m, 1] * g[m, 1] + g[m, 2] * g[m, 2]
+        e0, e1, e2, e3, e4, e5, e6, e7, e8 = grow_extent(e0, e1, e2, e3, e4, e5, e6, e7, e8,
+                                                         g[m, 0], g[m, 1], g[m, 2])
         shortest2 = min(shortest2, length2)
         reach2 = max(reach2, length2)
         scale = max(scale, abs_max3(org[r, 0], org[r, 1], org[r, 2]))
         m += 1
     if not spread2 <= END_SPREAD * END_SPREAD * shortest2:
         return False
-    return apex_frustum(light, g, m, scale, math.sqrt(reach2), math.sqrt(spread2), plane)
+    return apex_frustum(light, g, m, (e0, e1, e2, e3, e4, e5, e6, e7, e8), scale, math.sqrt(reach2),
+                        math.sqrt(spread2), plane)
 
 
 @njit(cache=True, inline="always")
@@ -107,14 +115,17 @@ def general_frustum(org, dirs, tmin, tmax, lo, hi, bounds, g, p0, plane):
     """Slab frustum of rays lo .. hi-1 into plane (f32[4,4]); False when there is none.
     Scratch: g, p0 f64[>= hi-lo, 3] the live directions and segment starts."""
     m = 0
+    e0, e1, e2, e3, e4, e5, e6, e7, e8 = EMPTY_EXTENT
     for r in range(lo, hi):
         if not tmin[r] <= tmax[r]:
             continue
         for a in range(3):
             g[m, a] = dirs[r, a]
             p0[m, a] = org[r, a] + np.float64(tmin[r]) * dirs[r, a]
+        e0, e1, e2, e3, e4, e5, e6, e7, e8 = grow_extent(e0, e1, e2, e3, e4, e5, e6, e7, e8,
+                                                         g[m, 0], g[m, 1], g[m, 2])
         m += 1
-    return m > 0 and slab_frustum(p0, g, m, bounds, plane)
+    return m > 0 and slab_frustum(p0, g, m, (e0, e1, e2, e3, e4, e5, e6, e7, e8), bounds, plane)
 
 
 @njit(cache=True, parallel=True)
