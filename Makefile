@@ -12,7 +12,7 @@ ifeq ($(origin PACKETRT_SCENE_PATH), undefined)
   endif
 endif
 
-.PHONY: render test bench clean
+.PHONY: render test test-parallel bench clean
 
 $(STAMP): pyproject.toml .ci/system-deps
 	bash .ci/system-deps
@@ -26,6 +26,11 @@ render: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest
+
+# The same suite in one pytest worker per core, a test file per worker at a time (its kernels
+# compile once there): a cold numba cache compiles on every core at once. See the README.
+test-parallel: $(STAMP)
+	$(PY) -m pytest -n auto --dist loadfile
 
 bench: $(STAMP)
 	$(VENV)/bin/packetrt bench benchmarks/smoke.toml --out out/bench-smoke
