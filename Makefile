@@ -12,7 +12,7 @@ ifeq ($(origin PACKETRT_SCENE_PATH), undefined)
   endif
 endif
 
-.PHONY: render test test-parallel bench clean
+.PHONY: render test test-serial bench clean
 
 $(STAMP): pyproject.toml .ci/system-deps
 	bash .ci/system-deps
@@ -24,13 +24,14 @@ $(STAMP): pyproject.toml .ci/system-deps
 render: $(STAMP)
 	$(VENV)/bin/packetrt render -o out/default.png --stats out/default.json
 
+# One pytest worker per core (pytest-xdist), a test file per worker at a time so that its kernels
+# compile once there: most of a cold run is numba compiling, one kernel at a time in a process,
+# and two workers overlap it. `make test-serial` is the same suite in one process.
 test: $(STAMP)
-	$(PY) -m pytest
-
-# The same suite in one pytest worker per core, a test file per worker at a time (its kernels
-# compile once there): a cold numba cache compiles on every core at once. See the README.
-test-parallel: $(STAMP)
 	$(PY) -m pytest -n auto --dist loadfile
+
+test-serial: $(STAMP)
+	$(PY) -m pytest
 
 bench: $(STAMP)
 	$(VENV)/bin/packetrt bench benchmarks/smoke.toml --out out/bench-smoke

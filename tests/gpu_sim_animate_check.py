@@ -15,10 +15,10 @@ from PIL import Image
 
 def main(folder: Path) -> dict:
     from engine.cli import main as cli
-    from tests.gpu_sim_frame_check import _faster_simulator
+    from tests.cudasim import prepare
     from tests.test_animate import SCENE
 
-    _faster_simulator()
+    prepare()
     scene = folder / "moving.aff"
     scene.write_text(textwrap.dedent(SCENE))
     codes = {}

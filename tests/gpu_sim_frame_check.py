@@ -11,18 +11,7 @@ import sys
 
 import numpy as np
 
-
-def _faster_simulator() -> None:
-    """Fewer simulated threads per block and quicker thread switches: the simulator runs every
-    GPU thread as a Python thread. The kernels are written for any block size (the real device
-    keeps 128); set before engine.gpu's kernels are imported."""
-    sys.setswitchinterval(1e-4)
-    from engine.gpu import device
-
-    device.BLOCK = 32
-    from engine.gpu.rayspace import stream
-
-    stream.GRID_BLOCKS = 4   # few simulated blocks, each striding over several rows of pairs
+from tests.cudasim import prepare
 
 
 def _textured(scene):
@@ -40,7 +29,7 @@ def _textured(scene):
 
 
 def main(width: int, height: int, traversal: str, depth: int, textured: bool = False) -> dict:
-    _faster_simulator()
+    prepare()
     from engine.gpu.frame import GpuWhittedRenderer
     from engine.render.config import Config, RenderConfig, PerKind
     from engine.render.whitted import WhittedRenderer

@@ -17,19 +17,14 @@ import time
 
 import numpy as np
 
-# The simulator runs each GPU thread as a Python thread and polls them from the main one:
-# short switch intervals and one-warp blocks cut its barrier cost several times over. The
-# kernels are written for any BLOCK; the real device keeps 128.
-sys.setswitchinterval(1e-4)
+from tests.cudasim import prepare  # noqa: E402
+
+prepare()   # before engine.gpu's kernels are imported: block size, stream grid, locked shared arrays
 import engine.gpu.device as device  # noqa: E402
-
-device.BLOCK = 32
-
 from engine.core.types import Triangles  # noqa: E402
-from engine.gpu.rayspace import DeviceRaySpace, stream  # noqa: E402
+from engine.gpu.rayspace import DeviceRaySpace  # noqa: E402
 from engine.gpu.scene_upload import DeviceTriangles, upload  # noqa: E402
 
-stream.GRID_BLOCKS = 4   # few simulated blocks, each striding over several rows of pairs
 SENTINEL_T = np.float32(-7.0)
 SENTINEL_PRIM = -7
 

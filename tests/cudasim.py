@@ -1,0 +1,84 @@
+"""numba's CUDA simulator as the GPU tests run it: in their child processes only
+(``NUMBA_ENABLE_CUDASIM=1``), before ``engine.gpu``'s kernels are imported.
+
+``prepare()`` does three things:
+
+1. Quicker thread switches and one-warp blocks: the simulator runs every GPU thread as a
+   Python thread and polls them from the main one, so short switch intervals and 32-thread
+   blocks cut its barrier cost several times over. The kernels are written for any block size;
+   the real device keeps 128. The rayspace stream gets few blocks, each striding over several
+   rows of pairs, so the striding is exercised.
+2. ``lock_shared_allocation()``: the simulator (numba-cuda 0.30.4) hands out a block's
+   ``cuda.shared.array`` by looking its call site up in a dict and, when absent, creating and
+   storing one -- without a lock. Two threads of a block that reach the call site together can
+   both create one, and then each writes a shared array of its own: the block's scan or
+   reduction silently goes wrong. With the short switch interval above it shows:
+   ``tests/test_cudasim.py`` measures 5% of 300 trials of 32 threads ending with more than one
+   array, and a kernel summing its threads' entries of a shared array read a wrong sum in 2 of
+   1,500 launches. It is the likely cause of the one failure in seven runs of
+   ``test_small_pair_budget_batches_triangles`` under two pytest workers, whose pair counts come
+   from block scans and block maxima in shared memory. A real GPU has no such race.
+"""
+from __future__ import annotations
+
+import sys
+import threading
+
+SWITCH_INTERVAL_S = 1e-4
+SIMULATED_BLOCK = 32
+SIMULATED_STREAM_BLOCKS = 4
+
+
+def lock_shared_allocation() -> bool:
+    """Make the simulator's static shared-array allocation atomic (see the module doc).
+
+    The replacement keeps the simulator's rule -- one array per call site (file, line) for the
+    whole launch -- and finds the call site from the caller's frame, as the original does from
+    the stack. Returns False, changing nothing, where the simulator's class does not look like
+    the one this was written against (a later numba-cuda: check whether it still races)."""
+    from numba.cuda.simulator import kernelapi
+
+    shared_class = getattr(kernelapi, "FakeCUDAShared", None)
+    original = getattr(shared_class, "array", None)
+    if original is None or getattr(original, "locked_allocation", False):
+        return original is not None
+    probe = shared_class(0)
+    if not isinstance(getattr(probe, "_allocations", None), dict):
+        return False
+    import numpy as np
+    from numba.core import types
+    from numba.np import numpy_support
+
+    lock = threading.Lock()
+
+    def array(self, shape, dtype, alignment=None):
+        if alignment is not None or shape == 0:   # errors, and dynamic shared memory: the original's
+            return original(self, shape, dtype, alignment)
+        if isinstance(dtype, types.Type):
+            dtype = numpy_support.as_dtype(dtype)
+        caller = sys._getframe(1)
+        site = (caller.f_code.co_filename, caller.f_lineno)
+        with lock:
+            found = self._allocations.get(site)
+            if found is None:
+                found = np.empty(shape, dtype)
+                self._allocations[site] = found
+        return found
+
+    array.locked_allocation = True
+    shared_class.array = array
+    return True
+
+
+def prepare() -> None:
+    """Everything above; call first thing in a simulator child process."""
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+    if not lock_shared_allocation():
+        print("tests/cudasim.py: the simulator's shared arrays are not locked (unknown numba-cuda layout)",
+              file=sys.stderr)
+    from engine.gpu import device
+
+    device.BLOCK = SIMULATED_BLOCK
+    from engine.gpu.rayspace import stream
+
+    stream.GRID_BLOCKS = SIMULATED_STREAM_BLOCKS
