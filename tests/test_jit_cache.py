@@ -62,3 +62,54 @@ def test_importing_engine_writes_nothing(tmp_path):
     assert run.returncode == 0, run.stderr
     assert not (tmp_path / "cache").exists()
     assert snapshot() == before
+
+
+def copy_checkout(target):
+    """The packages of this checkout (their .py files only) copied to ``target``."""
+    import shutil
+
+    from engine.core.jit_cache import PACKAGES
+
+    for package in PACKAGES:
+        shutil.copytree(ROOT / package, target / package, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    return target
+
+
+LOAD_ONE_KERNEL = """
+import json, numpy as np, engine
+from engine.query.order import spread_bits
+spread_bits(np.uint64(5), 10, 3)
+stats = spread_bits.stats
+print(json.dumps({"hits": sum(stats.cache_hits.values()), "misses": sum(stats.cache_misses.values()),
+                  "path": stats.cache_path, "module": engine.__file__}))
+"""
+
+
+def load_one_kernel(checkout, cache_home):
+    import json
+
+    env = {**os.environ, "XDG_CACHE_HOME": str(cache_home), "PYTHONPATH": str(checkout),
+           "PYTHONDONTWRITEBYTECODE": "1"}
+    env.pop("NUMBA_CACHE_DIR", None)
+    run = subprocess.run([sys.executable, "-c", LOAD_ONE_KERNEL], env=env, cwd=checkout, capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert result["module"].startswith(str(checkout))   # this checkout's engine, not the installed one
+    return result
+
+
+def test_a_second_checkout_of_the_same_sources_loads_the_first_ones_kernels(tmp_path):
+    """Two copies of the checkout in different folders share one cache: the second compiles
+    nothing. A copy whose compiled sources differ uses a folder of its own and compiles."""
+    first, second, changed = (copy_checkout(tmp_path / name) for name in ("a", "b", "c"))
+    with open(changed / "engine" / "query" / "order.py", "a") as source:
+        source.write("\n\n@njit(cache=True)\ndef _another_kernel(x):\n    return x\n")
+    cache = tmp_path / "cache"
+    compiled = load_one_kernel(first, cache)
+    assert (compiled["hits"], compiled["misses"]) == (0, 1)
+    assert compiled["path"].endswith(os.path.join("engine", "query"))   # the module's path in the checkout
+    loaded = load_one_kernel(second, cache)
+    assert (loaded["hits"], loaded["misses"]) == (1, 0) and loaded["path"] == compiled["path"]
+    other = load_one_kernel(changed, cache)
+    assert (other["hits"], other["misses"]) == (0, 1) and other["path"] != compiled["path"]
