@@ -21,7 +21,7 @@ from numba import njit
 from engine.core.triangle import F32_INF, closer, intersect_triangle, safe_inverse
 from engine.packet.kernels import (BEST_PRIM, BEST_T, BEST_U, BEST_V, KX, KY, KZ, OKX, OKY, OKZ, RF_ROWS, RI_ROWS,
                                    SX, SY, SZ, THI, TLO, load_packet)
-from engine.packet.simd4_triangle import intersect4, intersect4x2, triangles1x4
+from engine.packet.simd4_triangle import intersect4, intersect4x2, triangles_block
 
 LANES = 32
 F32_NEG_INF = np.float32(-np.inf)
@@ -223,16 +223,28 @@ def test_intersect4x2_is_the_scalar_leaf_loop_on_two_simd_rays(seed, any_hit):
 
 
 @njit(cache=True)
-def windows_vector(rf, ri, windows, v0, v1, v2):
-    """f32[LANES, W, 12]: triangles1x4 of every lane and window (first, n) of triangles."""
+def windows_vector(rf, ri, windows, blocks):
+    """f32[LANES, W, 12]: triangles_block of every lane and window k (block k, its first n lanes)."""
     out = np.zeros((rf.shape[1], windows.shape[0], 12), np.float32)
     for r in range(rf.shape[1]):
         for k in range(windows.shape[0]):
-            res = triangles1x4(v0, v1, v2, windows[k, 0], windows[k, 1], rf[OKX, r], rf[OKY, r], rf[OKZ, r],
-                               ri[KX, r], ri[KY, r], ri[KZ, r], rf[SX, r], rf[SY, r], rf[SZ, r], rf[TLO, r], rf[THI, r])
+            res = triangles_block(blocks, k, windows[k, 1], rf[OKX, r], rf[OKY, r], rf[OKZ, r],
+                                  ri[KX, r], ri[KY, r], ri[KZ, r], rf[SX, r], rf[SY, r], rf[SZ, r], rf[TLO, r], rf[THI, r])
             for j in range(12):
                 out[r, k, j] = res[j]
     return out
+
+
+def window_blocks(windows, v0, v1, v2):
+    """f32[W,9,4]: window k's triangles first .. first+n-1 in block k's first n lanes (the
+    ``engine.query.leaf_blocks`` layout); the lanes past n hold other triangles of the mesh,
+    which the test must ignore."""
+    blocks = np.empty((len(windows), 9, 4), np.float32)
+    for k, (first, n) in enumerate(windows):
+        rows = [first + j if j < n else (first + n + 3 * j) % len(v0) for j in range(4)]
+        for c, corner in enumerate((v0, v1, v2)):
+            blocks[k, 3 * c:3 * c + 3, :] = corner[rows].T
+    return blocks
 
 
 @njit(cache=True)
@@ -252,9 +264,9 @@ def windows_scalar(rf, ri, windows, v0, v1, v2):
 
 @settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 2 ** 32 - 1))
-def test_triangles1x4_is_intersect_triangle_on_four_triangles(seed):
-    """One ray against a window of 1-4 consecutive triangles: each slot is intersect_triangle's
-    answer bit for bit, slots past the window are misses."""
+def test_triangles_block_is_intersect_triangle_on_four_triangles(seed):
+    """One ray against a block of 1-4 triangles: each slot is intersect_triangle's answer bit for
+    bit, slots past the block's n are misses whatever triangles they hold."""
     rf, ri, calls, leaf_tris, v0, v1, v2, ts = make_case(seed)
     live = rf[TLO] <= rf[THI]
     rf, ri = rf[:, live].copy(), ri[:, live].copy()
@@ -262,9 +274,17 @@ def test_triangles1x4_is_intersect_triangle_on_four_triangles(seed):
     windows = np.zeros((16, 2), np.int64)
     windows[:, 1] = rng.integers(1, 5, 16)
     windows[:, 0] = rng.integers(0, len(v0) - windows[:, 1] + 1)
-    vector = windows_vector(rf, ri, windows, v0, v1, v2)
+    # Half the windows hold a triangle some live lane hits inside its segment (random windows
+    # alone missed every hit for some seeds).
+    ts = ts[live]
+    hits = np.argwhere(np.isfinite(ts) & (ts >= rf[TLO][:, None]) & (ts <= rf[THI][:, None]))
+    if len(hits):
+        for k in range(8):
+            tri, n = hits[rng.integers(len(hits)), 1], windows[k, 1]
+            windows[k, 0] = min(max(tri - rng.integers(0, n), 0), len(v0) - n)
+    vector = windows_vector(rf, ri, windows, window_blocks(windows, v0, v1, v2))
     np.testing.assert_array_equal(bits(vector), bits(windows_scalar(rf, ri, windows, v0, v1, v2)))
-    assert np.isfinite(vector[:, :, :4]).any()
+    assert np.isfinite(vector[:, :, :4]).any() == (len(hits) > 0)
 
 
 def test_cases_reach_the_edge_cases():
@@ -313,16 +333,22 @@ def test_strided_inputs():
     np.testing.assert_array_equal(ri, ri_s)
 
 
-@pytest.mark.parametrize("lanes", [4, 8])
-def test_no_fast_math_and_no_fma(lanes):
+@pytest.mark.parametrize("test", ["intersect4", "intersect4x2", "triangles_block"])
+def test_no_fast_math_and_no_fma(test):
     """Bit-identity by construction: plain IEEE ops, nothing LLVM may fuse or reassociate."""
     rf, ri, calls, leaf_tris, v0, v1, v2, _ = make_case(0)
-    if lanes == 4:
+    lanes = 8 if test == "intersect4x2" else 4
+    if test == "intersect4":
         fresh = njit(leaves_vector.py_func)  # not from the disk cache, which keeps no IR
-    else:
+        fresh(rf, ri, calls, leaf_tris, v0, v1, v2, False)
+    elif test == "intersect4x2":
         fresh = njit(leaves_pairs.py_func)
         calls = np.concatenate([calls[:, :1], (calls[:, :1] + 4) % LANES, calls[:, 1:2] * 17, calls[:, 2:]], 1)
-    fresh(rf, ri, calls, leaf_tris, v0, v1, v2, False)
+        fresh(rf, ri, calls, leaf_tris, v0, v1, v2, False)
+    else:
+        fresh = njit(windows_vector.py_func)
+        windows = np.array([[0, 4], [1, 3]], np.int64)
+        fresh(rf, ri, windows, window_blocks(windows, v0, v1, v2))
     sig = fresh.signatures[0]
     llvm = fresh.inspect_llvm(sig)
     asm = fresh.inspect_asm(sig)

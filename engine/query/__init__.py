@@ -4,6 +4,8 @@
   float64 kept for answers); each ray is moved into that frame as it is walked, bad rays marked.
 - ``order``: optional ray order, sorted in numba by direction octant and a Morton code of the origin.
 - ``wide``: the 8-wide BVH collapsed from the binary one (children's boxes side by side).
+- ``leaf_blocks``: the leaves' triangles in blocks of four, each corner component of the four
+  side by side, as the four-triangle test loads them.
 - ``walk``: the one inlined per-ray walk over it (closest, any, or every hit).
 - ``hits``: parallel kernels over sorted rays: first hit, any hit, all hits (count, then fill).
 - ``locations``: float64 hit points from the triangle's plane (or barycentrics).

@@ -28,10 +28,10 @@ DIRECTIONS = DIRECTIONS / np.linalg.norm(DIRECTIONS, axis=1, keepdims=True)
 
 
 @njit(cache=True, inline="always")
-def _line(box, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz, stack, stack_t, bt, btri, bu, bv,
+def _line(box, child, size, lane_tri, blocks, ox, oy, oz, dx, dy, dz, stack, stack_t, bt, btri, bu, bv,
           gap):
     """(crossings ahead, crossings behind, ambiguous) of the line (ox, oy, oz) + t (dx, dy, dz)."""
-    n, _, _, _, _ = walk(box, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz,
+    n, _, _, _, _ = walk(box, child, size, lane_tri, blocks, ox, oy, oz, dx, dy, dz,
                          np.float32(-np.inf), np.float32(np.inf), COLLECT, stack, stack_t, bt, btri, bu, bv, CAP)
     if n > CAP:
         return 0, 0, True
@@ -49,7 +49,7 @@ def _line(box, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz, stack, sta
 
 
 @njit(cache=True, parallel=True)
-def contains_kernel(box, child, size, prim, v0, v1, v2, points, center, scale, lo, hi, directions, gap,
+def contains_kernel(box, child, size, lane_tri, blocks, points, center, scale, lo, hi, directions, gap,
                     out):
     """out (bool[n]): is each world point (f64[n,3]) inside the closed mesh. center (f64[3]),
     scale: the mesh's frame; lo, hi (f64[3]): the mesh's box in that frame (points outside it, or
@@ -71,7 +71,7 @@ def contains_kernel(box, child, size, prim, v0, v1, v2, points, center, scale, l
             casts = 0
             decided = False
             for k in range(directions.shape[0]):
-                ahead, behind, unclear = _line(box, child, size, prim, v0, v1, v2, ox, oy, oz,
+                ahead, behind, unclear = _line(box, child, size, lane_tri, blocks, ox, oy, oz,
                                                directions[k, 0], directions[k, 1], directions[k, 2],
                                                stack, stack_t, bt, btri, bu, bv, gap)
                 p_forward = ahead % 2

@@ -59,6 +59,7 @@ from engine.query.hits import (collect_hits_kernel, compact_hits_kernel, count_h
                                first_hit_kernel)
 from engine.query.locations import locations_kernel
 from engine.query.order import ray_order
+from engine.query.leaf_blocks import leaf_blocks
 from engine.query.wide import collapse
 
 #: Hits closer than this (in units of the mesh's largest extent) to the previous one along a
@@ -81,10 +82,9 @@ class _Structure(NamedTuple):
     faces: np.ndarray      # i64[T,3]
     frame: MeshFrame
     bvh: BVH
-    wide: tuple            # (box, child, size) of the 8-wide tree over bvh
-    v0: np.ndarray         # f32[P,3] local corners in the BVH's prim order (leaves contiguous)
-    v1: np.ndarray
-    v2: np.ndarray
+    wide: tuple            # (box, child, size) of the 8-wide tree over bvh, leaf slots at blocks
+    lane_tri: np.ndarray   # i32[G*4] triangle of each block lane (engine.query.leaf_blocks)
+    blocks: np.ndarray     # f32[G,9,4] the leaves' local corners, four triangles a block
     tris: Triangles        # the local float32 triangles in face order (the packet walk's)
     order_keys: np.ndarray  # the packet walk's child_order_keys of bvh (made once: 0.5 ms a query)
 
@@ -203,10 +203,11 @@ class RayMeshIntersector:
             faces = old.faces
         else:
             bvh = build_bvh(tris, leaf_size=self._leaf_size, bins=self._bins)
-        corners = (np.ascontiguousarray(c[bvh.prim]) for c in (tris.v0, tris.v1, tris.v2))
-        wide = collapse(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
+        box, child, size = collapse(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
+        child, lane_tri, blocks = leaf_blocks(bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2, child, size)
         keys = child_order_keys(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
-        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, wide, *corners, tris, keys)
+        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, (box, child, size), lane_tri,
+                                           blocks, tris, keys)
         return self._structure_cache
 
     def __getstate__(self):
@@ -251,7 +252,7 @@ class RayMeshIntersector:
 
     @staticmethod
     def _tree(s: _Structure):
-        return (*s.wide, s.bvh.prim, s.v0, s.v1, s.v2)
+        return (*s.wide, s.lane_tri, s.blocks)
 
     @staticmethod
     def _frame_args(s: _Structure, rays: _Rays):

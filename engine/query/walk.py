@@ -9,11 +9,11 @@ Modes (integer constants, so one compiled helper serves every kernel and reaches
 - ``COLLECT``: every hit on [t_lo, t_hi]; the first ``cap`` are written to the scratch buffers
   (unsorted) and the total is returned, so a caller can count (cap 0) and then fill.
 
-Triangles are the watertight test's float32 corners in the mesh's local frame, stored in the
-BVH's ``prim`` order (row i is triangle prim[i]), so a leaf's corners are contiguous in memory.
-A node's eight child boxes are one <8 x float> test (``engine.packet.simd4.slab1x8``) and a
-leaf's triangles are tested four at a time (``engine.packet.simd4_triangle.triangles1x4``), each
-lane the scalar watertight test's operations: numba leaves such small loops scalar.
+Triangles are the watertight test's float32 corners in the mesh's local frame, in blocks of
+four per leaf (``engine.query.leaf_blocks``), in the BVH's ``prim`` order. A node's eight child
+boxes are one <8 x float> test (``engine.packet.simd4.slab1x8``) and a leaf's blocks are tested
+one at a time (``engine.packet.simd4_triangle.triangles_block``), each lane the scalar
+watertight test's operations: numba leaves such small loops scalar.
 """
 import numpy as np
 from numba import njit
@@ -21,7 +21,7 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 
 from engine.core.triangle import F32_INF, F32_ONE, HUGE_INV, closer, ray_shear
 from engine.packet.simd4 import slab1x8
-from engine.packet.simd4_triangle import triangles1x4
+from engine.packet.simd4_triangle import triangles_block
 from engine.query.wide import WIDTH
 from engine.core.types import MAX_BVH_DEPTH
 
@@ -54,13 +54,14 @@ def new_hit_buffers(cap):
 
 
 @njit(cache=True, inline="always")  # inlined: a call per ray costs as much as a short walk
-def walk(box, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz, t_lo, t_hi, mode, stack, stack_t,
+def walk(box, child, size, lane_tri, blocks, ox, oy, oz, dx, dy, dz, t_lo, t_hi, mode, stack, stack_t,
          buf_t, buf_tri, buf_u, buf_v, cap):
     """Walk the ray (ox, oy, oz) + t (dx, dy, dz) (f32 scalars, local frame, non-zero direction)
     over [t_lo, t_hi] through the 8-wide tree (box, child, size: ``engine.query.wide``).
 
-    v0, v1, v2: f32[P,3] corners in prim order. Returns (n, t, tri, u, v): tri is a mesh face
-    index (prim[i]). For CLOSEST / ANY, n is 1 on a hit and (t, tri, u, v) the hit;
+    lane_tri i32[G*4], blocks f32[G,9,4]: the leaves' triangles (``engine.query.leaf_blocks``;
+    a leaf slot's child is its first block). Returns (n, t, tri, u, v): tri is a triangle (mesh
+    face) index. For CLOSEST / ANY, n is 1 on a hit and (t, tri, u, v) the hit;
     for COLLECT, n is the number of hits (all of them, even past ``cap``); the first min(n, cap)
     are in buf_t, buf_tri, buf_u, buf_v (f32/i32/f32/f32[cap]) in the order found.
     stack, stack_t: scratch from ``new_stack``.
@@ -75,21 +76,22 @@ def walk(box, child, size, prim, v0, v1, v2, ox, oy, oz, dx, dy, dz, t_lo, t_hi,
     okx = ox if kx == 0 else (oy if kx == 1 else oz)
     oky = ox if ky == 0 else (oy if ky == 1 else oz)
     okz = ox if kz == 0 else (oy if kz == 1 else oz)
-    node = 0  # the current entry: a wide node (leaf 0) or a leaf's first triangle and size
+    node = 0  # the current entry: a wide node (leaf 0) or a leaf's first block and triangle count
     leaf = 0
     top = 0
     while True:
         if leaf > 0:
-            for i in range(node, node + leaf, 4):
-                # Up to four triangles in one <4 x float> test; within a group a hit does not
-                # shrink the others' segment, but ``closer`` drops any hit beyond it.
-                group = min(4, node + leaf - i)
-                tuv = triangles1x4(v0, v1, v2, i, group, okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi)
+            for done in range(0, leaf, 4):
+                # A block of up to four triangles in one <4 x float> test; within a block a hit
+                # does not shrink the others' segment, but ``closer`` drops any hit beyond it.
+                g = node + done // 4
+                group = min(4, leaf - done)
+                tuv = triangles_block(blocks, g, group, okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi)
                 for j in range(group):
                     t = tuv[j]
                     if t == F32_INF:
                         continue
-                    tri = prim[i + j]
+                    tri = lane_tri[4 * g + j]
                     if mode == COLLECT:
                         if n < cap:
                             buf_t[n] = t
