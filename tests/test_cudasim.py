@@ -9,6 +9,7 @@ when measured), so a harness that lost its lock fails here.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import subprocess
@@ -63,3 +64,71 @@ def test_every_thread_of_a_block_gets_the_same_shared_array():
     assert result["split"] == 0, f"{result['split']} of 300 trials handed one call site more than one array"
     assert result["shape"] == [4, 2] and result["dtype"] == "int32"
     assert result["other"] == [3, "float32"]
+
+
+BARRIERS = textwrap.dedent("""
+    import json
+    import numpy as np
+    from tests.cudasim import prepare
+
+    prepare()
+    from numba import cuda
+    from numba.cuda.simulator import kernel
+    from engine.gpu.device import BLOCK
+    from engine.gpu.scan import Scanner
+
+    @cuda.jit
+    def rounds(out, leave_after):
+        # Three barriers; threads t >= leave_after finish before the second: the rest must pass.
+        shared = cuda.shared.array(32, np.int32)
+        t = cuda.threadIdx.x
+        shared[t] = t
+        cuda.syncthreads()
+        if t >= leave_after:
+            return
+        x = shared[(t + 1) % 32]
+        cuda.syncthreads()
+        shared[t] = x * 2
+        cuda.syncthreads()
+        out[cuda.blockIdx.x, t] = shared[t]
+
+    @cuda.jit
+    def fails(values):
+        cuda.syncthreads()
+        if cuda.threadIdx.x == 3:
+            values[values.shape[0] + 5] = 1   # out of bounds: the simulator raises
+        cuda.syncthreads()
+
+    out = np.full((3, 32), -1, np.int32)
+    rounds[3, 32](out, 20)
+    rng = np.random.default_rng(1)
+    values = rng.integers(0, 50, 1000).astype(np.int32)
+    scanned = cuda.device_array(1001, np.int32)
+    total = Scanner().exclusive_scan(cuda.to_device(values), 1000, scanned)
+    try:
+        fails[1, 8](np.zeros(4, np.int32))
+        raised = ""
+    except Exception as error:   # the failing thread's own error, not a hang
+        raised = type(error).__name__ + ": " + str(error)
+    print(json.dumps({"rounds": out.tolist(), "scan": scanned.copy_to_host().tolist(), "total": total,
+                      "values": values.tolist(), "block": BLOCK, "raised": raised,
+                      "installed": getattr(kernel.BlockManager.run, "waits_at_barriers", False)}))
+""")
+
+
+def test_barriers_wait_for_every_unfinished_thread_and_errors_are_raised():
+    """The harness's barrier (``wait_at_barriers``): threads that finished early are not waited
+    for, the others pass every barrier together (each reads its neighbour's value before any
+    overwrites it), the block scan of ``engine.gpu.scan`` is numpy's cumulative sum, and an
+    error in one thread is raised by the launch instead of leaving its block waiting."""
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(ROOT)}
+    run = subprocess.run([sys.executable, "-c", BARRIERS], cwd=ROOT, env=env, capture_output=True, text=True,
+                         timeout=240)
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    expected = [[2 * ((t + 1) % 32) if t < 20 else -1 for t in range(32)]] * 3
+    assert result["rounds"] == expected
+    values = result["values"]
+    assert result["scan"] == [0] + list(itertools.accumulate(values)) and result["total"] == sum(values)
+    assert result["block"] == 32 and result["installed"]
+    assert "IndexError" in result["raised"] or "index" in result["raised"].lower(), result["raised"]
