@@ -103,8 +103,7 @@ def wait_at_barriers() -> bool:
     from numba.cuda.simulator import kernel
 
     manager, thread = getattr(kernel, "BlockManager", None), getattr(kernel, "BlockThread", None)
-    if manager is None or thread is None or not all(hasattr(manager, k) for k in ("run", "__init__")) \
-            or not hasattr(thread, "syncthreads"):
+    if not (hasattr(manager, "run") and hasattr(thread, "syncthreads") and hasattr(thread, "run")):
         return False
     if getattr(manager.run, "waits_at_barriers", False):
         return True

@@ -316,49 +316,6 @@ def _sheared_edges(builder, w, corners, sx, sy):
     return eu, ev, ew, det, mixed, flat
 
 
-def _check_ray_arguments(integers, floats):
-    for x in integers:
-        if not isinstance(x, types.Integer):
-            raise TypingError(f"expected an integer, got {x}")
-    for x in floats:
-        if not isinstance(x, types.Float):
-            raise TypingError(f"expected a float, got {x}")
-
-
-def _four_triangles(context, builder, w, signature, args, first_arg, corner):
-    """The shared body of the one-ray, four-triangle tests: the arguments from ``first_arg`` on
-    are (n, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax); ``corner(c, axis)`` loads the
-    <4 x float> of corner c's component ``axis`` (an i64 value) for the four triangles. Returns
-    the tuple (t0..t3, u0..u3, v0..v3)."""
-    s = signature.args
-    k = first_arg
-    n_ = context.cast(builder, args[k], s[k], types.int64)
-    axes = [context.cast(builder, args[k + i], s[k + i], types.int64) for i in (4, 5, 6)]
-    ok = [w.splat(builder, context.cast(builder, args[k + i], s[k + i], types.float32), w.f) for i in (1, 2, 3)]
-    sx_, sy_, sz_ = (w.splat(builder, context.cast(builder, args[k + i], s[k + i], types.float32), w.f)
-                     for i in (7, 8, 9))
-    tlo = w.splat(builder, context.cast(builder, args[k + 10], s[k + 10], types.float32), w.f)
-    thi = w.splat(builder, context.cast(builder, args[k + 11], s[k + 11], types.float32), w.f)
-    corners = [[builder.fsub(corner(c, axis), o) for axis, o in zip(axes, ok)] for c in range(3)]
-    az_, bz_, cz_ = (corner_[2] for corner_ in corners)
-    eu, ev, ew, det, mixed, flat = _sheared_edges(builder, w, corners, sx_, sy_)
-    zero = w.const(w.f, 0.0)
-    scaled_t = builder.fadd(builder.fadd(builder.fmul(eu, builder.fmul(sz_, az_)),
-                                         builder.fmul(ev, builder.fmul(sz_, bz_))),
-                            builder.fmul(ew, builder.fmul(sz_, cz_)))
-    rcp = builder.fdiv(w.const(w.f, 1.0), det)
-    t = builder.fmul(scaled_t, rcp)
-    inside = builder.and_(builder.fcmp_ordered(">=", t, tlo), builder.fcmp_ordered("<=", t, thi))
-    slots = ir.Constant(ir.VectorType(_I64, 4), [0, 1, 2, 3])
-    present = builder.icmp_signed("<", slots, w.splat(builder, n_, ir.VectorType(_I64, 4)))
-    hit = builder.and_(builder.and_(present, builder.not_(builder.or_(mixed, flat))), inside)
-    t_out = builder.select(hit, t, w.const(w.f, float("inf")))
-    u_out = builder.select(hit, builder.fmul(ev, rcp), zero)
-    v_out = builder.select(hit, builder.fmul(ew, rcp), zero)
-    values = [builder.extract_element(vec, ir.Constant(_I32, j)) for vec in (t_out, u_out, v_out) for j in range(4)]
-    return context.make_tuple(builder, signature.return_type, values)
-
-
 @intrinsic
 def triangles_block(typingctx, blocks, g, n, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
     """One ray against the triangles in the first n (1..4) lanes of block g of ``blocks``
@@ -371,7 +328,12 @@ def triangles_block(typingctx, blocks, g, n, okx, oky, okz, kx, ky, kz, sx, sy, 
     offset computed from the ray's permutation (the rows of (x, y, z) corners it replaced needed
     36 scalar loads and inserts)."""
     _check(blocks, types.float32, 3, "blocks")
-    _check_ray_arguments((g, n, kx, ky, kz), (okx, oky, okz, sx, sy, sz, tmin, tmax))
+    for x in (g, n, kx, ky, kz):
+        if not isinstance(x, types.Integer):
+            raise TypingError(f"expected an integer, got {x}")
+    for x in (okx, oky, okz, sx, sy, sz, tmin, tmax):
+        if not isinstance(x, types.Float):
+            raise TypingError(f"expected a float, got {x}")
     sig = types.UniTuple(types.float32, 12)(blocks, g, n, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax)
     w = _Width(1)
 
@@ -379,12 +341,37 @@ def triangles_block(typingctx, blocks, g, n, okx, oky, okz, kx, ky, kz, sx, sy, 
         s = signature.args
         array = context.make_array(s[0])(context, builder, args[0])
         block = builder.mul(context.cast(builder, args[1], s[1], types.int64), ir.Constant(_I64, 36))
+        n_ = context.cast(builder, args[2], s[2], types.int64)
+        ok = [w.splat(builder, context.cast(builder, args[k], s[k], types.float32), w.f) for k in (3, 4, 5)]
+        axes = [context.cast(builder, args[k], s[k], types.int64) for k in (6, 7, 8)]
+        sx_, sy_, sz_ = (w.splat(builder, context.cast(builder, args[k], s[k], types.float32), w.f)
+                         for k in (9, 10, 11))
+        tlo = w.splat(builder, context.cast(builder, args[12], s[12], types.float32), w.f)
+        thi = w.splat(builder, context.cast(builder, args[13], s[13], types.float32), w.f)
 
         def corner(c, axis):
+            """<4 x float>: component ``axis`` (an i64 value) of corner c of the block's lanes."""
             index = builder.add(block, builder.add(ir.Constant(_I64, 12 * c), builder.mul(axis, ir.Constant(_I64, 4))))
             pointer = builder.bitcast(builder.gep(array.data, [index]), w.f.as_pointer())
             return builder.load(pointer, align=4)
 
-        return _four_triangles(context, builder, w, signature, args, 2, corner)
+        corners = [[builder.fsub(corner(c, axis), o) for axis, o in zip(axes, ok)] for c in range(3)]
+        az_, bz_, cz_ = (corner_[2] for corner_ in corners)
+        eu, ev, ew, det, mixed, flat = _sheared_edges(builder, w, corners, sx_, sy_)
+        zero = w.const(w.f, 0.0)
+        scaled_t = builder.fadd(builder.fadd(builder.fmul(eu, builder.fmul(sz_, az_)),
+                                             builder.fmul(ev, builder.fmul(sz_, bz_))),
+                                builder.fmul(ew, builder.fmul(sz_, cz_)))
+        rcp = builder.fdiv(w.const(w.f, 1.0), det)
+        t = builder.fmul(scaled_t, rcp)
+        inside = builder.and_(builder.fcmp_ordered(">=", t, tlo), builder.fcmp_ordered("<=", t, thi))
+        slots = ir.Constant(ir.VectorType(_I64, 4), [0, 1, 2, 3])
+        present = builder.icmp_signed("<", slots, w.splat(builder, n_, ir.VectorType(_I64, 4)))
+        hit = builder.and_(builder.and_(present, builder.not_(builder.or_(mixed, flat))), inside)
+        t_out = builder.select(hit, t, w.const(w.f, float("inf")))
+        u_out = builder.select(hit, builder.fmul(ev, rcp), zero)
+        v_out = builder.select(hit, builder.fmul(ew, rcp), zero)
+        values = [builder.extract_element(vec, ir.Constant(_I32, j)) for vec in (t_out, u_out, v_out) for j in range(4)]
+        return context.make_tuple(builder, signature.return_type, values)
 
     return sig, codegen

@@ -57,9 +57,9 @@ from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
 from engine.query.frame import MeshFrame, mesh_frame
 from engine.query.hits import (collect_hits_kernel, compact_hits_kernel, count_hits_kernel, fill_hits_kernel,
                                first_hit_kernel)
+from engine.query.leaf_blocks import leaf_blocks
 from engine.query.locations import locations_kernel
 from engine.query.order import ray_order
-from engine.query.leaf_blocks import leaf_blocks
 from engine.query.wide import collapse
 
 #: Hits closer than this (in units of the mesh's largest extent) to the previous one along a

@@ -27,11 +27,9 @@ def leaf_blocks(first, count, prim, v0, v1, v2, child, size):
     (first, count i32[N], prim i32[P]), the local triangle corners v0, v1, v2 (f32[T,3], triangle
     order) and the 8-wide tree's child, size (i32[W,8], ``engine.query.wide``): child_blocks is
     child with every leaf slot's first prim row replaced by its first block."""
-    n_prim = prim.shape[0]
     leaves = np.flatnonzero(count > 0)
-    starts = first[leaves]
-    order = np.argsort(starts)
-    block_of_row = np.full(n_prim + 1, -1, np.int32)
+    order = np.argsort(first[leaves])
+    block_of_row = np.full(prim.shape[0], -1, np.int32)
     n_blocks = 0
     for k in order:
         leaf = leaves[k]
