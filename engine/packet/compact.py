@@ -12,8 +12,11 @@ and without the concatenated copy. Children start at tmin 0.
 
 ``compact_into_packets`` plans the packets (``plan_packets``: which parent packet holds each
 tile, how many children each tile gets) and fills them (``fill_packets``), both in parallel over
-tiles. Sources come as tuples of arrays, one entry per source (numba compiles one copy per
-number of sources: 1 for shadow rays, 2 or 4 for the secondary kinds of a generation).
+tiles. Sources come as tuples of arrays, one entry per source: 1 for shadow rays, 1, 2 or 4 for
+the secondary kinds of a generation. numba compiles a kernel once per tuple length, so the tuples
+are padded to ``PADDED_SOURCES`` with empty sources (no packet, no lane), which plan and fill
+nothing: one compiled copy of each kernel instead of three (a cold default render compiled them
+for 12.6 s).
 """
 from __future__ import annotations
 
@@ -76,6 +79,21 @@ def new_array(name, rows, tail=(), dtype=np.float32):
     return np.empty((rows,) + tuple(tail), dtype)
 
 
+#: Sources per compaction as the kernels see them: the most a Whitted generation passes (the
+#: reflection batch of a generation whose parents are a reflection and a refraction batch).
+PADDED_SOURCES = 4
+#: An empty source, per column of ``compact_into_packets``: no packet (offsets [0]) and no lane.
+EMPTY_SOURCE = (np.zeros(1, np.int32), np.empty(0, np.int32), np.empty(0, np.bool_), np.empty((0, 3), np.float32),
+                np.empty((0, 3), np.float32), np.empty(0, np.float32), np.empty((0, 3), np.float32))
+
+
+def padded_sources(columns):
+    """The 7 source columns of ``compact_into_packets``, each a tuple of S arrays, padded with
+    ``EMPTY_SOURCE`` to max(S, PADDED_SOURCES) entries."""
+    missing = max(PADDED_SOURCES - len(columns[0]), 0)
+    return tuple(tuple(column) + (empty,) * missing for column, empty in zip(columns, EMPTY_SOURCE))
+
+
 def compact_into_packets(n, width, height, offsets_t, pixel_t, flag_t, org_t, dir_t, tmax_t, weight_t,
                          allocate=new_array):
     """The child batch of the flagged lanes of S sources, in packet order.
@@ -92,6 +110,8 @@ def compact_into_packets(n, width, height, offsets_t, pixel_t, flag_t, org_t, di
     padding lanes dead (tmin 1 > tmax 0, pixel -1, weight 0, source and lane -1, origin of the
     packet's first ray, direction +z); source and lane say which parent lane a child came from.
     """
+    offsets_t, pixel_t, flag_t, org_t, dir_t, tmax_t, weight_t = padded_sources(
+        (offsets_t, pixel_t, flag_t, org_t, dir_t, tmax_t, weight_t))
     tile_packet, counts, starts, offsets = plan_packets(n, width, height, offsets_t, pixel_t, flag_t)
     total = int(offsets[-1])
     out = (allocate("org", total, (3,)), allocate("dir", total, (3,)), allocate("inv_dir", total, (3,)),
@@ -145,6 +165,22 @@ def plan_packets(n, width, height, offsets_t, pixel_t, flag_t):
     return tile_packet, counts, starts, out_offsets
 
 
+@njit(cache=True, inline="always")
+def write_child(out, s, i, src_org, src_dir, src_tmax, src_weight, src_pixel, org, dirs, inv, tmin, tmax, pix, weight,
+                source, lane):
+    """Child lane ``out`` from lane i of source s (its arrays src_*)."""
+    for a in range(3):
+        org[out, a] = src_org[i, a]
+        dirs[out, a] = src_dir[i, a]
+        inv[out, a] = inverse_component(src_dir[i, a])
+        weight[out, a] = src_weight[i, a]
+    tmin[out] = np.float32(0.0)
+    tmax[out] = src_tmax[i]
+    pix[out] = src_pixel[i]
+    source[out] = s
+    lane[out] = i
+
+
 @njit(cache=True, parallel=True)
 def fill_packets(n, width, tile_packet, counts, starts, offsets_t, pixel_t, flag_t, org_t, dir_t, tmax_t, weight_t,
                  org, dirs, inv, tmin, tmax, pix, weight, source, lane):
@@ -156,14 +192,28 @@ def fill_packets(n, width, tile_packet, counts, starts, offsets_t, pixel_t, flag
             continue
         cursor = np.zeros(n_sources, np.int64)
         end = np.zeros(n_sources, np.int64)
+        live, only = 0, 0
         for s in range(n_sources):
             k = tile_packet[s, t]
             if k >= 0:
                 offsets = offsets_t[s]
                 end[s] = offsets[k + 1]
                 cursor[s] = next_flagged(flag_t[s], offsets[k], end[s])
+                if cursor[s] < end[s]:
+                    live += 1
+                    only = s
         out = starts[t]
-        while True:
+        if live == 1:
+            # One source with children in this tile (every shadow batch): its flagged lanes in
+            # lane order, which is their order in the tile, without the merge below.
+            flags, src_org, src_dir, src_tmax = flag_t[only], org_t[only], dir_t[only], tmax_t[only]
+            src_weight, src_pixel = weight_t[only], pixel_t[only]
+            for i in range(cursor[only], end[only]):
+                if flags[i]:
+                    write_child(out, only, i, src_org, src_dir, src_tmax, src_weight, src_pixel, org, dirs, inv,
+                                tmin, tmax, pix, weight, source, lane)
+                    out += 1
+        while live > 1:
             # The source whose next flagged lane sits first in the tile; ties go to the lower
             # source, which keeps the stable order of the concatenated sources.
             best, best_key = -1, n * n
@@ -175,17 +225,8 @@ def fill_packets(n, width, tile_packet, counts, starts, offsets_t, pixel_t, flag
             if best < 0:
                 break
             i = cursor[best]
-            src_org, src_dir, src_w = org_t[best], dir_t[best], weight_t[best]
-            for a in range(3):
-                org[out, a] = src_org[i, a]
-                dirs[out, a] = src_dir[i, a]
-                inv[out, a] = inverse_component(src_dir[i, a])
-                weight[out, a] = src_w[i, a]
-            tmin[out] = np.float32(0.0)
-            tmax[out] = tmax_t[best][i]
-            pix[out] = pixel_t[best][i]
-            source[out] = best
-            lane[out] = i
+            write_child(out, best, i, org_t[best], dir_t[best], tmax_t[best], weight_t[best], pixel_t[best], org,
+                        dirs, inv, tmin, tmax, pix, weight, source, lane)
             out += 1
             cursor[best] = next_flagged(flag_t[best], i + 1, end[best])
         first = starts[t]
