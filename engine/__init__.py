@@ -9,6 +9,7 @@ machinery), the plugin packages ``traversals``, ``frusta`` and ``scenes``, ``eng
 """
 
 from engine.core.jit_cache import use_source_keyed_cache as _use_source_keyed_cache
+from engine.core.jit_dataflow_copies import use_shallow_dataflow_copies as _use_shallow_dataflow_copies
 from engine.core.jit_inlining import use_linear_inline_copies as _use_linear_inline_copies
 
 # Before any kernel module is imported: numba's cache folder is keyed by the compiled sources,
@@ -17,6 +18,8 @@ _use_source_keyed_cache()
 # numba's inliner copies a callee's whole scope once per block; once per copy gives the same
 # machine code in about half the inlining time (engine/core/jit_inlining.py).
 _use_linear_inline_copies()
+# Its data-flow passes deep-copy sets of variable names, where copying each set is the same.
+_use_shallow_dataflow_copies()
 
 __all__ = ["RayTracer", "RayInputError", "RayMeshIntersector"]
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import re
 
 import numba
 import numpy as np
@@ -14,6 +13,7 @@ from numba.core.compiler import run_frontend
 import engine  # noqa: F401  (installs the stand-in)
 from engine.core import jit_inlining
 from traversals.single import walk_ray
+from machine_code import machine_code
 
 
 @contextlib.contextmanager
@@ -33,14 +33,6 @@ def walk_ray_signature():
     none = numba.types.none
     return (f32_2d, f32_2d, i32_1d, i32_1d, i32_1d, f32_2d, f32_2d, f32_2d, f32_2d, f32_2d, f32_2d, f32_1d,
             f32_1d, numba.int64, numba.boolean, i32_1d, i32_1d, none, numba.int64, none)
-
-
-def machine_code(py_func, signature):
-    """Assembly of ``py_func`` compiled afresh (no cache) for ``signature``, with the version
-    number numba puts in each new dispatcher's symbol names (``B2v17B``) taken out."""
-    dispatcher = numba.njit(py_func)
-    dispatcher.compile(signature)
-    return re.sub(r"B\d+v\d+B", "B_v_B", dispatcher.inspect_asm(dispatcher.signatures[0]))
 
 
 def test_the_stand_in_is_installed_by_importing_engine():
