@@ -20,13 +20,23 @@ import copy
 from numba.core import ir_utils
 
 
-def _name_or_names(item) -> bool:
-    """A variable name (str) or a tuple of them: nothing deepcopy would need to copy."""
-    return type(item) is str or (type(item) is tuple and all(type(part) is str for part in item))
-
-
 def _sets_of_names(x) -> bool:
-    return type(x) is dict and all(type(v) is set and all(map(_name_or_names, v)) for v in x.values())
+    """Is ``x`` a dict of sets of variable names (str) or tuples of them: nothing deepcopy would
+    need to copy but the sets? Plain loops: this runs on every copy, over every name."""
+    if type(x) is not dict:
+        return False
+    for names in x.values():
+        if type(names) is not set:
+            return False
+        for item in names:
+            if type(item) is str:
+                continue
+            if type(item) is not tuple:
+                return False
+            for part in item:
+                if type(part) is not str:
+                    return False
+    return True
 
 
 class _DataflowCopies:
