@@ -29,12 +29,24 @@
 """
 from __future__ import annotations
 
+import os
+import subprocess
 import sys
 import threading
+from pathlib import Path
 
 SWITCH_INTERVAL_S = 1e-4
 SIMULATED_BLOCK = 32
 SIMULATED_STREAM_BLOCKS = 4
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def simulated(*args, timeout=300) -> subprocess.CompletedProcess:
+    """Run ``python args...`` in the repository root under the CUDA simulator, from a test (the
+    parent process keeps numba's CPU JIT); output captured as text."""
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, *args], cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=timeout)
 
 
 def lock_shared_allocation() -> bool:

@@ -11,17 +11,13 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
-import subprocess
-import sys
 import textwrap
-from pathlib import Path
 
 import pytest
 
-pytest.importorskip("numba_cuda")
+from cudasim import simulated
 
-ROOT = Path(__file__).resolve().parents[1]
+pytest.importorskip("numba_cuda")
 
 CHILD = textwrap.dedent("""
     import json, sys, threading
@@ -55,9 +51,7 @@ CHILD = textwrap.dedent("""
 
 
 def test_every_thread_of_a_block_gets_the_same_shared_array():
-    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(ROOT)}
-    run = subprocess.run([sys.executable, "-c", CHILD], cwd=ROOT, env=env, capture_output=True, text=True,
-                         timeout=240)
+    run = simulated("-c", CHILD, timeout=240)
     assert run.returncode == 0, run.stderr[-3000:]
     result = json.loads(run.stdout.strip().splitlines()[-1])
     assert result["locked"], "tests/cudasim.py did not recognise the simulator's shared-array class"
@@ -121,9 +115,7 @@ def test_barriers_wait_for_every_unfinished_thread_and_errors_are_raised():
     for, the others pass every barrier together (each reads its neighbour's value before any
     overwrites it), the block scan of ``engine.gpu.scan`` is numpy's cumulative sum, and an
     error in one thread is raised by the launch instead of leaving its block waiting."""
-    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(ROOT)}
-    run = subprocess.run([sys.executable, "-c", BARRIERS], cwd=ROOT, env=env, capture_output=True, text=True,
-                         timeout=240)
+    run = simulated("-c", BARRIERS, timeout=240)
     assert run.returncode == 0, run.stderr[-3000:]
     result = json.loads(run.stdout.strip().splitlines()[-1])
     expected = [[2 * ((t + 1) % 32) if t < 20 else -1 for t in range(32)]] * 3

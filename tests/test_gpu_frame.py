@@ -10,18 +10,10 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def simulated(*args, timeout=300):
-    """Run ``python args...`` in the repository root under the CUDA simulator."""
-    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, *args], cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=timeout)
+from cudasim import ROOT, simulated
 
 
 @pytest.fixture(scope="module")
@@ -137,27 +129,6 @@ def test_gpu_frame_with_the_ray_space_hierarchy():
     assert result["rays_gpu"] == result["rays_cpu"] and result["rays_cpu"]["shadow"] > 0
     assert result["max_abs_difference"] <= 1e-5 and result["pixels_over_1_255"] == 0
     assert result["audit_mismatches"] == 0 and result["audit_checked"] == sum(result["rays_gpu"].values())
-
-
-def test_animation_on_the_device_refits_and_matches_the_cpu_frames(tmp_path):
-    """``packetrt animate --device cuda --accel refit``: each frame's moved triangles and refitted
-    boxes are copied into the device arrays in place; frames equal the CPU's, audits clean."""
-    run = simulated("-m", "tests.gpu_sim_animate_check", str(tmp_path))
-    assert run.returncode == 0, run.stderr[-3000:]
-    result = json.loads(run.stdout.strip().splitlines()[-1])
-    assert result["codes"] == {"cpu": 0, "cuda": 0}
-    assert result["policies"] == ["rebuild", "refit", "refit"]
-    assert result["rays"] == result["cpu_rays"]
-    assert result["png_difference"] == 0
-    assert "0 mismatches" in run.stdout
-
-
-def test_device_refit_equals_the_cpu_refit():
-    run = simulated("-m", "tests.gpu_sim_refit_check")
-    assert run.returncode == 0, run.stderr[-3000:]
-    result = json.loads(run.stdout.strip().splitlines()[-1])
-    assert result["triangles"] > 100
-    assert result["equal"] == [{"child_boxes": True, "root_row": True, "leaf_tris": True}] * 2
 
 
 def render_with_free_memory(free: int, args: list, timeout: int):

@@ -1,0 +1,30 @@
+"""Animation on the CUDA device without a GPU: the device refit and ``packetrt animate --device
+cuda`` on numba's CUDA simulator, in child processes, against the CPU. A file of its own beside
+``test_gpu_frame.py`` so that pytest-xdist can give the two simulator files to two workers.
+"""
+from __future__ import annotations
+
+import json
+
+from cudasim import simulated
+
+
+def test_animation_on_the_device_refits_and_matches_the_cpu_frames(tmp_path):
+    """``packetrt animate --device cuda --accel refit``: each frame's moved triangles and refitted
+    boxes are copied into the device arrays in place; frames equal the CPU's, audits clean."""
+    run = simulated("-m", "tests.gpu_sim_animate_check", str(tmp_path))
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert result["codes"] == {"cpu": 0, "cuda": 0}
+    assert result["policies"] == ["rebuild", "refit", "refit"]
+    assert result["rays"] == result["cpu_rays"]
+    assert result["png_difference"] == 0
+    assert "0 mismatches" in run.stdout
+
+
+def test_device_refit_equals_the_cpu_refit():
+    run = simulated("-m", "tests.gpu_sim_refit_check")
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert result["triangles"] > 100
+    assert result["equal"] == [{"child_boxes": True, "root_row": True, "leaf_tris": True}] * 2
