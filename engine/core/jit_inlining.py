@@ -16,7 +16,8 @@ before, one block at a time. The copies therefore differ from numba's only in th
 one copied IR share one scope, as the blocks of the IR they were copied from do; numba's inliner
 replaces every inlined block's scope by the caller's right after (and asserts that a callee has
 a single scope, by equality). The machine code numba makes is the same byte for byte (checked on
-the packet walks; ``tests/test_jit_inlining.py`` checks a kernel's LLVM IR with and without).
+the packet walks; ``tests/test_jit_inlining.py`` compares a kernel's assembly with and without),
+and numba's own inlining tests pass with it (``tools/numba_stand_ins_check.py``).
 
 The same cost is numba-cuda issue #688 (an open pull request there removes one of the two
 copies); numba 0.68 still copies this way. If numba's module no longer looks as described here
