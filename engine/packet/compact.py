@@ -82,16 +82,20 @@ def new_array(name, rows, tail=(), dtype=np.float32):
 #: Sources per compaction as the kernels see them: the most a Whitted generation passes (the
 #: reflection batch of a generation whose parents are a reflection and a refraction batch).
 PADDED_SOURCES = 4
-#: An empty source, per column of ``compact_into_packets``: no packet (offsets [0]) and no lane.
-EMPTY_SOURCE = (np.zeros(1, np.int32), np.empty(0, np.int32), np.empty(0, np.bool_), np.empty((0, 3), np.float32),
-                np.empty((0, 3), np.float32), np.empty(0, np.float32), np.empty((0, 3), np.float32))
 
 
 def padded_sources(columns):
-    """The 7 source columns of ``compact_into_packets``, each a tuple of S arrays, padded with
-    ``EMPTY_SOURCE`` to max(S, PADDED_SOURCES) entries."""
+    """The 7 source columns of ``compact_into_packets``, each a tuple of S arrays, padded to
+    max(S, PADDED_SOURCES) entries with empty sources: offsets [0] (no packet) and no lane. Each
+    pad is made from the column's first array (a zero-length view; offsets: a zero of the same
+    type), so every entry of a column has the same numba type and the tuple stays one that a
+    run-time index can pick from."""
     missing = max(PADDED_SOURCES - len(columns[0]), 0)
-    return tuple(tuple(column) + (empty,) * missing for column, empty in zip(columns, EMPTY_SOURCE))
+    if not missing:
+        return tuple(tuple(column) for column in columns)
+    offsets, *lanes = columns
+    pads = (np.zeros_like(offsets[0][:1]),) + tuple(column[0][:0] for column in lanes)
+    return tuple(tuple(column) + (pad,) * missing for column, pad in zip(columns, pads))
 
 
 def compact_into_packets(n, width, height, offsets_t, pixel_t, flag_t, org_t, dir_t, tmax_t, weight_t,
