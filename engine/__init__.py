@@ -16,7 +16,7 @@ from engine.core.jit_inlining import use_linear_inline_copies as _use_linear_inl
 # so a kernel never loads machine code compiled against an older callee. Writes nothing.
 _use_source_keyed_cache()
 # numba's inliner copies a callee's whole scope once per block; once per copy gives the same
-# machine code in about half the inlining time (engine/core/jit_inlining.py).
+# machine code in a fraction of the inlining time (engine/core/jit_inlining.py).
 _use_linear_inline_copies()
 # Its data-flow passes deep-copy sets of variable names, where copying each set is the same.
 _use_shallow_dataflow_copies()

@@ -72,7 +72,7 @@ def test_one_ir_copy_shares_one_new_scope_and_no_statement():
     assert len(scopes) == 1 and id(func_ir.blocks[0].scope) not in scopes
     original = {id(stmt) for block in func_ir.blocks.values() for stmt in block.body}
     assert not original & {id(stmt) for block in first.values() for stmt in block.body}
-    assert [str(b) for b in map(str, first.values())] == [str(b) for b in func_ir.blocks.values()]
+    assert [str(b) for b in first.values()] == [str(b) for b in func_ir.blocks.values()]
     # A second copy in another inline_ir call gets a scope of its own.
     copies.scope_copies = {}
     second = copies.deepcopy(func_ir.blocks[0])
