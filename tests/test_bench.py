@@ -402,3 +402,28 @@ def test_the_eta_cost_counts_only_the_lights_a_preset_keeps():
     # kinds per generation: primary + 6 shadow kinds, against primary + 1.
     assert _cost(full, six_lights, 1) / _cost(paper, six_lights, 1) == 7 / 2
     assert _cost(paper, (1, 1000), 1) == _cost(paper, six_lights, 1)
+
+
+def test_recorded_batches_are_the_rays_the_frame_cast():
+    """The runner replays (ours, the floor, Embree, Open3D) what BatchRecorder kept: it must be
+    every batch as it was cast, although the renderer reuses its per-lane arrays within the
+    frame (a later shadow batch or generation writes where an earlier one was)."""
+    import numpy as np
+
+    from engine.render.config import Config, RenderConfig
+    from engine.render.whitted import WhittedRenderer
+    from scenes.catalog import load_named
+
+    recorder, cast = bench.BatchRecorder(), []
+
+    def observe(kind, query, rays, packets, answer):
+        recorder(kind, query, rays, packets, answer)
+        cast.append([np.array(getattr(rays, f)) for f in ("org", "dir", "tmin", "tmax", "pixel")])
+
+    config = Config(render=RenderConfig(width=40, height=32, max_depth=4, packet=8))
+    WhittedRenderer(load_named("whitted"), config, observer=observe).render()
+    kinds = [batch[0] for batch in recorder.batches]
+    assert kinds.count("shadow") > 1 and kinds.count("reflection") > 1  # arrays were reused
+    for (kind, _, rays, _), arrays in zip(recorder.batches, cast):
+        for name, array in zip(("org", "dir", "tmin", "tmax", "pixel"), arrays):
+            assert np.array_equal(getattr(rays, name), array), (kind, name)

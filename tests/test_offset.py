@@ -14,6 +14,7 @@ from engine.render.plugins import make_frustum, make_traversal
 from engine.core.scene import make_triangles
 from engine.core.types import empty_hits
 from engine.render.whitted import WhittedRenderer
+from engine.bench.runner import copied_batch
 
 from brute_force import kernel_answer
 from conftest import needs_shared_scenes
@@ -75,8 +76,11 @@ def test_hit_points_lie_on_the_triangle_plane():
 
 
 def captured_batches(scene, config):
+    """(renderer, [(kind, rays, packets)]) of one render, each batch copied as it is cast (the
+    renderer reuses its per-lane arrays within a frame)."""
     batches = []
-    renderer = WhittedRenderer(scene, config, observer=lambda kind, q, rays, packets, a: batches.append((kind, rays, packets)))
+    renderer = WhittedRenderer(scene, config, observer=lambda kind, q, rays, packets, a: batches.append(
+        (kind, *copied_batch(rays, packets))))
     renderer.render()
     return renderer, batches
 

@@ -1,6 +1,7 @@
 """``packetrt show``: the packet traces recorded by the traversal kernel agree with the answers
 and counters of the real traversals and with the BVH, the picture's geometry is right, the PNG
 shows the packet, its frustum and its nodes, and mistakes are one-line errors."""
+import copy
 import os
 import subprocess
 import sys
@@ -10,6 +11,7 @@ import numba
 import numpy as np
 import pytest
 
+from engine.bench.runner import copied_batch
 from engine.cli import main
 from engine.render.config import Config, with_overrides
 from engine.debug.packet_trace import CULLED, ENTERED, PACKET_WALKS, rayspace_node, trace_packet
@@ -26,12 +28,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def render_batches(traversal, frustum=None, size=64, packet=8):
-    """(renderer, [(kind, query, rays, packets, answer)]) of one render of the default scene."""
+    """(renderer, [(kind, query, rays, packets, answer)]) of one render of the default scene,
+    each batch copied as it is cast (the renderer reuses its per-lane arrays within a frame)."""
     config = with_overrides(Config(), traversal=[traversal], frustum=[frustum] if frustum else [],
                             size=(size, size), packet=packet, depth=2)
     scene = scene_from_config(config.scene, "none")
     seen = []
-    renderer = WhittedRenderer(scene, config, observer=lambda *batch: seen.append(batch))
+    renderer = WhittedRenderer(scene, config, observer=lambda kind, query, rays, packets, answer: seen.append(
+        (kind, query, *copied_batch(rays, packets), copy.deepcopy(answer))))
     renderer.render()
     return renderer, seen
 

@@ -65,12 +65,6 @@ EVERY = 1e9
 
 # -- rays ----------------------------------------------------------------------------------
 
-def _copy_batch(rays, packets):
-    """A batch the renderer will not overwrite (it reuses its per-lane arrays)."""
-    return (RayBatch(*(np.array(getattr(rays, f)) for f in RayBatch._fields[:-1]), rays.kind),
-            packets._replace(offsets=np.array(packets.offsets)))
-
-
 def record_frame(scene_cache, scene_name, packet, size, threads=0):
     """(renderer, [(kind, query, rays, packets)]) of one frame of ``scene_name``: the batches of
     every kind, each from the render of its preset (``SOURCE``)."""
@@ -87,8 +81,7 @@ def record_frame(scene_cache, scene_name, packet, size, threads=0):
         renderer = WhittedRenderer(scene, cell.config(), observer=recorder, bvh=getattr(renderer, "bvh", None))
         renderer.render()
         kinds = [k for k, p in SOURCE.items() if p == preset]
-        batches += [(kind, query, *_copy_batch(rays, packets)) for kind, query, rays, packets in recorder.batches
-                    if kind in kinds]
+        batches += [batch for batch in recorder.batches if batch[0] in kinds]
     return renderer, batches
 
 

@@ -53,7 +53,7 @@ from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require
 from engine.bench.yardstick import replay_once
 from engine.core.atomic import output_folder
 from engine.core.errors import ConfigError
-from engine.core.types import RAY_KINDS
+from engine.core.types import RAY_KINDS, RayBatch
 from engine.render.config import read_toml
 from engine.render.plugins import make_traversal
 from engine.render.tracer import Tally
@@ -70,13 +70,17 @@ def summarize(values) -> dict:
 
 
 class BatchRecorder:
-    """Renderer observer that keeps every cast batch: list of (kind, query, RayBatch, Packets)."""
+    """Renderer observer that keeps every cast batch: list of (kind, query, RayBatch, Packets).
+
+    Each batch is copied as it is handed over: the renderer reuses its per-lane arrays within a
+    frame (a shadow batch's arrays serve every light and generation, a generation's the one two
+    after it), so views kept until the frame ends hold later batches' rays, not these."""
 
     def __init__(self):
         self.batches = []
 
     def __call__(self, kind, query, rays, packets, answer):
-        self.batches.append((kind, query, rays, packets))
+        self.batches.append((kind, query, *copied_batch(rays, packets)))
 
     def digest(self) -> str:
         """blake2b over every batch's query, rays (origins, directions, segments) and packet offsets."""
@@ -86,6 +90,12 @@ class BatchRecorder:
             for array in (rays.org, rays.dir, rays.tmin, rays.tmax, packets.offsets):
                 h.update(np.ascontiguousarray(array).data)
         return h.hexdigest()
+
+
+def copied_batch(rays, packets) -> tuple:
+    """(RayBatch, Packets) with arrays of their own, which the renderer will not overwrite."""
+    return (RayBatch(*(np.array(getattr(rays, f)) for f in RayBatch._fields[:-1]), rays.kind),
+            packets._replace(offsets=np.array(packets.offsets)))
 
 
 def replay(batches, tracer) -> tuple:
