@@ -1,7 +1,8 @@
 """engine.render.direct_light against the numpy expressions of the shading it replaced."""
 import numpy as np
 
-from engine.render.direct_light import SHADOW_TMAX_SCALE, add_light, light_directions
+from engine.core.triangle import safe_inverse
+from engine.render.direct_light import SHADOW_TMAX_SCALE, add_light, add_light_in_place, light_directions
 
 
 def unit(v):
@@ -16,11 +17,16 @@ def test_light_directions_and_lit_mask():
     light = np.array([1.5, 7.0, -2.0], np.float32)
     leave[0] = light  # a hit at the light: zero distance must not divide by zero
     l, dist, ndotl, lit = np.empty_like(leave), np.empty(m, np.float32), np.empty(m, np.float32), np.empty(m, bool)
-    shadow_tmax = np.empty(m, np.float32)
+    shadow_tmax, inv = np.empty(m, np.float32), np.empty_like(leave)
     hit = rng.random(m) < 0.9
     hit[0] = True
-    light_directions(hit, leave, ns, ng, light, l, dist, ndotl, lit, shadow_tmax)
+    lit_lanes = light_directions(hit, leave, ns, ng, light, l, dist, ndotl, lit, shadow_tmax, inv)
     assert not lit[~hit].any()  # lanes without a hit cast no shadow ray
+    assert lit_lanes == np.count_nonzero(lit)
+    # Every lane is a ray the walk can load: unlit lanes dead, lanes without a hit along +z.
+    assert np.array_equal(inv, safe_inverse(l))
+    assert (shadow_tmax[~lit] == -np.inf).all() and (l[~hit] == [0, 0, 1]).all()
+    assert (shadow_tmax[lit] >= 0).all()
     ns, ng, leave, l, dist, ndotl, lit, shadow_tmax = (a[hit] for a in (ns, ng, leave, l, dist, ndotl, lit, shadow_tmax))
     to = light - leave
     ref_dist = np.linalg.norm(to, axis=1)
@@ -30,7 +36,8 @@ def test_light_directions_and_lit_mask():
     np.testing.assert_allclose(ndotl, np.einsum("ij,ij->i", ns, ref_l), atol=1e-6)
     ref_lit = (np.einsum("ij,ij->i", ns, ref_l) > 0) & (np.einsum("ij,ij->i", ng, ref_l) > 0)
     assert np.array_equal(lit, ref_lit) and 0.1 < lit.mean() < 0.5
-    assert np.array_equal(shadow_tmax, dist * SHADOW_TMAX_SCALE) and (shadow_tmax < dist)[dist > 0].all()
+    assert np.array_equal(shadow_tmax[lit], (dist * SHADOW_TMAX_SCALE)[lit])
+    assert (shadow_tmax < dist)[lit & (dist > 0)].all()
     assert dist[0] == 0 and not lit[0] and np.isfinite(l[0]).all()
 
 
@@ -59,3 +66,27 @@ def test_add_light_is_diffuse_plus_phong_on_visible_hits_only():
     np.testing.assert_allclose(color, expected, rtol=1e-5, atol=1e-6)
     hidden = np.setdiff1d(np.arange(m), v)
     assert np.array_equal(color[hidden], before[hidden])
+
+
+def test_add_light_in_place_is_add_light_over_the_lit_lanes():
+    """Shadow rays walked in their own lanes add exactly what the same rays add when compacted."""
+    rng = np.random.default_rng(7)
+    m, k = 3000, 5
+    ns, l, view = unit(rng.normal(size=(m, 3))), unit(rng.normal(size=(m, 3))), unit(rng.normal(size=(m, 3)))
+    ndotl = np.einsum("ij,ij->i", ns, l).astype(np.float32)
+    mat = rng.integers(0, k, m).astype(np.int32)
+    diffuse, specular = rng.random((k, 3)).astype(np.float32), rng.random((k, 3)).astype(np.float32)
+    shininess = (rng.random(k) * 60).astype(np.float32)
+    texel = rng.random((m, 3)).astype(np.float32)
+    lc = np.array([0.3, 0.8, 0.6], np.float32)
+    color = rng.random((m, 3)).astype(np.float32)
+    lit = rng.random(m) < 0.7
+    occluded = rng.random(m) < 0.4  # answers of every lane's ray; the unlit ones were dead
+    in_place, compacted = color.copy(), color.copy()
+    args = (ns, l, ndotl, view, mat, diffuse, specular, shininess, texel, lc)
+    add_light_in_place(in_place, lit, occluded, *args)
+    lane = np.flatnonzero(lit)
+    add_light(compacted, lane, occluded[lane], *args)
+    assert np.array_equal(in_place, compacted)
+    assert np.array_equal(in_place[~lit | occluded], color[~lit | occluded])
+    assert not np.array_equal(in_place[lit & ~occluded], color[lit & ~occluded])

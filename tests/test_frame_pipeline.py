@@ -8,11 +8,13 @@ reference (``tests/numpy_whitted.py``) on scenes with shadows, textures, mirrors
 import numpy as np
 import pytest
 
+from engine.bench.runner import copied_batch
 from engine.core.types import Packets, RayBatch
 from engine.packet.compact import compact_into_packets
 from engine.packet.layout import make_batch
 from engine.render.camera import camera_batch, camera_rays
 from engine.render.config import from_dict
+from engine.render import whitted
 from engine.render.whitted import WhittedRenderer
 from scenes.catalog import load_named
 from numpy_whitted import render_reference
@@ -126,3 +128,34 @@ def test_frames_reuse_their_arrays_without_changing_the_image():
     again = renderer.render()
     assert np.array_equal(again.image, kept) and np.array_equal(first.image, kept)
     assert renderer.scratch.nbytes() > 0
+
+
+@pytest.mark.parametrize("traversal,packet", [("partition", 8), ("simd", 2), ("embree", 8), ("rayspace", 8)])
+def test_shadow_rays_walked_in_their_lanes_give_the_compacted_image(monkeypatch, traversal, packet):
+    """Shadow rays walked in their parent batch's own lanes (forced here for every light) give
+    the image of the same rays compacted into packets (never in place), bit for bit, through
+    every kind of plugin; in place, the shadow batch is the parent's lanes and packets, its
+    unlit lanes dead, every lane a finite ray."""
+    images = {}
+    for in_place in (True, False):
+        monkeypatch.setattr(whitted, "IN_PLACE_SHADOWS", 0.0 if in_place else 2.0)
+        seen = []
+        renderer = WhittedRenderer(load_named("whitted"), _config(traversal, width=45, height=38, packet=packet),
+                                   observer=lambda kind, query, rays, packets, answer: seen.append(
+                                       (kind, query, *copied_batch(rays, packets), packets)))
+        images[in_place] = renderer.render().image
+        shadows = 0
+        for parent, shadow in zip(seen, seen[1:]):
+            if shadow[0] != "shadow" or parent[0] == "shadow":
+                continue
+            shadows += 1
+            assert (shadow[4] is parent[4]) == in_place  # the parent's own Packets
+            rays = shadow[2]
+            live = rays.tmin <= rays.tmax
+            assert np.isfinite(rays.org).all() and np.isfinite(rays.inv_dir).all()
+            if in_place:
+                assert rays.org.shape == parent[2].org.shape and not live.all()
+            else:
+                assert live[rays.pixel >= 0].all()  # compacted: only padding is dead
+        assert shadows > 0
+    assert np.array_equal(images[True], images[False])

@@ -22,7 +22,7 @@ def test_the_stand_in_is_installed_by_importing_engine():
 def test_same_machine_code_as_numbas_deep_copies():
     # A parallel kernel: its parfor passes run copy propagation and alias analysis.
     f32_2d, f32_1d, flags = numba.float32[:, ::1], numba.float32[::1], numba.boolean[::1]
-    signature = (flags, f32_2d, f32_2d, f32_2d, f32_1d, f32_2d, f32_1d, f32_1d, flags, f32_1d)
+    signature = (flags, f32_2d, f32_2d, f32_2d, f32_1d, f32_2d, f32_1d, f32_1d, flags, f32_1d, f32_2d)
     ours = machine_code(light_directions.py_func, signature, True)
     stand_in, ir_utils.copy = ir_utils.copy, copy
     try:

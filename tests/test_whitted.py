@@ -27,7 +27,7 @@ def test_spheres_cast_shadows_on_the_floor():
     config = with_overrides(Config(), traversal=["single"], frustum=["none"], size=(96, 72), depth=0)
     renderer = WhittedRenderer(load_named("whitted"), config,
                                observer=lambda kind, query, rays, packets, answer:
-                               answers.append(answer[rays.pixel >= 0]) if kind == "shadow" else None)
+                               answers.append(answer[rays.tmin <= rays.tmax]) if kind == "shadow" else None)
     renderer.render()
     occluded = np.concatenate(answers)
     assert 0.02 < occluded.mean() < 0.5

@@ -1,10 +1,13 @@
 """Direct lighting from one point light: shadow-ray candidates, then diffuse + Phong specular.
 
 The Whitted loop (``engine.render.whitted``) shades a batch light by light: which hit lanes face
-the light (``light_directions``), one shadow ray for each of those -- built in their own packet by
-``engine.packet.compact`` -- and the diffuse + Phong specular term of the unshadowed ones
-(``add_light``). Both are one parallel pass, float32 like the arrays they fill, in the same
-operation order as the numpy expressions they replaced (images stay bit-identical).
+the light (``light_directions``), one shadow ray for each of those -- in their own packet, either
+compacted by ``engine.packet.compact`` or, when nearly every lane casts one, walked where they
+are (``light_directions`` leaves every lane ready to be a ray: unlit lanes dead) -- and the
+diffuse + Phong specular term of the unshadowed ones (``add_light`` for compacted rays,
+``add_light_in_place`` for rays walked in their lanes). Each is one parallel pass, float32 like
+the arrays it fills, in the same operation order as the numpy expressions they replaced (images
+stay bit-identical).
 """
 from __future__ import annotations
 
@@ -13,11 +16,14 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from engine.packet.compact import inverse_component
+
 _TINY = np.float32(1e-30)
 _ZERO = np.float32(0.0)
 _TWO = np.float32(2.0)
 #: Shadow rays stop just short of the light.
 SHADOW_TMAX_SCALE = np.float32(1.0 - 1e-4)
+_DEAD_TMAX = np.float32(-np.inf)
 
 
 @njit(cache=True, inline="always")
@@ -39,18 +45,32 @@ def light_direction_lane(i, leave, ns, ng, light, to_light, dist, ndotl, lit, sh
 
 
 @njit(cache=True, parallel=True)
-def light_directions(hit, leave, ns, ng, light, to_light, dist, ndotl, lit, shadow_tmax):
+def light_directions(hit, leave, ns, ng, light, to_light, dist, ndotl, lit, shadow_tmax, inv_to_light):
     """For the lanes with ``hit`` (bool[R]) leaving from ``leave`` (f32[R,3], already off the
     surface) with shading normals ``ns`` and ray-facing geometric normals ``ng`` (f32[R,3]) and a
     light at ``light`` (f32[3]), fill the unit directions to the light ``to_light`` (f32[R,3]),
     the distances ``dist`` (f32[R]), cos ``ndotl`` = ns . to_light (f32[R]), ``lit`` (bool[R]):
     the light is in front of both normals (False on lanes without a hit), and ``shadow_tmax``
-    (f32[R]) the shadow ray's end, just short of the light."""
+    (f32[R]) the shadow ray's end, just short of the light. Returns how many lanes are lit.
+
+    Every lane is left a shadow ray from ``leave`` along ``to_light`` up to ``shadow_tmax``,
+    with ``inv_to_light`` (f32[R,3], ``inverse_component`` of to_light) beside it, so that the
+    batch's own lanes can be walked as the shadow batch (tmin 0): a lane that is not lit is dead
+    (shadow_tmax -inf) and a lane without a hit points along +z."""
+    lit_lanes = 0
     for i in prange(leave.shape[0]):
-        if not hit[i]:
+        if hit[i]:
+            light_direction_lane(i, leave, ns, ng, light, to_light, dist, ndotl, lit, shadow_tmax)
+        else:
             lit[i] = False
-            continue
-        light_direction_lane(i, leave, ns, ng, light, to_light, dist, ndotl, lit, shadow_tmax)
+            to_light[i, 0], to_light[i, 1], to_light[i, 2] = _ZERO, _ZERO, np.float32(1.0)
+        if lit[i]:
+            lit_lanes += 1
+        else:
+            shadow_tmax[i] = _DEAD_TMAX
+        for a in range(3):
+            inv_to_light[i, a] = inverse_component(to_light[i, a])
+    return lit_lanes
 
 
 @njit(cache=True, inline="always")
@@ -81,3 +101,14 @@ def add_light(color, lane, occluded, ns, to_light, ndotl, view, mat, diffuse, sp
         if i < 0 or occluded[j]:
             continue
         add_light_lane(i, color, ns, to_light, ndotl, view, mat, diffuse, specular, shininess, texel, light_color)
+
+
+@njit(cache=True, parallel=True)
+def add_light_in_place(color, lit, occluded, ns, to_light, ndotl, view, mat, diffuse, specular, shininess, texel,
+                       light_color):
+    """``add_light`` for shadow rays walked in their own lanes (``light_directions``): lane i
+    adds the light when it is ``lit`` and its ray is not ``occluded`` (bool[R] each)."""
+    for i in prange(lit.shape[0]):
+        if lit[i] and not occluded[i]:
+            add_light_lane(i, color, ns, to_light, ndotl, view, mat, diffuse, specular, shininess, texel,
+                           light_color)

@@ -32,9 +32,9 @@ class Surface(NamedTuple):
     normal: f32[R,3] the shading normal, facing the ray; facing: f32[R,3] the geometric normal,
     facing the ray; entering: bool[R] the ray hit the front face; material: i32[R];
     texel: f32[R,3]; color: f32[R,3] the light gathered so far (ambient, then each light);
-    leave: f32[R,3] the origin of rays leaving towards the ray's side; texel_row: i32[R] the row
-    of the lane's texel in the stacked texels (-1: untextured), kept between the two loops of
-    ``shade_surface``.
+    leave: f32[R,3] the origin of rays leaving towards the ray's side (zero on lanes without a
+    hit); texel_row: i32[R] the row of the lane's texel in the stacked texels (-1: untextured),
+    kept between the two loops of ``shade_surface``.
     """
 
     hit: np.ndarray
@@ -189,12 +189,14 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
     for k in prange(offsets.shape[0] - 1):
         for i in range(offsets[k], offsets[k + 1]):
             hit[i] = False
-            if pixel[i] < 0:
-                continue
-            p = prim[i]
+            p = prim[i] if pixel[i] >= 0 else -1
             if p < 0:
-                for c in range(3):
-                    image[pixel[i], c] += weight[i, c] * background[c]
+                # No hit: a dead shadow lane starts here (``light_directions``), at a finite point.
+                for a in range(3):
+                    leave[i, a] = np.float32(0.0)
+                if pixel[i] >= 0:
+                    for c in range(3):
+                        image[pixel[i], c] += weight[i, c] * background[c]
                 continue
             hit[i] = True
             texel_row[i] = fill_surface_lane(i, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material,

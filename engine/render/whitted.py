@@ -5,7 +5,8 @@ Generation by generation:
 1. primary rays, made in packet order (``engine.render.camera``) -> closest hits;
 2. the surface at every hit and the background of the misses (``engine.render.surface``);
 3. for every point light, a shadow ray for each hit lane that faces it, kept in its own packet
-   (``engine.packet.compact``) -> occlusion -> diffuse + Phong specular of the lit lanes
+   (compacted by ``engine.packet.compact``, or walked in the batch's own lanes when nearly every
+   lane casts one) -> occlusion -> diffuse + Phong specular of the lit lanes
    (``engine.render.direct_light``);
 4. the light into the image, and the children (``engine.render.spawn``): a reflection batch
    (mirror reflections, and total internal reflections) and a refraction batch, each built in
@@ -40,7 +41,7 @@ from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch, stats_by_depth
 from engine.packet.compact import compact_into_packets
 from engine.render.camera import camera_batch
 from engine.render.config import Config
-from engine.render.direct_light import add_light, light_directions
+from engine.render.direct_light import add_light, add_light_in_place, light_directions
 from engine.render.materials import MaterialTable
 from engine.render.plugins import configured
 from engine.core.scratch import Scratch
@@ -49,6 +50,9 @@ from engine.render.surface import new_surface, shade_surface
 from engine.render.tracer import Tally, Tracer
 
 WARM_UP_SIZE = 32                           # pixels a side of the compile-absorbing warm-up frame
+#: A light's shadow rays are walked in their parent batch's own lanes (no compaction) when at
+#: least this fraction of the batch's lanes cast one: compacting them would be nearly a copy.
+IN_PLACE_SHADOWS = 0.9
 
 
 @dataclass
@@ -212,24 +216,35 @@ class WhittedRenderer:
                       self.background, image, *surface)
         if self.scene.lights:
             light = self.scratch.allocator("light")
-            to_light, dist, ndotl, shadow_tmax = (light("to_light", r, (3,)), light("dist", r), light("ndotl", r),
-                                                  light("shadow_tmax", r))
+            to_light, inv_to_light = light("to_light", r, (3,)), light("inv_to_light", r, (3,))
+            dist, ndotl, shadow_tmax = light("dist", r), light("ndotl", r), light("shadow_tmax", r)
             lit = light("lit", r, (), np.bool_)
             unit_weight = self.scratch.constant(("light", "unit_weight"), r, 1.0, (3,))
+            zero_tmin = self.scratch.constant(("light", "zero_tmin"), r, 0.0)
         for light in self.scene.lights:
-            light_directions(surface.hit, surface.leave, surface.normal, surface.facing,
-                             np.asarray(light.position, np.float32), to_light, dist, ndotl, lit, shadow_tmax)
+            lit_lanes = light_directions(surface.hit, surface.leave, surface.normal, surface.facing,
+                                         np.asarray(light.position, np.float32), to_light, dist, ndotl, lit,
+                                         shadow_tmax, inv_to_light)
+            if lit_lanes == 0:
+                continue  # no hit faces this light
+            light_color = np.asarray(light.color, np.float32)
+            if lit_lanes >= IN_PLACE_SHADOWS * r:
+                # Nearly every lane casts a shadow ray: walk them in this batch's own lanes and
+                # packets (the unlit ones dead) rather than copy them into compacted packets.
+                shadow = RayBatch(surface.leave, to_light, inv_to_light, zero_tmin, shadow_tmax, rays.pixel,
+                                  unit_weight, "shadow")
+                occluded = self._trace("shadow", shadow, packets, "occluded", tally, "shadow")
+                add_light_in_place(surface.color, lit, occluded, surface.normal, to_light, ndotl, surface.view,
+                                   surface.material, m.diffuse, m.specular, m.shininess, surface.texel, light_color)
+                continue
             offsets, org, dirs, inv, tmin, tmax, pixel, weight, _, lane = compact_into_packets(
                 n, packets.width, packets.height, (packets.offsets,), (rays.pixel,), (lit,), (surface.leave,),
                 (to_light,), (shadow_tmax,), (unit_weight,), self.scratch.allocator("shadow"))
-            if offsets.shape[0] == 1:
-                continue  # no hit faces this light
             shadow = RayBatch(org, dirs, inv, tmin, tmax, pixel, weight, "shadow")
             occluded = self._trace("shadow", shadow, Packets(offsets, n, packets.width, packets.height),
                                    "occluded", tally, "shadow")
             add_light(surface.color, lane, occluded, surface.normal, to_light, ndotl, surface.view,
-                      surface.material, m.diffuse, m.specular, m.shininess, surface.texel,
-                      np.asarray(light.color, np.float32))
+                      surface.material, m.diffuse, m.specular, m.shininess, surface.texel, light_color)
         children = new_children(r, take)
         gather_and_spawn(packets.offsets, rays.pixel, rays.weight, surface.hit, surface.point, surface.magnitude,
                          surface.view, surface.normal, surface.facing, surface.entering, surface.material,
