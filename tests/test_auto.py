@@ -116,6 +116,21 @@ def test_the_sampled_diagonal_of_a_camera_packet_measures_the_whole_packet(rayse
         assert sampled <= every * (1 + 1e-6)
 
 
+def test_directions_of_any_length_measure_as_their_unit_vectors(rayset):
+    """Unit directions (the renderer's) skip the normalisation; longer ones, and a zero or NaN
+    one (not measured), take it: the measures are the same."""
+    rays, packets = scattered_packet(rayset)
+    unit = measured(rayset.bvh, rays, packets)
+    longer = rays._replace(dir=(rays.dir * np.float32(3.0)).astype(np.float32),
+                           tmax=(rays.tmax / np.float32(3.0)).astype(np.float32))
+    assert measured(rayset.bvh, longer, packets)[1][0] == pytest.approx(unit[1][0], rel=1e-5)
+    bad = rays.dir.copy()
+    bad[0] = 0.0
+    bad[17] = np.nan  # lanes 0 and 17 are sampled (the diagonal of a 16 x 16 packet)
+    live, footprint = measured(rayset.bvh, rays._replace(dir=bad), packets)
+    assert live[0] == 14 / 16 and np.isfinite(footprint[0])
+
+
 def test_dead_lanes_lower_the_live_fraction_and_are_not_measured(rayset):
     rays, packets = scattered_packet(rayset)
     tmax = rays.tmax.copy()

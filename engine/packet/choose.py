@@ -50,6 +50,9 @@ N_LIMITS = 4
 #: Lanes of a packet the measures look at (see the module doc): 16 is the diagonal of a 16 x 16
 #: packet (a stride of 17) and every lane of a 4 x 4 one.
 SAMPLED_LANES = 16
+#: A direction whose squared length is within this of 1 is taken as unit (float32 unit vectors
+#: are within a few 1e-7): the measure then skips its square root and division.
+UNIT_SLACK = 1e-6
 #: The names of the limits, in order (the keys of the thresholds file and the plugin's options).
 LIMIT_NAMES = ("ranged_max_footprint", "masked_max_footprint", "min_live", "invalid_frustum")
 
@@ -72,12 +75,15 @@ def packet_measures(org, dirs, tmin, tmax, start, n, scales):
         if not tmin[r] <= tmax[r]:
             continue
         dx, dy, dz = float(dirs[r, 0]), float(dirs[r, 1]), float(dirs[r, 2])
-        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
-        if not norm > 0.0:
-            continue
+        norm2 = dx * dx + dy * dy + dz * dz
+        norm = 1.0
+        if not abs(norm2 - 1.0) <= UNIT_SLACK:  # unit already (the renderer's rays): no root, no division
+            norm = math.sqrt(norm2)
+            if not norm > 0.0:
+                continue
+            scale = 1.0 / norm
+            dx, dy, dz = dx * scale, dy * scale, dz * scale
         live += 1
-        scale = 1.0 / norm
-        dx, dy, dz = dx * scale, dy * scale, dz * scale
         d_lo_x, d_lo_y, d_lo_z = min(d_lo_x, dx), min(d_lo_y, dy), min(d_lo_z, dz)
         d_hi_x, d_hi_y, d_hi_z = max(d_hi_x, dx), max(d_hi_y, dy), max(d_hi_z, dz)
         ox, oy, oz = float(org[r, 0]), float(org[r, 1]), float(org[r, 2])
