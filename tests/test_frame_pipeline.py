@@ -8,8 +8,7 @@ reference (``tests/numpy_whitted.py``) on scenes with shadows, textures, mirrors
 import numpy as np
 import pytest
 
-from engine.bench.runner import copied_batch
-from engine.core.types import Packets, RayBatch
+from engine.core.types import Packets, RayBatch, copied_batch
 from engine.packet.compact import compact_into_packets
 from engine.packet.layout import make_batch
 from engine.render.camera import camera_batch, camera_rays

@@ -12,9 +12,8 @@ from engine.core.triangle import F32_INF, intersect_triangle, ray_shear
 from engine.core.offset import coordinate_magnitude, hit_points, offset_origin
 from engine.render.plugins import make_frustum, make_traversal
 from engine.core.scene import make_triangles
-from engine.core.types import empty_hits
+from engine.core.types import copied_batch, empty_hits
 from engine.render.whitted import WhittedRenderer
-from engine.bench.runner import copied_batch
 
 from brute_force import kernel_answer
 from conftest import needs_shared_scenes

@@ -11,7 +11,6 @@ import numba
 import numpy as np
 import pytest
 
-from engine.bench.runner import copied_batch
 from engine.cli import main
 from engine.render.config import Config, with_overrides
 from engine.debug.packet_trace import CULLED, ENTERED, PACKET_WALKS, rayspace_node, trace_packet
@@ -20,7 +19,7 @@ from engine.debug.show import (FRUSTUM, NO_PACKET, RAY_HIT, STRATEGY_COLOURS, bu
 from engine.packet.strategies import CHOSEN_NAMES
 from engine.render.plugins import make_traversal
 from engine.core.triangle import slab_test
-from engine.core.types import COUNTER_NODES, RAY_KINDS, Frusta, Packets, RayBatch, empty_hits, new_stats
+from engine.core.types import COUNTER_NODES, RAY_KINDS, Frusta, Packets, RayBatch, copied_batch, empty_hits, new_stats
 from engine.render.whitted import WhittedRenderer
 from scenes.catalog import scene_from_config
 

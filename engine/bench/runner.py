@@ -53,7 +53,7 @@ from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require
 from engine.bench.yardstick import replay_once
 from engine.core.atomic import output_folder
 from engine.core.errors import ConfigError
-from engine.core.types import RAY_KINDS, RayBatch
+from engine.core.types import RAY_KINDS, copied_batch
 from engine.render.config import read_toml
 from engine.render.plugins import make_traversal
 from engine.render.tracer import Tally
@@ -90,12 +90,6 @@ class BatchRecorder:
             for array in (rays.org, rays.dir, rays.tmin, rays.tmax, packets.offsets):
                 h.update(np.ascontiguousarray(array).data)
         return h.hexdigest()
-
-
-def copied_batch(rays, packets) -> tuple:
-    """(RayBatch, Packets) with arrays of their own, which the renderer will not overwrite."""
-    return (RayBatch(*(np.array(getattr(rays, f)) for f in RayBatch._fields[:-1]), rays.kind),
-            packets._replace(offsets=np.array(packets.offsets)))
 
 
 def replay(batches, tracer) -> tuple:

@@ -101,6 +101,14 @@ class Packets(NamedTuple):
     height: int
 
 
+def copied_batch(rays: RayBatch, packets: Packets) -> tuple:
+    """(RayBatch, Packets) with arrays of their own. A renderer's observer gets views of its
+    per-lane arrays, which later batches of the same frame overwrite (the next light's shadow
+    rays, the generation after next): whoever keeps a batch past the call keeps a copy."""
+    return (RayBatch(*(np.array(getattr(rays, f)) for f in RayBatch._fields[:-1]), rays.kind),
+            packets._replace(offsets=np.array(packets.offsets)))
+
+
 class Frusta(NamedTuple):
     """One bounding frustum per packet.
 

@@ -42,7 +42,7 @@ import numpy as np
 
 from engine.core.atomic import replacing
 from engine.core.errors import ConfigError, PacketrtError
-from engine.core.types import RAY_KINDS, Hits, RayBatch
+from engine.core.types import RAY_KINDS, Hits, copied_batch
 
 #: Most scene triangles drawn as wireframe; a bigger scene shows a fixed random sample.
 MAX_WIREFRAME_TRIANGLES = 12000
@@ -102,10 +102,8 @@ def capture_batch(renderer, kind: str):
     def observer(k, query, rays, packets, answer):
         if k == kind:
             if not seen:
-                # The renderer reuses its per-lane arrays for later batches (the next light's
-                # shadows, the generation after next): keep copies of the first batch.
-                rays = RayBatch(*(np.array(getattr(rays, f)) for f in RayBatch._fields[:-1]), rays.kind)
-                packets = packets._replace(offsets=np.array(packets.offsets))
+                # The renderer reuses its per-lane arrays for later batches: keep copies of the first.
+                rays, packets = copied_batch(rays, packets)
                 answer = Hits(*(np.array(a) for a in answer)) if query == "intersect" else np.array(answer)
             seen.append((rays, packets, query, answer))
 

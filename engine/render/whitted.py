@@ -25,6 +25,8 @@ through this one loop and the same shading kernels.
 A traversal plugin may define ``prepare(tris) -> seconds`` to build its own structure before
 timing starts. ``observer(kind, query, rays, packets, answer)`` is called after every cast batch
 (query "intersect" with Hits, or "occluded" with bool[R]); the audit and the benchmark use it.
+The arrays are views of the renderer's per-lane arrays, which later batches of the same frame
+overwrite: an observer that keeps a batch keeps a copy (``engine.core.types.copied_batch``).
 """
 from __future__ import annotations
 
