@@ -41,23 +41,31 @@ def test_light_directions_and_lit_mask():
     assert dist[0] == 0 and not lit[0] and np.isfinite(l[0]).all()
 
 
-def test_add_light_is_diffuse_plus_phong_on_visible_hits_only():
-    rng = np.random.default_rng(6)
-    m, k = 4000, 7
+def shading_lanes(rng, m, k):
+    """(color f32[m,3], the rest of add_light's arguments after ``occluded``) for m random lanes
+    and k materials."""
     ns, l, view = unit(rng.normal(size=(m, 3))), unit(rng.normal(size=(m, 3))), unit(rng.normal(size=(m, 3)))
     ndotl = np.einsum("ij,ij->i", ns, l).astype(np.float32)
     mat = rng.integers(0, k, m).astype(np.int32)
     diffuse, specular = rng.random((k, 3)).astype(np.float32), rng.random((k, 3)).astype(np.float32)
     shininess = (rng.random(k) * 60).astype(np.float32)
     texel = rng.random((m, 3)).astype(np.float32)
-    lc = np.array([0.9, 0.7, 0.4], np.float32)
+    lc = rng.random(3).astype(np.float32)
     color = rng.random((m, 3)).astype(np.float32)
+    return color, (ns, l, ndotl, view, mat, diffuse, specular, shininess, texel, lc)
+
+
+def test_add_light_is_diffuse_plus_phong_on_visible_hits_only():
+    rng = np.random.default_rng(6)
+    m, k = 4000, 7
+    color, args = shading_lanes(rng, m, k)
+    ns, l, ndotl, view, mat, diffuse, specular, shininess, texel, lc = args
     before = color.copy()
     # Shadow rays name their lanes (-1: padding); only the unoccluded ones add light.
     lane = np.full(m // 2 + 8, -1, np.int64)
     lane[: m // 2] = rng.choice(m, m // 2, replace=False)
     occluded = rng.random(lane.size) < 0.3
-    add_light(color, lane, occluded, ns, l, ndotl, view, mat, diffuse, specular, shininess, texel, lc)
+    add_light(color, lane, occluded, *args)
     v = np.sort(lane[(lane >= 0) & ~occluded])
     r = 2 * ndotl[v, None] * ns[v] - l[v]
     spec = np.maximum(np.einsum("ij,ij->i", r, -view[v]), 0) ** shininess[mat[v]]
@@ -71,19 +79,11 @@ def test_add_light_is_diffuse_plus_phong_on_visible_hits_only():
 def test_add_light_in_place_is_add_light_over_the_lit_lanes():
     """Shadow rays walked in their own lanes add exactly what the same rays add when compacted."""
     rng = np.random.default_rng(7)
-    m, k = 3000, 5
-    ns, l, view = unit(rng.normal(size=(m, 3))), unit(rng.normal(size=(m, 3))), unit(rng.normal(size=(m, 3)))
-    ndotl = np.einsum("ij,ij->i", ns, l).astype(np.float32)
-    mat = rng.integers(0, k, m).astype(np.int32)
-    diffuse, specular = rng.random((k, 3)).astype(np.float32), rng.random((k, 3)).astype(np.float32)
-    shininess = (rng.random(k) * 60).astype(np.float32)
-    texel = rng.random((m, 3)).astype(np.float32)
-    lc = np.array([0.3, 0.8, 0.6], np.float32)
-    color = rng.random((m, 3)).astype(np.float32)
+    m = 3000
+    color, args = shading_lanes(rng, m, 5)
     lit = rng.random(m) < 0.7
     occluded = rng.random(m) < 0.4  # answers of every lane's ray; the unlit ones were dead
     in_place, compacted = color.copy(), color.copy()
-    args = (ns, l, ndotl, view, mat, diffuse, specular, shininess, texel, lc)
     add_light_in_place(in_place, lit, occluded, *args)
     lane = np.flatnonzero(lit)
     add_light(compacted, lane, occluded[lane], *args)
