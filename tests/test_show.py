@@ -20,6 +20,7 @@ from engine.packet.strategies import CHOSEN_NAMES
 from engine.render.plugins import make_traversal
 from engine.core.triangle import slab_test
 from engine.core.types import COUNTER_NODES, RAY_KINDS, Frusta, Packets, RayBatch, copied_batch, empty_hits, new_stats
+from engine.render import whitted
 from engine.render.whitted import WhittedRenderer
 from scenes.catalog import scene_from_config
 
@@ -298,6 +299,24 @@ def test_show_mistakes_are_one_line_errors(argv, message, capsys, tmp_path):
     assert code == 2
     assert message in err and err.count("\n") == 1
     assert not (tmp_path / "x.png").exists()
+
+
+def test_a_packet_without_a_live_ray_is_a_one_line_error(monkeypatch, capsys, tmp_path):
+    """Shadow rays walked in their parent's lanes keep the packets of tiles that cast none: such
+    a packet is refused in one line, and the default choice never lands on one."""
+    monkeypatch.setattr(whitted, "IN_PLACE_SHADOWS", 0.0)
+    config = with_overrides(Config(), size=(64, 64), packet=8, depth=0)
+    renderer = WhittedRenderer(scene_from_config(config.scene, "none"), config)
+    rays, packets, *_ = capture_batch(renderer, "shadow")
+    live = rays.tmin <= rays.tmax
+    dead = [k for k in range(len(packets.offsets) - 1) if not live[packets.offsets[k]:packets.offsets[k + 1]].any()]
+    assert dead  # the sky above the default scene's floor casts no shadow ray
+    code = main(["show", "--size", "64x64", "--packet", "8", "--depth", "0", "--kind", "shadow",
+                 "--packet-index", str(dead[0]), "-o", str(tmp_path / "x.png")])
+    err = capsys.readouterr().err
+    assert code == 2 and "has no live ray" in err and err.count("\n") == 1
+    assert not (tmp_path / "x.png").exists()
+    assert centre_packet(rays, packets) not in dead
 
 
 def test_rayspace_picture_has_cone_and_survivors():

@@ -365,6 +365,11 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
     tris, bvh = renderer.tris, renderer.bvh
     pic = Picture()
     live_pixels = rays.pixel[start:stop][(rays.pixel[start:stop] >= 0) & (rays.tmin[start:stop] <= rays.tmax[start:stop])]
+    if live_pixels.size == 0:
+        # A shadow batch walked in its parent's lanes keeps the packets of tiles none of whose
+        # lanes casts a ray (all of them dead).
+        raise PacketrtError(f"{kind} packet {k} of the first {kind} batch has no live ray (no lane of its tile "
+                            f"casts one); choose another --packet-index")
     tile = (int(live_pixels.min() % packets.width) // packets.size, int(live_pixels.min() // packets.width) // packets.size)
     pic.legend.append(f"{scene.name} ({scene.n_triangles:,} triangles), {config.render.width}x{config.render.height}")
     pic.legend.append(f"{kind} packet {k} of {n_packets} ({packets.size}x{packets.size} tile {tile[0]},{tile[1]})"
