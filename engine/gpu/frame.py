@@ -46,7 +46,7 @@ from engine.gpu.refit import DeviceRefit
 from engine.gpu.scene_upload import DeviceBVH, DeviceTriangles, upload
 from engine.gpu.traversals import device_traversals
 from engine.gpu.twin import device_twin
-from engine.render.camera import camera_direction, image_plane
+from engine.render.camera import camera_direction, direction_through, image_plane, image_x, image_y
 from engine.render.direct_light import add_light_lane, light_direction_lane
 from engine.render.materials import MaterialTable
 from engine.render.spawn import spawn_lane
@@ -62,7 +62,8 @@ _texel_color = device_twin(texel_color_lane)
 _light_direction = device_twin(light_direction_lane)
 _add_light = device_twin(add_light_lane)
 _spawn = device_twin(spawn_lane, dot3=_dot3)
-_camera_direction = device_twin(camera_direction)
+_camera_direction = device_twin(camera_direction, image_x=device_twin(image_x), image_y=device_twin(image_y),
+                                direction_through=device_twin(direction_through))
 
 #: Queue kinds, as stored in a queue's ``kind`` array.
 PRIMARY, REFLECTION, REFRACTION = 0, 1, 2
