@@ -159,3 +159,23 @@ def test_shadow_rays_walked_in_their_lanes_give_the_compacted_image(monkeypatch,
                 assert live[rays.pixel >= 0].all()  # compacted: only padding is dead
         assert shadows > 0
     assert np.array_equal(images[True], images[False])
+
+
+def test_the_gpu_image_checks_recorder_keeps_only_cast_rays(monkeypatch):
+    """``engine.bench.gpu_pixels.PixelRecorder`` lists a pixel's rays to explain a GPU/CPU image
+    difference: the dead lanes of a shadow batch walked in place are no rays of that pixel."""
+    from engine.bench.gpu_pixels import PixelRecorder
+
+    monkeypatch.setattr(whitted, "IN_PLACE_SHADOWS", 0.0)
+    recorder, live = PixelRecorder(), []
+
+    def observe(kind, query, rays, packets, answer):
+        recorder(kind, query, rays, packets, answer)
+        if kind == "shadow":
+            live.append(int(np.count_nonzero(rays.tmin <= rays.tmax)))
+
+    renderer = WhittedRenderer(load_named("whitted"), _config("partition", width=40, height=32, packet=8),
+                               observer=observe)
+    result = renderer.render()
+    recorded = sum(len(record[0]) for record in recorder.batches["shadow"])
+    assert recorded == sum(live) == result.rays["shadow"] > 0

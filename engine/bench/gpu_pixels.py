@@ -17,7 +17,7 @@ KIND_ORDER = ("primary", "shadow", "reflection", "refraction")
 
 class PixelRecorder:
     """Observer keeping {kind: [(pixel i32[R], org f32[R,3], dir f32[R,3], prim i32[R] | None,
-    t f32[R] | None, occluded bool[R] | None)]} of every cast batch."""
+    t f32[R] | None, occluded bool[R] | None)]} of the live rays of every cast batch."""
 
     def __init__(self, forward=None):
         self.forward = forward
@@ -26,7 +26,8 @@ class PixelRecorder:
     def __call__(self, kind, query, rays, packets, answer):
         if self.forward is not None:
             self.forward(kind, query, rays, packets, answer)
-        live = rays.pixel >= 0
+        # Cast rays only: a shadow batch walked in its parent's lanes keeps dead lanes on pixels.
+        live = (rays.pixel >= 0) & (rays.tmin <= rays.tmax)
         if query == "intersect":
             record = (rays.pixel[live], rays.org[live], rays.dir[live], answer.prim[live], answer.t[live], None)
         else:
