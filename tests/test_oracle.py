@@ -59,3 +59,21 @@ def test_audit_of_a_whitted_render_has_no_mismatch(shared_scenes, name, override
     assert report["by_kind"]["reflection"]["checked"] + report["by_kind"]["refraction"]["checked"] > 0
     assert report["mismatch_count"] == 0, report["mismatches"][:3]
     assert report["oracle"]["robust"] is True and report["oracle"]["version"].count(".") == 2
+
+
+@pytest.mark.parametrize("traversal", ["partition", "ranged"])
+def test_audit_of_shadow_rays_walked_in_their_lanes_has_no_mismatch(monkeypatch, traversal):
+    """Every light's shadow rays walked in their parent batch's own lanes (forced; a real frame
+    does so when 90% of the lanes cast one): every live ray agrees with Embree, the dead lanes are
+    not counted, and as many shadow rays are checked as when they are compacted."""
+    from engine.render import whitted
+
+    config = with_overrides(Config(), traversal=[traversal], size=(64, 64), depth=2)
+    scene = scene_from_config(config.scene, "none")
+    checked = {}
+    for in_place in (True, False):
+        monkeypatch.setattr(whitted, "IN_PLACE_SHADOWS", 0.0 if in_place else 2.0)
+        report, _, _ = audit(scene, config)
+        assert report["mismatch_count"] == 0, report["mismatches"][:3]
+        checked[in_place] = report["by_kind"]["shadow"]["checked"]
+    assert checked[True] == checked[False] > 0
