@@ -34,6 +34,7 @@ from numba import njit
 
 from engine.packet.frustum_cull import frustum_misses_triangle
 from engine.core.triangle import F32_INF, ray_shear
+from engine.packet.load8 import ROWS_F as LOAD8_ROWS_F, ROWS_I as LOAD8_ROWS_I, load_rays8
 from engine.packet.simd4 import slab4, slab4x2
 from engine.packet.simd4_triangle import ROWS_F, ROWS_I, intersect4, intersect4x2
 from engine.core.types import MAX_BVH_DEPTH
@@ -46,6 +47,10 @@ RI_ROWS = 4
 assert ROWS_F == {"TLO": TLO, "THI": THI, "SX": SX, "SY": SY, "SZ": SZ, "OKX": OKX, "OKY": OKY, "OKZ": OKZ,
                   "BEST_T": BEST_T, "BEST_U": BEST_U, "BEST_V": BEST_V}
 assert ROWS_I == {"KX": KX, "KY": KY, "KZ": KZ, "BEST_PRIM": BEST_PRIM}
+# and load_rays8 against this one.
+assert LOAD8_ROWS_F == {name: row for row, name in enumerate(
+    "OX OY OZ IX IY IZ TLO THI SX SY SZ OKX OKY OKZ BEST_T BEST_U BEST_V".split())}
+assert LOAD8_ROWS_I == {"KX": KX, "KY": KY, "KZ": KZ, "BEST_PRIM": BEST_PRIM}
 
 #: Depth-first traversal that tests a node when it is popped holds at most two entries per level.
 STACK_SIZE = 2 * MAX_BVH_DEPTH + 2
@@ -132,36 +137,61 @@ def set_segment(rf, ri, i, tlo, thi, kx, ky, kz, sx, sy, sz, okx, oky, okz):
 
 
 @njit(cache=True, inline="always")
+def load_lane(org, inv, dirs, tmin, tmax, r, rf, ri, i):
+    """Ray r into lane i of the packet-local rows (``load_rays8`` does eight at once, bit for
+    bit the same); returns 1 when the ray is live (tmin <= tmax), else 0."""
+    rf[OX, i] = org[r, 0]
+    rf[OY, i] = org[r, 1]
+    rf[OZ, i] = org[r, 2]
+    rf[IX, i] = inv[r, 0]
+    rf[IY, i] = inv[r, 1]
+    rf[IZ, i] = inv[r, 2]
+    rf[BEST_T, i] = F32_INF
+    rf[BEST_U, i] = F32_ZERO
+    rf[BEST_V, i] = F32_ZERO
+    ri[BEST_PRIM, i] = -1
+    if tmin[r] <= tmax[r]:
+        kx, ky, kz, sx, sy, sz = ray_shear(dirs[r, 0], dirs[r, 1], dirs[r, 2])
+        set_segment(rf, ri, i, tmin[r], tmax[r], kx, ky, kz, sx, sy, sz, org[r, kx], org[r, ky], org[r, kz])
+        return 1
+    set_segment(rf, ri, i, F32_INF, F32_NEG_INF, 0, 1, 2, F32_ZERO, F32_ZERO, F32_ZERO,
+                F32_ZERO, F32_ZERO, F32_ZERO)
+    return 0
+
+
+@njit(cache=True, inline="always")
+def rows_of_three(a):
+    """Whether f32[R,3] ``a`` has rows of 12 contiguous bytes (what ``load_rays8`` reads)."""
+    return a.shape[1] == 3 and a.strides[1] == 4 and a.strides[0] == 12
+
+
+@njit(cache=True, inline="always")
 def load_packet(org, inv, dirs, tmin, tmax, start, n, rf, ri, near):
     """Transpose rays start .. start+n (org, inv, dirs: f32[R,3]; tmin, tmax: f32[R]) into the
     packet-local rows rf, ri and set the near-child table from the live rays' summed direction.
-    Returns the number of live lanes."""
+    Returns the number of live lanes. Eight rays at a time (``load_rays8``), the rest one by
+    one."""
     live = 0
+    i = 0
+    if rows_of_three(org) and rows_of_three(inv) and rows_of_three(dirs):
+        while i + 8 <= n:
+            mask = load_rays8(org, inv, dirs, tmin, tmax, start + i, rf, ri, i)
+            live += lane_count(mask & ALL_LANES) + lane_count(mask >> 4)
+            i += 8
+    while i < n:
+        live += load_lane(org, inv, dirs, tmin, tmax, start + i, rf, ri, i)
+        i += 1
+    # The live rays' directions summed in lane order; a dead lane adds +0.0, which changes no
+    # sum's value (the sums start at +0.0) and needs no branch.
     sum_x = 0.0
     sum_y = 0.0
     sum_z = 0.0
     for i in range(n):
         r = start + i
-        rf[OX, i] = org[r, 0]
-        rf[OY, i] = org[r, 1]
-        rf[OZ, i] = org[r, 2]
-        rf[IX, i] = inv[r, 0]
-        rf[IY, i] = inv[r, 1]
-        rf[IZ, i] = inv[r, 2]
-        rf[BEST_T, i] = F32_INF
-        rf[BEST_U, i] = F32_ZERO
-        rf[BEST_V, i] = F32_ZERO
-        ri[BEST_PRIM, i] = -1
-        if tmin[r] <= tmax[r]:
-            live += 1
-            kx, ky, kz, sx, sy, sz = ray_shear(dirs[r, 0], dirs[r, 1], dirs[r, 2])
-            set_segment(rf, ri, i, tmin[r], tmax[r], kx, ky, kz, sx, sy, sz, org[r, kx], org[r, ky], org[r, kz])
-            sum_x += dirs[r, 0]
-            sum_y += dirs[r, 1]
-            sum_z += dirs[r, 2]
-        else:
-            set_segment(rf, ri, i, F32_INF, F32_NEG_INF, 0, 1, 2, F32_ZERO, F32_ZERO, F32_ZERO,
-                        F32_ZERO, F32_ZERO, F32_ZERO)
+        alive = tmin[r] <= tmax[r]
+        sum_x += dirs[r, 0] if alive else F32_ZERO
+        sum_y += dirs[r, 1] if alive else F32_ZERO
+        sum_z += dirs[r, 2] if alive else F32_ZERO
     # Travelling towards -axis, the upper child comes first: near offset = upper XOR negative.
     neg_x = 1 if sum_x < 0.0 else 0
     neg_y = 1 if sum_y < 0.0 else 0
