@@ -55,6 +55,40 @@ def shading_lanes(rng, m, k):
     return color, (ns, l, ndotl, view, mat, diffuse, specular, shininess, texel, lc)
 
 
+def _light_directions_arrays(m, padded):
+    """Answer arrays for light_directions, pre-filled with 5 (to see which lanes are written);
+    ``padded``: the f32[m,3] ones as views of f32[m,4] blocks (rows not 12 contiguous bytes)."""
+    def rows3():
+        block = np.full((m, 4 if padded else 3), 5, np.float32)
+        return block[:, :3]
+    return (rows3(), np.full(m, 5, np.float32), np.full(m, 5, np.float32), np.full(m, True),
+            np.full(m, 5, np.float32), rows3())
+
+
+def test_light_directions_eight_lanes_at_a_time_write_the_bits_of_the_lane_by_lane_loop():
+    """The eight-lane step (``engine.render.light8``) against the per-lane loop, which runs where
+    the rows are not 12 contiguous bytes: every array, every bit, including the lanes left alone
+    (dist and ndotl without a hit), a hit at the light, NaN coordinates and a tail of 1003 % 8."""
+    rng = np.random.default_rng(11)
+    m = 1003
+    leave = (rng.normal(size=(m, 3)) * 4).astype(np.float32)
+    ns, ng = unit(rng.normal(size=(m, 3))), unit(rng.normal(size=(m, 3)))
+    light = np.array([1.0, 2.0, 3.0], np.float32)
+    leave[5] = light
+    leave[9, 1] = np.nan
+    hit = rng.random(m) < 0.8
+    hit[5] = hit[9] = True
+    wide = _light_directions_arrays(m, padded=False)
+    narrow = _light_directions_arrays(m, padded=True)
+    pad = [np.pad(a, ((0, 0), (0, 1)))[:, :3] for a in (leave, ns, ng)]
+    count_wide = light_directions(hit, leave, ns, ng, light, *wide)
+    count_narrow = light_directions(hit, *pad, light, *narrow)
+    assert count_wide == count_narrow == np.count_nonzero(wide[3])
+    for a, b in zip(wide, narrow):
+        assert np.array_equal(np.ascontiguousarray(a).view(np.uint8), np.ascontiguousarray(b).view(np.uint8))
+    assert (wide[1][~hit] == 5).all()  # dist is not written without a hit
+
+
 def test_add_light_is_diffuse_plus_phong_on_visible_hits_only():
     rng = np.random.default_rng(6)
     m, k = 4000, 7

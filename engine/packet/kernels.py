@@ -34,6 +34,7 @@ from numba import njit
 
 from engine.packet.frustum_cull import frustum_misses_triangle
 from engine.core.triangle import F32_INF, ray_shear
+from engine.core.lanes8 import rows_of_three
 from engine.packet.load8 import ROWS_F as LOAD8_ROWS_F, ROWS_I as LOAD8_ROWS_I, load_rays8
 from engine.packet.simd4 import slab4, slab4x2
 from engine.packet.simd4_triangle import ROWS_F, ROWS_I, intersect4, intersect4x2
@@ -157,12 +158,6 @@ def load_lane(org, inv, dirs, tmin, tmax, r, rf, ri, i):
     set_segment(rf, ri, i, F32_INF, F32_NEG_INF, 0, 1, 2, F32_ZERO, F32_ZERO, F32_ZERO,
                 F32_ZERO, F32_ZERO, F32_ZERO)
     return 0
-
-
-@njit(cache=True, inline="always")
-def rows_of_three(a):
-    """Whether f32[R,3] ``a`` has rows of 12 contiguous bytes (what ``load_rays8`` reads)."""
-    return a.shape[1] == 3 and a.strides[1] == 4 and a.strides[0] == 12
 
 
 @njit(cache=True, inline="always")

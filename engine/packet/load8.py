@@ -20,53 +20,16 @@ and ri i32[RI_ROWS, L] are the packet-local rows in the layout of ``engine.packe
 """
 from __future__ import annotations
 
-from llvmlite import ir
 from numba import types
-from numba.core import cgutils
 from numba.core.errors import TypingError
 from numba.extending import intrinsic
+
+from engine.core.lanes8 import I32, Lanes
 
 #: Rows of the packet-local blocks this writes (``engine.packet.kernels`` asserts its layout).
 ROWS_F = {"OX": 0, "OY": 1, "OZ": 2, "IX": 3, "IY": 4, "IZ": 5, "TLO": 6, "THI": 7, "SX": 8, "SY": 9, "SZ": 10,
           "OKX": 11, "OKY": 12, "OKZ": 13, "BEST_T": 14, "BEST_U": 15, "BEST_V": 16}
 ROWS_I = {"KX": 0, "KY": 1, "KZ": 2, "BEST_PRIM": 3}
-
-_W = 8
-_F32 = ir.FloatType()
-_I32 = ir.IntType(32)
-_I64 = ir.IntType(64)
-_VF = ir.VectorType(_F32, _W)
-_VI = ir.VectorType(_I32, _W)
-
-
-def _f32_splat(value):
-    return ir.Constant(_VF, [value] * _W)
-
-
-def _i32_splat(value):
-    return ir.Constant(_VI, [value] * _W)
-
-
-def _xyz(builder, data, row):
-    """The x, y and z <8 x float> of rows row .. row+7 of an f32[R,3] array with 12-byte rows."""
-    start = builder.gep(data, [builder.mul(row, ir.Constant(_I64, 3))])
-    block = builder.load(builder.bitcast(start, ir.VectorType(_F32, 3 * _W).as_pointer()), align=4)
-    undefined = ir.Constant(ir.VectorType(_F32, 3 * _W), ir.Undefined)
-    return [builder.shuffle_vector(block, undefined, ir.Constant(_VI, [3 * k + a for k in range(_W)]))
-            for a in range(3)]
-
-
-def _vector_at(builder, data, index, vector_type):
-    """Load or store address: element ``index`` of ``data`` viewed as a pointer to vector_type."""
-    return builder.bitcast(builder.gep(data, [index]), vector_type.as_pointer())
-
-
-def _pick(builder, axis, x, y, z):
-    """Per lane x, y or z for axis 0, 1 or 2 (<8 x i32>), as ``dx if k == 0 else (dy if k == 1
-    else dz)``."""
-    is0 = builder.icmp_signed("==", axis, _i32_splat(0))
-    is1 = builder.icmp_signed("==", axis, _i32_splat(1))
-    return builder.select(is0, x, builder.select(is1, y, z))
 
 
 def _check_array(value, ndim, dtype, what):
@@ -89,73 +52,68 @@ def load_rays8(typingctx, org, inv, dirs, tmin, tmax, r, rf, ri, i):
     sig = types.int64(org, inv, dirs, tmin, tmax, r, rf, ri, i)
 
     def codegen(context, builder, signature, args):
-        arrays = [context.make_array(signature.args[k])(context, builder, args[k]) for k in (0, 1, 2, 3, 4, 6, 7)]
-        org_a, inv_a, dirs_a, tmin_a, tmax_a, rf_a, ri_a = arrays
-        row = context.cast(builder, args[5], signature.args[5], types.int64)
-        lane = context.cast(builder, args[8], signature.args[8], types.int64)
-        four = ir.Constant(_I64, 4)
-        rf_elems = builder.udiv(builder.extract_value(rf_a.strides, 0), four)
-        ri_elems = builder.udiv(builder.extract_value(ri_a.strides, 0), four)
+        lanes = Lanes(context, builder)
+        org_a, inv_a, dirs_a, tmin_a, tmax_a = (lanes.array(signature.args[k], args[k]) for k in range(5))
+        rf_a, ri_a = lanes.array(signature.args[6], args[6]), lanes.array(signature.args[7], args[7])
+        row = lanes.index(signature.args[5], args[5])
+        lane = lanes.index(signature.args[8], args[8])
 
         def store_f(name, value):
-            index = builder.add(builder.mul(ir.Constant(_I64, ROWS_F[name]), rf_elems), lane)
-            builder.store(value, _vector_at(builder, rf_a.data, index, _VF), align=4)
+            lanes.store_at(rf_a, lanes.row_start(rf_a, ROWS_F[name], lane), value)
 
         def store_i(name, value):
-            index = builder.add(builder.mul(ir.Constant(_I64, ROWS_I[name]), ri_elems), lane)
-            builder.store(value, _vector_at(builder, ri_a.data, index, _VI), align=4)
+            lanes.store_at(ri_a, lanes.row_start(ri_a, ROWS_I[name], lane), value)
 
-        ox, oy, oz = _xyz(builder, org_a.data, row)
-        ix, iy, iz = _xyz(builder, inv_a.data, row)
-        dx, dy, dz = _xyz(builder, dirs_a.data, row)
-        t_lo = builder.load(_vector_at(builder, tmin_a.data, row, _VF), align=4)
-        t_hi = builder.load(_vector_at(builder, tmax_a.data, row, _VF), align=4)
-        live = builder.fcmp_ordered("<=", t_lo, t_hi)
+        def axis(k):
+            return lanes.splat(k, I32)
+
+        ox, oy, oz = lanes.rows3(org_a, row)
+        ix, iy, iz = lanes.rows3(inv_a, row)
+        dx, dy, dz = lanes.rows3(dirs_a, row)
+        t_lo, t_hi = lanes.row(tmin_a, row), lanes.row(tmax_a, row)
+        live = t_lo <= t_hi
 
         # ray_shear, lane by lane: kz the dominant axis (x before y before z on ties), kx, ky
         # the next two, swapped when d[kz] < 0.
-        fabs = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_VF, [_VF]), "llvm.fabs.v8f32")
-        ax, ay, az = (builder.call(fabs, [d]) for d in (dx, dy, dz))
-        x_wins = builder.and_(builder.fcmp_ordered(">=", ax, ay), builder.fcmp_ordered(">=", ax, az))
-        y_wins = builder.fcmp_ordered(">=", ay, az)
+        ax, ay, az = lanes.fabs(dx), lanes.fabs(dy), lanes.fabs(dz)
+        x_wins = (ax >= ay) & (ax >= az)
+        y_wins = ay >= az
 
         def by_winner(if_x, if_y, otherwise):
-            return builder.select(x_wins, if_x, builder.select(y_wins, if_y, otherwise))
+            return lanes.where(x_wins, if_x, lanes.where(y_wins, if_y, otherwise))
 
-        kz = by_winner(_i32_splat(0), _i32_splat(1), _i32_splat(2))
-        after = by_winner(_i32_splat(1), _i32_splat(2), _i32_splat(0))
-        after2 = by_winner(_i32_splat(2), _i32_splat(0), _i32_splat(1))
+        def pick(k, x, y, z):  # x, y or z by axis k, as ``dx if k == 0 else (dy if k == 1 else dz)``
+            return lanes.where(k.eq(0), x, lanes.where(k.eq(1), y, z))
+
+        kz = by_winner(axis(0), axis(1), axis(2))
+        after = by_winner(axis(1), axis(2), axis(0))
+        after2 = by_winner(axis(2), axis(0), axis(1))
         dkz = by_winner(dx, dy, dz)
-        negative = builder.fcmp_ordered("<", dkz, _f32_splat(0.0))
-        kx = builder.select(negative, after2, after)
-        ky = builder.select(negative, after, after2)
-        sx = builder.fdiv(_pick(builder, kx, dx, dy, dz), dkz)
-        sy = builder.fdiv(_pick(builder, ky, dx, dy, dz), dkz)
-        sz = builder.fdiv(_f32_splat(1.0), dkz)
+        negative = dkz < 0.0
+        kx = lanes.where(negative, after2, after)
+        ky = lanes.where(negative, after, after2)
+        sx = pick(kx, dx, dy, dz) / dkz
+        sy = pick(ky, dx, dy, dz) / dkz
+        sz = 1.0 / dkz
 
         # A dead lane: the empty segment, axes 0, 1, 2 and zero shear and origin.
-        zero = _f32_splat(0.0)
-
-        def live_or(value, dead):
-            return builder.select(live, value, dead)
-
         for name, value in (("OX", ox), ("OY", oy), ("OZ", oz), ("IX", ix), ("IY", iy), ("IZ", iz)):
             store_f(name, value)
-        store_f("TLO", live_or(t_lo, _f32_splat(float("inf"))))
-        store_f("THI", live_or(t_hi, _f32_splat(float("-inf"))))
-        store_f("SX", live_or(sx, zero))
-        store_f("SY", live_or(sy, zero))
-        store_f("SZ", live_or(sz, zero))
-        store_f("OKX", live_or(_pick(builder, kx, ox, oy, oz), zero))
-        store_f("OKY", live_or(_pick(builder, ky, ox, oy, oz), zero))
-        store_f("OKZ", live_or(_pick(builder, kz, ox, oy, oz), zero))
-        store_f("BEST_T", _f32_splat(float("inf")))
-        store_f("BEST_U", zero)
-        store_f("BEST_V", zero)
-        store_i("KX", live_or(kx, _i32_splat(0)))
-        store_i("KY", live_or(ky, _i32_splat(1)))
-        store_i("KZ", live_or(kz, _i32_splat(2)))
-        store_i("BEST_PRIM", _i32_splat(-1))
-        return builder.zext(builder.bitcast(live, ir.IntType(_W)), _I64)
+        store_f("TLO", lanes.where(live, t_lo, float("inf")))
+        store_f("THI", lanes.where(live, t_hi, float("-inf")))
+        store_f("SX", lanes.where(live, sx, 0.0))
+        store_f("SY", lanes.where(live, sy, 0.0))
+        store_f("SZ", lanes.where(live, sz, 0.0))
+        store_f("OKX", lanes.where(live, pick(kx, ox, oy, oz), 0.0))
+        store_f("OKY", lanes.where(live, pick(ky, ox, oy, oz), 0.0))
+        store_f("OKZ", lanes.where(live, pick(kz, ox, oy, oz), 0.0))
+        store_f("BEST_T", lanes.splat(float("inf")))
+        store_f("BEST_U", lanes.splat(0.0))
+        store_f("BEST_V", lanes.splat(0.0))
+        store_i("KX", lanes.where(live, kx, 0))
+        store_i("KY", lanes.where(live, ky, 1))
+        store_i("KZ", lanes.where(live, kz, 2))
+        store_i("BEST_PRIM", lanes.splat(-1, I32))
+        return lanes.bitmask(live)
 
     return sig, codegen
