@@ -21,6 +21,7 @@ bit for bit. Arrays are numba array structs (``context.make_array``) passed as (
 """
 from __future__ import annotations
 
+import numpy as np
 from llvmlite import ir
 from numba import njit, types
 from numba.core import cgutils
@@ -110,7 +111,8 @@ class Lanes:
     def splat(self, value, element=F32) -> V:
         if isinstance(value, V):
             return value
-        if isinstance(value, (int, float, bool)):
+        if isinstance(value, (int, float, bool, np.number, np.bool_)):
+            value = value.item() if isinstance(value, (np.number, np.bool_)) else value
             return V(self, ir.Constant(self.vector_type(element), [value] * self.width))
         # a scalar llvm value: insert, then broadcast
         vector = self.vector_type(value.type)
@@ -208,6 +210,21 @@ class Lanes:
         elements = self.builder.udiv(self.builder.extract_value(array.strides, 0), size)
         return self.builder.add(self.builder.mul(ir.Constant(I64, row), elements), column)
 
+    def gather(self, array, rows: V, column: int = 0) -> V:
+        """Per lane element [rows[k], column] of a 2-D array (or [rows[k]] of a 1-D one, column
+        0), rows an i64 vector of valid rows: one scalar load per lane."""
+        element = array.data.type.pointee
+        size = 8 if element == F64 or element == I64 else (1 if element == I8 else 4)
+        row_elems = self.builder.udiv(self.builder.extract_value(array.strides, 0), ir.Constant(I64, size))
+        result = ir.Constant(self.vector_type(element), ir.Undefined)
+        for k in range(self.width):
+            lane = ir.Constant(I32, k)
+            row = self.builder.extract_element(rows.value, lane)
+            index = self.builder.add(self.builder.mul(row, row_elems), ir.Constant(I64, column))
+            value = self.builder.load(self.builder.gep(array.data, [index]))
+            result = self.builder.insert_element(result, value, lane)
+        return V(self, result)
+
     def rows3(self, array, start):
         """The x, y, z vectors of rows start .. start+WIDTH-1 of an f32[R,3] array whose rows are
         12 contiguous bytes."""
@@ -247,7 +264,8 @@ class Lanes:
 
     def store_rows3(self, array, start, xyz, mask: V | None = None):
         """Store the x, y, z vectors into rows start .. start+WIDTH-1 of an f32[R,3] array with
-        12-byte rows; with ``mask``, only the rows of the lanes it sets."""
+        12-byte rows; with ``mask``, only the rows of the lanes it sets (the others are read and
+        written back unchanged: no other thread may write these rows meanwhile)."""
         w = self.width
         b = self.builder
         pair_type = self.vector_type(F32)
@@ -263,9 +281,11 @@ class Lanes:
         if mask is None:
             b.store(block, pointer, align=4)
             return
+        # Read, select, write: a masked store of 24 floats is split by LLVM into per-element
+        # branches (gather_and_spawn 15 -> 50 ms). The rows belong to the caller's thread.
         triple = b.shuffle_vector(mask.value, ir.Constant(mask.value.type, ir.Undefined),
                                   ir.Constant(ir.VectorType(I32, 3 * w), [k // 3 for k in range(3 * w)]))
-        self._masked_store(block, pointer, triple)
+        b.store(b.select(triple, block, b.load(pointer, align=4)), pointer, align=4)
 
 
 @njit(cache=True, inline="always")
