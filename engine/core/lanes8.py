@@ -173,7 +173,13 @@ class Lanes:
         """Float to integer, truncating (numba's int() of a float)."""
         if isinstance(v.element, (ir.FloatType, ir.DoubleType)):
             return V(self, self.builder.fptosi(v.value, self.vector_type(I64)))
+        if v.element == I64:
+            return v
         return V(self, self.builder.sext(v.value, self.vector_type(I64)))
+
+    def to_i32(self, v: V) -> V:
+        """An i64 vector truncated to i32 (numba's store of an int64 into an int32 array)."""
+        return V(self, self.builder.trunc(v.value, self.vector_type(I32)))
 
     def to_f32_from_int(self, v: V) -> V:
         return V(self, self.builder.sitofp(v.value, self.vector_type(F32)))
@@ -206,24 +212,53 @@ class Lanes:
     def row_start(self, array, row, column):
         """Element index of [row, column] of a C-contiguous 2-D array (i64)."""
         element = array.data.type.pointee
-        size = ir.Constant(I64, 8 if element == F64 or element == I64 else (1 if element == I8 else 4))
+        size = ir.Constant(I64, self._element_size(element))
         elements = self.builder.udiv(self.builder.extract_value(array.strides, 0), size)
         return self.builder.add(self.builder.mul(ir.Constant(I64, row), elements), column)
 
-    def gather(self, array, rows: V, column: int = 0) -> V:
-        """Per lane element [rows[k], column] of a 2-D array (or [rows[k]] of a 1-D one, column
-        0), rows an i64 vector of valid rows: one scalar load per lane."""
+    @staticmethod
+    def _element_size(element):
+        return 8 if element == F64 or element == I64 else (1 if element == I8 else 4)
+
+    def gather(self, array, indices) -> V:
+        """Per lane the element of ``array`` at ``indices`` (one per axis: an i64 vector of valid
+        indices, or a Python int for all lanes; a single V for a 1-D array): one scalar load per
+        lane."""
+        if not isinstance(indices, (list, tuple)):
+            indices = [indices]
         element = array.data.type.pointee
-        size = 8 if element == F64 or element == I64 else (1 if element == I8 else 4)
-        row_elems = self.builder.udiv(self.builder.extract_value(array.strides, 0), ir.Constant(I64, size))
+        size = ir.Constant(I64, self._element_size(element))
+        offset = None
+        for axis, index in enumerate(indices):
+            stride = self.splat(self.builder.udiv(self.builder.extract_value(array.strides, axis), size))
+            term = (index if isinstance(index, V) else self.splat(index, I64)) * stride
+            offset = term if offset is None else offset + term
         result = ir.Constant(self.vector_type(element), ir.Undefined)
         for k in range(self.width):
             lane = ir.Constant(I32, k)
-            row = self.builder.extract_element(rows.value, lane)
-            index = self.builder.add(self.builder.mul(row, row_elems), ir.Constant(I64, column))
-            value = self.builder.load(self.builder.gep(array.data, [index]))
-            result = self.builder.insert_element(result, value, lane)
+            address = self.builder.gep(array.data, [self.builder.extract_element(offset.value, lane)])
+            result = self.builder.insert_element(result, self.builder.load(address), lane)
         return V(self, result)
+
+    def choose(self, flag, then_values, else_values) -> list:
+        """Run ``then_values()`` or ``else_values()`` (each returning a list of V) as the scalar
+        i1 ``flag`` says, in a real branch (so a side may read what the other may not, such as
+        an empty array), and give the chosen list."""
+        b = self.builder
+        with b.if_else(flag) as (then, otherwise):
+            with then:
+                a = then_values()
+                then_block = b.block
+            with otherwise:
+                c = else_values()
+                else_block = b.block
+        merged = []
+        for x, y in zip(a, c):
+            phi = b.phi(x.value.type)
+            phi.add_incoming(x.value, then_block)
+            phi.add_incoming(y.value, else_block)
+            merged.append(V(self, phi))
+        return merged
 
     def rows3(self, array, start):
         """The x, y, z vectors of rows start .. start+WIDTH-1 of an f32[R,3] array whose rows are

@@ -71,7 +71,7 @@ def spawn8(typingctx, hit, weight, point, magnitude, view, normal, facing, enter
         about_ng = [d[k] + 2.0 * cos_g * ng[k] for k in range(3)]
         into = dot(about_ns, ng) <= 0.0
         reflect_dir = tuple(lanes.where(into, about_ng[k], about_ns[k]) for k in range(3))
-        reflectance = [lanes.gather(a["reflectance"], m, k) for k in range(3)]
+        reflectance = [lanes.gather(a["reflectance"], [m, k]) for k in range(3)]
         reflect_weight = tuple(wt[k] * reflectance[k] for k in range(3))
         strongest = lanes.max(lanes.max(lanes.max(lanes.splat(0.0), reflect_weight[0]), reflect_weight[1]),
                               reflect_weight[2])

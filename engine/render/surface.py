@@ -20,8 +20,10 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
+from engine.core.lanes8 import rows_of_three
 from engine.core.offset import MIN_MAGNITUDE, OFFSET_SCALE
 from engine.packet.compact import new_array
+from engine.render.surface8 import surface8
 
 
 class Surface(NamedTuple):
@@ -186,23 +188,35 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
     """
     has_normals = normals.shape[0] > 0
     has_uvs = uvs.shape[0] > 0
+    # Eight lanes a step (``surface8``: the same bits) where the rows allow it.
+    vector = rows_of_three(dirs) and rows_of_three(point) and rows_of_three(view) and rows_of_three(normal) \
+        and rows_of_three(facing) and rows_of_three(leave)
     for k in prange(offsets.shape[0] - 1):
-        for i in range(offsets[k], offsets[k + 1]):
-            hit[i] = False
-            p = prim[i] if pixel[i] >= 0 else -1
+        lo, hi = offsets[k], offsets[k + 1]
+        i = lo
+        if vector:
+            while i + 8 <= hi:
+                surface8(dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
+                         texture_layout, has_normals, has_uvs, hit, point, magnitude, view, normal, facing,
+                         entering, material, leave, texel_row, i)
+                i += 8
+        for j in range(i, hi):
+            p = prim[j] if pixel[j] >= 0 else -1
+            hit[j] = p >= 0
             if p < 0:
                 # No hit: a dead shadow lane starts here (``light_directions``), at a finite point.
                 for a in range(3):
-                    leave[i, a] = np.float32(0.0)
-                if pixel[i] >= 0:
-                    for c in range(3):
-                        image[pixel[i], c] += weight[i, c] * background[c]
+                    leave[j, a] = np.float32(0.0)
                 continue
-            hit[i] = True
-            texel_row[i] = fill_surface_lane(i, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material,
+            texel_row[j] = fill_surface_lane(j, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material,
                                              corner_magnitude, (has_normals, has_uvs), texture_layout, point,
                                              magnitude, view, normal, facing, entering, material, leave)
-        for i in range(offsets[k], offsets[k + 1]):
-            if hit[i]:
-                texel_color_lane(i, texel_row[i], material[i], texels, palette, ambient_light, ambient, texel,
+        # The background of the misses, in lane order; then the texels of the hits.
+        for j in range(lo, hi):
+            if not hit[j] and pixel[j] >= 0:
+                for c in range(3):
+                    image[pixel[j], c] += weight[j, c] * background[c]
+        for j in range(lo, hi):
+            if hit[j]:
+                texel_color_lane(j, texel_row[j], material[j], texels, palette, ambient_light, ambient, texel,
                                  color)

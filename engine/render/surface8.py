@@ -1,0 +1,140 @@
+"""``fill_surface_lane`` eight lanes at a time (LLVM vector IR through ``engine.core.lanes8``).
+
+``surface8(dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
+texture_layout, has_normals, has_uvs, hit, point, magnitude, view, normal, facing, entering,
+material, leave, texel_row, start)`` fills the Surface rows of lanes start .. start+7 as
+``engine.render.surface.shade_surface``'s first loop does lane by lane: ``hit`` for every lane,
+``leave`` zero where nothing was hit, and on hit lanes the hit point (from the corners in double,
+rounded once), the offset scale, the unit ray direction, the geometric and shading normals
+turned to the ray, the material and the row of the texel -- the same operations in the same
+order and precision, so the same bits. The background of the misses and the texels stay with
+the caller.
+
+Why: per hit lane this is two square roots, six divisions, a dozen double-precision products
+and some 30 loads of the hit triangle's corners, normals and texture coordinates, all scalar:
+the largest pass between two traversals (35 ms of the kitchen-paper frame on two threads).
+The triangle data is gathered lane by lane (one scalar load each), the arithmetic is vector.
+Arrays: dirs, point, view, normal, facing, leave f32[R,3] with 12-byte rows (the caller
+checks); pixel, prim, material, texel_row i32[R]; u, v, magnitude f32[R]; hit, entering
+bool[R]; triangles as ``shade_surface`` documents them.
+"""
+from __future__ import annotations
+
+from numba import types
+from numba.core.errors import TypingError
+from numba.extending import intrinsic
+
+from engine.core.lanes8 import I32, I64, Lanes
+from engine.core.offset import MIN_MAGNITUDE, OFFSET_SCALE
+
+_NAMES = ("dirs", "pixel", "prim", "u", "v", "v0", "v1", "v2", "ng", "normals", "uvs", "tri_material",
+          "corner_magnitude", "texture_layout", "has_normals", "has_uvs", "hit", "point", "magnitude", "view",
+          "normal", "facing", "entering", "material", "leave", "texel_row", "start")
+
+
+@intrinsic
+def surface8(typingctx, dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
+             texture_layout, has_normals, has_uvs, hit, point, magnitude, view, normal, facing, entering, material,
+             leave, texel_row, start):
+    """Surface rows of lanes start .. start+7 (see the module doc)."""
+    args_ = (dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude, texture_layout,
+             has_normals, has_uvs, hit, point, magnitude, view, normal, facing, entering, material, leave, texel_row,
+             start)
+    for name, value in zip(_NAMES, args_):
+        if name in ("has_normals", "has_uvs"):
+            if not isinstance(value, types.Boolean):
+                raise TypingError(f"{name} must be a boolean, got {value}")
+        elif name == "start":
+            if not isinstance(value, types.Integer):
+                raise TypingError(f"start must be an integer, got {value}")
+        elif not isinstance(value, types.Array):
+            raise TypingError(f"{name} must be an array, got {value}")
+    sig = types.void(*args_)
+
+    def codegen(context, builder, signature, args):
+        lanes = Lanes(context, builder)
+        a = {}
+        for name, t, value in zip(_NAMES, signature.args, args):
+            if name in ("has_normals", "has_uvs"):
+                a[name] = context.cast(builder, value, t, types.boolean)
+            elif name == "start":
+                a[name] = lanes.index(t, value)
+            else:
+                a[name] = lanes.array(t, value)
+        i = a["start"]
+        prim_ = lanes.row(a["prim"], i)
+        hits = (lanes.row(a["pixel"], i) >= 0) & (prim_ >= 0)
+        p = lanes.where(hits, lanes.to_i64(prim_), 0)  # a valid row to gather on every lane
+
+        def corner(name, k):  # f32[T,3] rows of the hit triangles, axis k
+            return lanes.gather(a[name], [p, k])
+
+        dx, dy, dz = lanes.rows3(a["dirs"], i)
+        length = lanes.sqrt(dx * dx + dy * dy + dz * dz)
+        view = (dx / length, dy / length, dz / length)
+        u, v = lanes.row(a["u"], i), lanes.row(a["v"], i)
+        # The hit point from the exact corners in double, rounded once.
+        u64, v64 = lanes.to_f64(u), lanes.to_f64(v)
+        w64 = 1.0 - u64 - v64
+        point = []
+        largest = lanes.splat(0.0)
+        for k in range(3):
+            x = lanes.to_f32(w64 * lanes.to_f64(corner("v0", k)) + u64 * lanes.to_f64(corner("v1", k))
+                             + v64 * lanes.to_f64(corner("v2", k)))
+            point.append(x)
+            largest = lanes.max(largest, lanes.fabs(x))
+        magnitude = lanes.max(largest, lanes.gather(a["corner_magnitude"], [p]))
+        g = [corner("ng", k) for k in range(3)]
+        front = g[0] * view[0] + g[1] * view[1] + g[2] * view[2] < 0.0
+        facing = [lanes.where(front, g[k], -g[k]) for k in range(3)]
+        w = 1.0 - u - v
+
+        def interpolated_normal():
+            n = [w * lanes.gather(a["normals"], [p, 0, k]) + u * lanes.gather(a["normals"], [p, 1, k])
+                 + v * lanes.gather(a["normals"], [p, 2, k]) for k in range(3)]
+            size = lanes.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+            # degenerate interpolation: the geometric normal (then turned to the ray)
+            n = [lanes.where(size > 0.0, n[k] / size, g[k]) for k in range(3)]
+            away = n[0] * facing[0] + n[1] * facing[1] + n[2] * facing[2] < 0.0
+            return [lanes.where(away, -n[k], n[k]) for k in range(3)]
+
+        normal = lanes.choose(a["has_normals"], interpolated_normal, lambda: facing)
+        m = lanes.gather(a["tri_material"], [p])
+        m64 = lanes.to_i64(m)
+        layout = a["texture_layout"]
+        first_texel = lanes.gather(layout, [0, m64])
+
+        def texel_rows():
+            s = w * lanes.gather(a["uvs"], [p, 0, 0]) + u * lanes.gather(a["uvs"], [p, 1, 0]) \
+                + v * lanes.gather(a["uvs"], [p, 2, 0])
+            t = w * lanes.gather(a["uvs"], [p, 0, 1]) + u * lanes.gather(a["uvs"], [p, 1, 1]) \
+                + v * lanes.gather(a["uvs"], [p, 2, 1])
+            width, height = lanes.gather(layout, [1, m64]), lanes.gather(layout, [2, m64])
+
+            def wrap(q):  # q mod 1 in [0, 1), as numpy's float remainder gives it
+                inside = (q >= 0.0) & (q < 1.0)
+                return lanes.where(inside, q, q - lanes.floor(q))
+
+            x = lanes.to_i64(lanes.floor(wrap(s) * lanes.to_f32_from_int(width)))
+            y = lanes.to_i64(lanes.floor((1.0 - wrap(t)) * lanes.to_f32_from_int(height)))
+            x = lanes.where(x >= width, x - width, x)
+            y = lanes.where(y >= height, y - height, y)
+            return [lanes.where(first_texel >= 0, first_texel + y * width + x, -1)]
+
+        row = lanes.choose(a["has_uvs"], texel_rows, lambda: [lanes.splat(-1, I64)])[0]
+        step = OFFSET_SCALE * lanes.max(magnitude, MIN_MAGNITUDE)
+        leave = [lanes.where(hits, point[k] + step * facing[k], 0.0) for k in range(3)]
+
+        lanes.store_row(a["hit"], i, hits)
+        lanes.store_rows3(a["leave"], i, leave)
+        lanes.store_rows3(a["point"], i, point, mask=hits)
+        lanes.store_row(a["magnitude"], i, magnitude, mask=hits)
+        lanes.store_rows3(a["view"], i, view, mask=hits)
+        lanes.store_rows3(a["normal"], i, normal, mask=hits)
+        lanes.store_rows3(a["facing"], i, facing, mask=hits)
+        lanes.store_row(a["entering"], i, front, mask=hits)
+        lanes.store_row(a["material"], i, m, mask=hits)
+        lanes.store_row(a["texel_row"], i, lanes.to_i32(row), mask=hits)
+        return context.get_dummy_value()
+
+    return sig, codegen

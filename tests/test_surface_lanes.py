@@ -1,0 +1,87 @@
+"""engine.render.surface.shade_surface: the eight-lane surface step (``engine.render.surface8``)
+writes the bits of the lane-by-lane ``fill_surface_lane``, which runs where rows are not 12
+contiguous bytes: hit points, offsets, normals (interpolated, degenerate, absent), materials and
+texel rows (texture coordinates inside and outside [0, 1), untextured materials, no UVs)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from engine.render.surface import SURFACE_FIELDS, new_surface, shade_surface
+
+R = 1000
+T = 50
+#: Packets of 256, 4, 8, 252 and 480 lanes: blocks of eight and tails of four.
+OFFSETS = np.array([0, 256, 260, 268, 520, 1000], np.int32)
+
+
+def scene_and_hits(seed, with_normals, with_uvs):
+    rng = np.random.default_rng(seed)
+    corners = (rng.normal(size=(T, 3, 3)) * 5).astype(np.float32)
+    normals = rng.normal(size=(T, 3, 3)).astype(np.float32) if with_normals else np.zeros((0, 3, 3), np.float32)
+    if with_normals:
+        normals[3] = 0.0  # degenerate: the geometric normal stands in
+    uvs = (rng.normal(size=(T, 3, 2)) * 2).astype(np.float32) if with_uvs else np.zeros((0, 3, 2), np.float32)
+    material = rng.integers(0, 3, T).astype(np.int32)
+    if with_uvs:
+        # Texture coordinates at the wrap's edges (``texel_at``): just below 0, exactly 1.
+        tiny = np.float32(2.0 ** -30)
+        uvs[5, 0] = (-tiny, tiny)   # s wraps up to 1.0 (column = width: wraps to 0), 1 - t rounds to 1.0
+        uvs[6, 0] = (1.0, 1.0)
+        material[5] = material[6] = 1
+    return rng, corners, normals, uvs, material
+
+
+def run(seed, with_normals, with_uvs, wide):
+    rng, corners, normals, uvs, material = scene_and_hits(seed, with_normals, with_uvs)
+    v0, v1, v2 = (np.ascontiguousarray(corners[:, k]) for k in range(3))
+    ng = np.cross(v1 - v0, v2 - v0)
+    ng = (ng / np.linalg.norm(ng, axis=1, keepdims=True)).astype(np.float32)
+    corner_magnitude = np.abs(corners).max(axis=(1, 2)).astype(np.float32)
+    dirs = rng.normal(size=(R, 3)).astype(np.float32)
+    pixel = rng.permutation(R).astype(np.int32)
+    pixel[::37] = -1  # padding lanes
+    weight = rng.uniform(0, 1, (R, 3)).astype(np.float32)
+    prim = rng.integers(-1, T, R).astype(np.int32)  # -1: a miss
+    u = rng.uniform(0, 1, R).astype(np.float32)
+    v = (rng.uniform(0, 1, R) * (1 - u)).astype(np.float32)
+    prim[:16] = np.where(np.arange(16) % 2 == 0, 5, 6)  # at corner 0 (u = v = 0) of the edge cases
+    u[:16] = v[:16] = 0.0
+    pixel[:16] = np.abs(pixel[:16])
+    ambient = rng.uniform(0, 1, (3, 3)).astype(np.float32)
+    texture_layout = np.array([[-1, 0, 12], [0, 3, 5], [0, 4, 2]], np.int64)  # untextured, 3x4, 5x2
+    texels = rng.integers(0, 256, (22, 3)).astype(np.uint8)
+    palette = np.linspace(0, 1, 256).astype(np.float32)
+    ambient_light = np.array([0.2, 0.3, 0.4], np.float32)
+    background = np.array([0.5, 0.6, 0.7], np.float32)
+    image = np.zeros((R, 3), np.float32)
+
+    def rows(a):
+        if wide or a.ndim != 2 or a.shape[1] != 3:
+            return a
+        block = np.zeros((a.shape[0], 4), a.dtype)
+        block[:, :3] = a
+        return block[:, :3]
+
+    surface = new_surface(R, lambda name, r, tail, dtype: rows(np.full((r,) + tail, 3, dtype)))
+    shade_surface(OFFSETS, rows(dirs), pixel, rows(weight), prim, u, v, v0, v1, v2, ng, normals, uvs, material,
+                  corner_magnitude, ambient, texture_layout, texels, palette, ambient_light, background, image,
+                  *surface)
+    return image, {name: np.ascontiguousarray(a) for name, a in zip(SURFACE_FIELDS, surface)}
+
+
+@pytest.mark.parametrize("with_normals, with_uvs", [(True, True), (False, True), (True, False), (False, False)])
+def test_eight_lane_surface_is_the_lane_by_lane_one(with_normals, with_uvs):
+    image_8, surface_8 = run(7, with_normals, with_uvs, wide=True)
+    image_1, surface_1 = run(7, with_normals, with_uvs, wide=False)
+    assert np.array_equal(image_8, image_1)
+    for name in SURFACE_FIELDS:
+        assert np.array_equal(surface_8[name].view(np.uint8), surface_1[name].view(np.uint8)), name
+    hit = surface_8["hit"]
+    assert 0.8 < hit.mean() < 0.99
+    rows = surface_8["texel_row"][hit]
+    if with_uvs:  # textured and untextured lanes both occur, every row inside its texture
+        assert (rows == -1).any() and (rows >= 0).any() and rows.max() < 22
+    else:
+        assert (rows == -1).all()
+    assert (surface_8["leave"][~hit] == 0).all()
