@@ -35,7 +35,7 @@ def assert_same_layout(got, want):
             assert np.array_equal(a[~live], b[~live]), name
 
 
-@pytest.mark.parametrize("width,height,n", [(37, 21, 2), (37, 21, 4), (64, 48, 16), (20, 33, 32)])
+@pytest.mark.parametrize("width,height,n", [(37, 21, 2), (37, 21, 4), (64, 48, 8), (64, 48, 16), (20, 33, 32)])
 def test_camera_batch_is_make_batch_of_camera_rays(width, height, n):
     scene = load_named("whitted")
     org, d = camera_rays(scene, width, height)

@@ -13,9 +13,11 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from engine.core.lanes8 import rows_of_three
 from engine.core.scene import Scene
 from engine.core.types import Packets, RayBatch
 from engine.packet.compact import inverse_component, new_array, write_dead_lane
+from engine.render.camera8 import camera8
 
 
 def image_plane(scene: Scene, width: int, height: int):
@@ -101,9 +103,23 @@ def fill_camera_packets(eye, forward, right, up, half_w, half_h, width, height, 
     row_y = np.empty(height)
     for row in range(height):
         row_y[row] = image_y(row, height, half_h)
+    # Tiles wholly inside the image go eight lanes (two 2x2 blocks) a step (``camera8``: the
+    # same bits); tiles at the image's edges, and 2x2 packets, pixel by pixel.
+    vector = n % 4 == 0 and rows_of_three(org) and rows_of_three(dirs) and rows_of_three(inv) \
+        and rows_of_three(weight)
     for t in prange(n_tiles):
         ty, tx = divmod(np.int64(t), tiles_x)  # prange's index is unsigned: keep x, y integers
         out = offsets[t]
+        if vector and (tx + 1) * n <= width and (ty + 1) * n <= height:
+            for block in range(0, n * n // 4, 2):
+                y0 = ty * n + (block // half) * 2
+                x0 = tx * n + (block % half) * 2
+                y1 = ty * n + ((block + 1) // half) * 2
+                x1 = tx * n + ((block + 1) % half) * 2
+                camera8(column_x, row_y, forward, right, up, eye, width, x0, y0, x1, y1, org, dirs, inv, tmin, tmax,
+                        pixel, weight, out)
+                out += 8
+            continue
         for q in range(n * n):
             block, corner = divmod(q, 4)
             y = ty * n + (block // half) * 2 + corner // 2
