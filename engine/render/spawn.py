@@ -124,22 +124,23 @@ def gather_and_spawn(offsets, pixel, weight, hit, point, magnitude, view, normal
     color, see ``engine.render.surface.Surface``); materials reflectance f32[M,3], transmission,
     ior f32[M].
     """
-    # Children eight lanes a step (``spawn8``: the same bits) where the rows allow it; the light
-    # goes into the image lane by lane, in lane order.
+    # The children: eight lanes a step (``spawn8``: the same bits) where the rows allow it, over
+    # the whole batch regardless of packets (2x2 packets have four lanes); else lane by lane.
     vector = spawn and reflectance.shape[0] > 0 and rows_of_three(weight) and rows_of_three(point) \
         and rows_of_three(view) and rows_of_three(normal) and rows_of_three(facing) \
         and rows_of_three(reflect_dir) and rows_of_three(refract_dir) and rows_of_three(reflect_weight) \
         and rows_of_three(transmit_weight) and rows_of_three(enter)
+    n_lanes = hit.shape[0]
+    blocks = n_lanes // 8 if vector else 0
+    for b in prange(blocks):
+        spawn8(hit, weight, point, magnitude, view, normal, facing, entering, material, reflectance, transmission,
+               ior, reflect, mirror, total_internal, refract, reflect_dir, refract_dir, reflect_weight,
+               transmit_weight, enter, 8 * b)
+    # Per packet (a pixel belongs to one packet's lanes): the lanes no block took, and the light
+    # into the image in lane order.
     for k in prange(offsets.shape[0] - 1):
         lo, hi = offsets[k], offsets[k + 1]
-        i = lo
-        if vector:
-            while i + 8 <= hi:
-                spawn8(hit, weight, point, magnitude, view, normal, facing, entering, material, reflectance,
-                       transmission, ior, reflect, mirror, total_internal, refract, reflect_dir, refract_dir,
-                       reflect_weight, transmit_weight, enter, i)
-                i += 8
-        for j in range(i, hi):
+        for j in range(max(lo, 8 * blocks), hi):
             mirror[j] = False
             total_internal[j] = False
             refract[j] = False

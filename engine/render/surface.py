@@ -167,6 +167,24 @@ def texel_color_lane(i, row, m, texels, palette, ambient_light, ambient, texel, 
         color[i, c] = ambient_light[c] * ambient[m, c] * x
 
 
+@njit(cache=True, inline="always")
+def fill_surface_row(j, pixel, prim, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
+                     interpolated, texture_layout, hit, point, magnitude, view, normal, facing, entering, material,
+                     leave, texel_row):
+    """Lane j's Surface row (hit .. leave and texel_row), one lane at a time: ``surface8``'s
+    scalar twin. A lane without a hit gets hit False and leave zero: a dead shadow lane starts
+    there (``light_directions``), at a finite point."""
+    p = prim[j] if pixel[j] >= 0 else -1
+    hit[j] = p >= 0
+    if p < 0:
+        for a in range(3):
+            leave[j, a] = np.float32(0.0)
+        return
+    texel_row[j] = fill_surface_lane(j, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
+                                     interpolated, texture_layout, point, magnitude, view, normal, facing, entering,
+                                     material, leave)
+
+
 @njit(cache=True, parallel=True)
 def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
                   v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
@@ -188,30 +206,31 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
     """
     has_normals = normals.shape[0] > 0
     has_uvs = uvs.shape[0] > 0
-    # Eight lanes a step (``surface8``: the same bits) where the rows allow it.
+    # The rows: eight lanes a step (``surface8``: the same bits) where the rows allow it, over the
+    # whole batch regardless of packets (2x2 packets have four lanes); else lane by lane.
     vector = rows_of_three(dirs) and rows_of_three(point) and rows_of_three(view) and rows_of_three(normal) \
         and rows_of_three(facing) and rows_of_three(leave)
+    n_lanes = dirs.shape[0]
+    if vector:
+        blocks = n_lanes // 8
+        for b in prange(blocks):
+            surface8(dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
+                     texture_layout, has_normals, has_uvs, hit, point, magnitude, view, normal, facing, entering,
+                     material, leave, texel_row, 8 * b)
+        for j in range(8 * blocks, n_lanes):
+            fill_surface_row(j, pixel, prim, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material,
+                             corner_magnitude, (has_normals, has_uvs), texture_layout, hit, point, magnitude, view,
+                             normal, facing, entering, material, leave, texel_row)
+    else:
+        for k in prange(offsets.shape[0] - 1):
+            for j in range(offsets[k], offsets[k + 1]):
+                fill_surface_row(j, pixel, prim, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material,
+                                 corner_magnitude, (has_normals, has_uvs), texture_layout, hit, point, magnitude,
+                                 view, normal, facing, entering, material, leave, texel_row)
+    # Per packet (a pixel belongs to one packet's lanes): the background of the misses in lane
+    # order, then the texels of the hits.
     for k in prange(offsets.shape[0] - 1):
         lo, hi = offsets[k], offsets[k + 1]
-        i = lo
-        if vector:
-            while i + 8 <= hi:
-                surface8(dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
-                         texture_layout, has_normals, has_uvs, hit, point, magnitude, view, normal, facing,
-                         entering, material, leave, texel_row, i)
-                i += 8
-        for j in range(i, hi):
-            p = prim[j] if pixel[j] >= 0 else -1
-            hit[j] = p >= 0
-            if p < 0:
-                # No hit: a dead shadow lane starts here (``light_directions``), at a finite point.
-                for a in range(3):
-                    leave[j, a] = np.float32(0.0)
-                continue
-            texel_row[j] = fill_surface_lane(j, p, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material,
-                                             corner_magnitude, (has_normals, has_uvs), texture_layout, point,
-                                             magnitude, view, normal, facing, entering, material, leave)
-        # The background of the misses, in lane order; then the texels of the hits.
         for j in range(lo, hi):
             if not hit[j] and pixel[j] >= 0:
                 for c in range(3):
