@@ -271,3 +271,42 @@ def test_the_dominant_axis_is_the_longest_axis_along_which_every_vector_has_one_
         g[rng.integers(m), rng.integers(3)] = rng.choice([np.inf, -np.inf, np.nan])
     axis, sign = _axis_of(np.ascontiguousarray(g))
     assert (axis, sign) == _axis_rule(g)
+
+
+def _row_views(rays):
+    """The rays with org and dir as views of f32[M,4] blocks: rows that are not 12 contiguous
+    bytes, which the builders read one ray at a time."""
+    def view(a):
+        block = np.zeros((a.shape[0], 4), np.float32)
+        block[:, :3] = a
+        return block[:, :3]
+    return rays._replace(org=view(rays.org), dir=view(rays.dir))
+
+
+@pytest.mark.parametrize("kind", ["pinhole", "pointlight"])
+@pytest.mark.parametrize("seed", range(12))
+def test_apex_frusta_eight_rays_at_a_time_are_the_ray_by_ray_frusta(kind, seed):
+    """The apex builders' eight-ray passes (``engine.packet.frustum8``) against the ray-by-ray
+    passes on the same packets of 64 rays (packets with a foreign origin, a far end point or a NaN
+    segment among them): the same validity and the same planes."""
+    rng = np.random.default_rng(seed)
+    rays, packets, _ = random_packet(kind, rng)
+    if seed % 4 == 1:  # a live ray that leaves elsewhere (pinhole) or ends elsewhere (pointlight)
+        org = rays.org.copy()
+        org[11, 0] += np.float32(0.5)
+        rays = rays._replace(org=org)
+    if seed % 4 == 2:  # a NaN segment: a dead ray
+        tmin = rays.tmin.copy()
+        tmin[5] = np.nan
+        rays = rays._replace(tmin=tmin)
+    if seed % 4 == 3:  # a packet of 12 rays: one block of eight and four one by one
+        packets = Packets(np.array([0, 12], np.int32), 8, 12, 1)
+        rays = RayBatch(*(a[:12] for a in rays[:-1]), rays.kind)
+    eight = make_frustum(kind).build(rays, packets, BOUNDS)
+    one_by_one = make_frustum(kind).build(_row_views(rays), packets, BOUNDS)
+    assert eight.valid.tolist() == one_by_one.valid.tolist()
+    assert np.array_equal(eight.planes, one_by_one.planes)
+    if seed % 4 == 1:
+        assert eight.valid.tolist() == [False]
+    elif seed % 4 in (0, 2):
+        assert eight.valid.tolist() == [True]

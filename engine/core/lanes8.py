@@ -91,7 +91,12 @@ class V:
     def __gt__(self, o): return self._compare(">", o)
     def __ge__(self, o): return self._compare(">=", o)
     def eq(self, o): return self._compare("==", o)
-    def ne(self, o): return self._compare("!=", o)
+
+    def ne(self, o):
+        """Python's != : True where either side is NaN (unordered), unlike the others."""
+        if not self._float():
+            return self._compare("!=", o)
+        return V(self.lanes, self.lanes.builder.fcmp_unordered("!=", self.value, self._other(o)))
 
     def __and__(self, o): return V(self.lanes, self.lanes.builder.and_(self.value, self._other(o)))
     def __or__(self, o): return V(self.lanes, self.lanes.builder.or_(self.value, self._other(o)))
@@ -141,6 +146,31 @@ class Lanes:
         """numba's min(a, b) for floats: b < a ? b : a (ordered)."""
         b = b if isinstance(b, V) else self.splat(b, a.element)
         return self.where(b < a, b, a)
+
+    def _halves(self, v: V, reduce):
+        """v's lanes combined pairwise down to one scalar: lane k with lane k + half, halving."""
+        value, width = v.value, self.width
+        while width > 1:
+            half = width // 2
+            low = self.builder.shuffle_vector(value, value, ir.Constant(ir.VectorType(I32, half), list(range(half))))
+            high = self.builder.shuffle_vector(value, value,
+                                               ir.Constant(ir.VectorType(I32, half), list(range(half, width))))
+            value = reduce(V(self, low), V(self, high)).value
+            width = half
+        return self.builder.extract_element(value, ir.Constant(I32, 0))
+
+    def reduce_min(self, v: V):
+        """The smallest lane of v, by numba's min taken pairwise (what survives of NaN lanes is
+        not defined: callers rule NaN out otherwise)."""
+        return self._halves(v, self.min)
+
+    def reduce_max(self, v: V):
+        """The largest lane of v, by numba's max taken pairwise (NaN: as ``reduce_min``)."""
+        return self._halves(v, self.max)
+
+    def reduce_sum(self, v: V):
+        """The sum of v's lanes, added pairwise (lane k + lane k + half, halving)."""
+        return self._halves(v, lambda a, b: a + b)
 
     def _unary(self, name, v: V) -> V:
         vector = v.value.type
@@ -264,7 +294,7 @@ class Lanes:
         """The x, y, z vectors of rows start .. start+WIDTH-1 of an f32[R,3] array whose rows are
         12 contiguous bytes."""
         w = self.width
-        block_type = ir.VectorType(F32, 3 * w)
+        block_type = ir.VectorType(array.data.type.pointee, 3 * w)
         first = self.builder.mul(start, ir.Constant(I64, 3))
         block = self.builder.load(self._pointer(array, first, block_type), align=4)
         undefined = ir.Constant(block_type, ir.Undefined)

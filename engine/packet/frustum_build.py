@@ -136,12 +136,21 @@ def apex_frustum(apex, g, m, extent, scale, reach, extra, out):
         hi_u = max(hi_u, g[i, u] * inv_w)
         lo_v = min(lo_v, g[i, v] * inv_w)
         hi_v = max(hi_v, g[i, v] * inv_w)
+    apex_planes(apex, axis, sign, lo_u, hi_u, lo_v, hi_v, scale, reach, extra, out)
+    return True
+
+
+@njit(cache=True)
+def apex_planes(apex, axis, sign, lo_u, hi_u, lo_v, hi_v, scale, reach, extra, out):
+    """``apex_frustum``'s planes from the slope bounds lo_u .. hi_v of its vectors along
+    ``axis`` (sign: their sign along it) into out (f32[4,4])."""
+    u = (axis + 1) % 3
+    v = (axis + 2) % 3
     near_rect = (apex[u], apex[u], apex[v], apex[v])
     far_rect = (apex[u] + lo_u, apex[u] + hi_u, apex[v] + lo_v, apex[v] + hi_v)
     wn = sign * apex[axis]
     side_planes(axis, sign, wn, wn + 1.0, near_rect, far_rect,
                 FRUSTUM_SLACK * (scale + reach) + extra, out)
-    return True
 
 
 @njit(cache=True)

@@ -28,11 +28,15 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from engine.packet.frustum_build import (EMPTY_EXTENT, abs_max3, apex_frustum, bounds_scale, farthest_corner,
-                                         grow_extent, slab_frustum)
+from engine.core.lanes8 import bit_count8, rows_of_three
+from engine.packet import frustum8
+from engine.packet.frustum_build import (EMPTY_EXTENT, abs_max3, apex_frustum, apex_planes, bounds_scale,
+                                         dominant_axis, farthest_corner, grow_extent, slab_frustum)
+from engine.packet.frustum8 import gather8, slopes8
 from engine.packet.kernels import longest_packet
 
 PINHOLE, POINTLIGHT, GENERAL, PINHOLE_OR_GENERAL = range(4)
+assert (frustum8.PINHOLE, frustum8.POINTLIGHT) == (PINHOLE, POINTLIGHT)
 
 #: How far the end points of a shadow packet may scatter around the first one, relative to the
 #: shortest ray, for the rays to count as meeting at one light.
@@ -40,9 +44,157 @@ END_SPREAD = 1e-2
 
 
 @njit(cache=True, inline="always")
+def first_live_ray(tmin, tmax, lo, hi):
+    """The first of rays lo .. hi-1 with tmin <= tmax, or -1."""
+    for r in range(lo, hi):
+        if tmin[r] <= tmax[r]:
+            return r
+    return -1
+
+
+@njit(cache=True, inline="always")
+def apex_vector(mode, org, dirs, tmin, r, ax, ay, az):
+    """Ray r's vector g from the apex (ax, ay, az), float64: its direction (PINHOLE) or its
+    segment start minus the light (POINTLIGHT), as the scalar builders gather it."""
+    if mode == POINTLIGHT:
+        t = np.float64(tmin[r])
+        return (org[r, 0] + t * dirs[r, 0] - ax, org[r, 1] + t * dirs[r, 1] - ay, org[r, 2] + t * dirs[r, 2] - az)
+    return np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
+
+
+@njit(cache=True, inline="always")
+def gather_apex(mode, org, dirs, tmin, tmax, lo, hi, ax, ay, az):
+    """The first pass of an apex frustum over rays lo .. hi-1, eight at a time
+    (``engine.packet.frustum8.gather8``) and the rest one by one: (live rays, whether a live ray
+    misses the apex (PINHOLE), the extent of their vectors g as nine scalars, and for POINTLIGHT
+    the largest squared end-point spread, the shortest and longest squared g, the largest origin
+    coordinate)."""
+    m = 0
+    foreign = False
+    e0, e1, e2, e3, e4, e5, e6, e7, e8 = EMPTY_EXTENT
+    spread2 = 0.0
+    shortest2 = np.inf
+    reach2 = 0.0
+    scale = 0.0
+    r = lo
+    while r + 8 <= hi:
+        b = gather8(mode, org, dirs, tmin, tmax, r, ax, ay, az)
+        m += bit_count8(b[0])
+        foreign = foreign or b[1] != 0
+        e0, e1, e2 = min(e0, b[2]), min(e1, b[3]), min(e2, b[4])
+        e3, e4, e5 = max(e3, b[5]), max(e4, b[6]), max(e5, b[7])
+        e6, e7, e8 = e6 + b[8], e7 + b[9], e8 + b[10]
+        spread2, shortest2, reach2, scale = max(spread2, b[11]), min(shortest2, b[12]), max(reach2, b[13]), \
+            max(scale, b[14])
+        r += 8
+    while r < hi:
+        if tmin[r] <= tmax[r]:
+            gx, gy, gz = apex_vector(mode, org, dirs, tmin, r, ax, ay, az)
+            e0, e1, e2, e3, e4, e5, e6, e7, e8 = grow_extent(e0, e1, e2, e3, e4, e5, e6, e7, e8, gx, gy, gz)
+            if mode == PINHOLE and (org[r, 0] != ax or org[r, 1] != ay or org[r, 2] != az):
+                foreign = True
+            if mode == POINTLIGHT:
+                t = np.float64(tmax[r])
+                ex = org[r, 0] + t * dirs[r, 0] - ax
+                ey = org[r, 1] + t * dirs[r, 1] - ay
+                ez = org[r, 2] + t * dirs[r, 2] - az
+                spread2 = max(spread2, ex * ex + ey * ey + ez * ez)
+                length2 = gx * gx + gy * gy + gz * gz
+                shortest2 = min(shortest2, length2)
+                reach2 = max(reach2, length2)
+                scale = max(scale, abs_max3(org[r, 0], org[r, 1], org[r, 2]))
+            m += 1
+        r += 1
+    return m, foreign, e0, e1, e2, e3, e4, e5, e6, e7, e8, spread2, shortest2, reach2, scale
+
+
+@njit(cache=True, inline="always")
+def apex_slopes(mode, org, dirs, tmin, tmax, lo, hi, ax, ay, az, axis, sign):
+    """The second pass of an apex frustum: (lo u, hi u, lo v, hi v), the bounds of the live rays'
+    slopes along ``axis`` (``apex_frustum``'s loop), eight rays at a time
+    (``engine.packet.frustum8.slopes8``) and the rest one by one."""
+    u = (axis + 1) % 3
+    v = (axis + 2) % 3
+    lo_u = np.inf
+    hi_u = -np.inf
+    lo_v = np.inf
+    hi_v = -np.inf
+    r = lo
+    while r + 8 <= hi:
+        b = slopes8(mode, org, dirs, tmin, tmax, r, ax, ay, az, axis, sign)
+        lo_u, hi_u, lo_v, hi_v = min(lo_u, b[0]), max(hi_u, b[1]), min(lo_v, b[2]), max(hi_v, b[3])
+        r += 8
+    while r < hi:
+        if tmin[r] <= tmax[r]:
+            g = apex_vector(mode, org, dirs, tmin, r, ax, ay, az)
+            inv_w = sign / g[axis]
+            lo_u = min(lo_u, g[u] * inv_w)
+            hi_u = max(hi_u, g[u] * inv_w)
+            lo_v = min(lo_v, g[v] * inv_w)
+            hi_v = max(hi_v, g[v] * inv_w)
+        r += 1
+    return lo_u, hi_u, lo_v, hi_v
+
+
+@njit(cache=True, inline="always")
+def eight_at_a_time(org, dirs, lo, hi):
+    """Whether a packet's frustum passes go eight rays at a time: a packet of at least eight
+    rays whose rows are 12 contiguous bytes."""
+    return hi - lo >= 8 and rows_of_three(org) and rows_of_three(dirs)
+
+
+@njit(cache=True, inline="always")
+def pinhole_frustum8(org, dirs, tmin, tmax, lo, hi, bounds, scene_scale, apex, plane):
+    """``pinhole_frustum`` in two passes eight rays at a time, without the gathered vectors."""
+    first_live = first_live_ray(tmin, tmax, lo, hi)
+    if first_live < 0:
+        return False
+    apex[0], apex[1], apex[2] = org[first_live, 0], org[first_live, 1], org[first_live, 2]
+    m, foreign, e0, e1, e2, e3, e4, e5, e6, e7, e8, _, _, _, _ = gather_apex(
+        PINHOLE, org, dirs, tmin, tmax, lo, hi, apex[0], apex[1], apex[2])
+    if foreign:
+        return False
+    scale = max(scene_scale, abs_max3(apex[0], apex[1], apex[2]))
+    reach = farthest_corner(apex[0], apex[1], apex[2], bounds)
+    axis, sign = dominant_axis((e0, e1, e2, e3, e4, e5, e6, e7, e8))
+    if axis < 0:
+        return False
+    lo_u, hi_u, lo_v, hi_v = apex_slopes(PINHOLE, org, dirs, tmin, tmax, lo, hi, apex[0], apex[1], apex[2],
+                                         axis, sign)
+    apex_planes(apex, axis, sign, lo_u, hi_u, lo_v, hi_v, scale, reach, 0.0, plane)
+    return True
+
+
+@njit(cache=True, inline="always")
+def pointlight_frustum8(org, dirs, tmin, tmax, lo, hi, scene_scale, light, plane):
+    """``pointlight_frustum`` in two passes eight rays at a time, without the gathered vectors."""
+    first_live = first_live_ray(tmin, tmax, lo, hi)
+    if first_live < 0:
+        return False
+    for a in range(3):
+        light[a] = org[first_live, a] + np.float64(tmax[first_live]) * dirs[first_live, a]
+    if not (math.isfinite(light[0]) and math.isfinite(light[1]) and math.isfinite(light[2])):
+        return False  # a ray without an end (infinite tmax) meets no light
+    m, _, e0, e1, e2, e3, e4, e5, e6, e7, e8, spread2, shortest2, reach2, origins = gather_apex(
+        POINTLIGHT, org, dirs, tmin, tmax, lo, hi, light[0], light[1], light[2])
+    scale = max(max(scene_scale, abs_max3(light[0], light[1], light[2])), origins)
+    if not spread2 <= END_SPREAD * END_SPREAD * shortest2:
+        return False
+    axis, sign = dominant_axis((e0, e1, e2, e3, e4, e5, e6, e7, e8))
+    if axis < 0:
+        return False
+    lo_u, hi_u, lo_v, hi_v = apex_slopes(POINTLIGHT, org, dirs, tmin, tmax, lo, hi, light[0], light[1], light[2],
+                                         axis, sign)
+    apex_planes(light, axis, sign, lo_u, hi_u, lo_v, hi_v, scale, math.sqrt(reach2), math.sqrt(spread2), plane)
+    return True
+
+
+@njit(cache=True, inline="always")
 def pinhole_frustum(org, dirs, tmin, tmax, lo, hi, bounds, scene_scale, g, apex, plane):
     """Frustum of rays lo .. hi-1 from one eye into plane (f32[4,4]); False when there is none.
     Scratch: g f64[>= hi-lo, 3] the live directions, apex f64[3]."""
+    if eight_at_a_time(org, dirs, lo, hi):
+        return pinhole_frustum8(org, dirs, tmin, tmax, lo, hi, bounds, scene_scale, apex, plane)
     m = 0
     e0, e1, e2, e3, e4, e5, e6, e7, e8 = EMPTY_EXTENT
     for r in range(lo, hi):
@@ -68,6 +220,8 @@ def pointlight_frustum(org, dirs, tmin, tmax, lo, hi, scene_scale, g, light, pla
     """Frustum of shadow rays lo .. hi-1 towards one point light into plane (f32[4,4]); False
     when there is none. Scratch: g f64[>= hi-lo, 3] the vectors light -> segment start, light
     f64[3]."""
+    if eight_at_a_time(org, dirs, lo, hi):
+        return pointlight_frustum8(org, dirs, tmin, tmax, lo, hi, scene_scale, light, plane)
     # The light: the end point of the first live ray (the others' spread is measured below).
     first_live = -1
     for r in range(lo, hi):
