@@ -53,6 +53,19 @@ def first_live_ray(tmin, tmax, lo, hi):
 
 
 @njit(cache=True, inline="always")
+def packet_light(org, dirs, tmin, tmax, lo, hi, light):
+    """The light a shadow packet's rays meet, taken as the end point org + tmax dir of its first
+    live ray, into light (f64[3]); False when no ray is live or that end is not finite (a ray
+    without an end meets no light)."""
+    first_live = first_live_ray(tmin, tmax, lo, hi)
+    if first_live < 0:
+        return False
+    for a in range(3):
+        light[a] = org[first_live, a] + np.float64(tmax[first_live]) * dirs[first_live, a]
+    return math.isfinite(light[0]) and math.isfinite(light[1]) and math.isfinite(light[2])
+
+
+@njit(cache=True, inline="always")
 def apex_vector(mode, org, dirs, tmin, r, ax, ay, az):
     """Ray r's vector g from the apex (ax, ay, az), float64: its direction (PINHOLE) or its
     segment start minus the light (POINTLIGHT), as the scalar builders gather it."""
@@ -168,13 +181,8 @@ def pinhole_frustum8(org, dirs, tmin, tmax, lo, hi, bounds, scene_scale, apex, p
 @njit(cache=True, inline="always")
 def pointlight_frustum8(org, dirs, tmin, tmax, lo, hi, scene_scale, light, plane):
     """``pointlight_frustum`` in two passes eight rays at a time, without the gathered vectors."""
-    first_live = first_live_ray(tmin, tmax, lo, hi)
-    if first_live < 0:
+    if not packet_light(org, dirs, tmin, tmax, lo, hi, light):
         return False
-    for a in range(3):
-        light[a] = org[first_live, a] + np.float64(tmax[first_live]) * dirs[first_live, a]
-    if not (math.isfinite(light[0]) and math.isfinite(light[1]) and math.isfinite(light[2])):
-        return False  # a ray without an end (infinite tmax) meets no light
     m, _, e0, e1, e2, e3, e4, e5, e6, e7, e8, spread2, shortest2, reach2, origins = gather_apex(
         POINTLIGHT, org, dirs, tmin, tmax, lo, hi, light[0], light[1], light[2])
     scale = max(max(scene_scale, abs_max3(light[0], light[1], light[2])), origins)
@@ -223,17 +231,8 @@ def pointlight_frustum(org, dirs, tmin, tmax, lo, hi, scene_scale, g, light, pla
     if eight_at_a_time(org, dirs, lo, hi):
         return pointlight_frustum8(org, dirs, tmin, tmax, lo, hi, scene_scale, light, plane)
     # The light: the end point of the first live ray (the others' spread is measured below).
-    first_live = -1
-    for r in range(lo, hi):
-        if tmin[r] <= tmax[r]:
-            first_live = r
-            break
-    if first_live < 0:
+    if not packet_light(org, dirs, tmin, tmax, lo, hi, light):
         return False
-    for a in range(3):
-        light[a] = org[first_live, a] + np.float64(tmax[first_live]) * dirs[first_live, a]
-    if not (math.isfinite(light[0]) and math.isfinite(light[1]) and math.isfinite(light[2])):
-        return False  # a ray without an end (infinite tmax) meets no light
     # Squared lengths: one root per packet, not per ray.
     spread2 = 0.0
     shortest2 = np.inf
