@@ -156,9 +156,11 @@ def eight_at_a_time(org, dirs, lo, hi):
     return hi - lo >= 8 and rows_of_three(org) and rows_of_three(dirs)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def pinhole_frustum8(org, dirs, tmin, tmax, lo, hi, bounds, scene_scale, apex, plane):
-    """``pinhole_frustum`` in two passes eight rays at a time, without the gathered vectors."""
+    """``pinhole_frustum`` in two passes eight rays at a time, without the gathered vectors.
+    Called, not inlined: once per packet, and numba's inliner copied it into every builder branch
+    (``build_frusta`` compiled in 16.8 s instead of 6.8)."""
     first_live = first_live_ray(tmin, tmax, lo, hi)
     if first_live < 0:
         return False
@@ -178,7 +180,7 @@ def pinhole_frustum8(org, dirs, tmin, tmax, lo, hi, bounds, scene_scale, apex, p
     return True
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def pointlight_frustum8(org, dirs, tmin, tmax, lo, hi, scene_scale, light, plane):
     """``pointlight_frustum`` in two passes eight rays at a time, without the gathered vectors."""
     if not packet_light(org, dirs, tmin, tmax, lo, hi, light):

@@ -170,31 +170,29 @@ def load_packet(org, inv, dirs, tmin, tmax, start, n, rf, ri, near):
     sum_x = 0.0
     sum_y = 0.0
     sum_z = 0.0
+    i = 0
     if n >= 8 and rows_of_three(org) and rows_of_three(inv) and rows_of_three(dirs):
-        i = 0
         while i + 8 <= n:
             mask = load_rays8(org, inv, dirs, tmin, tmax, start + i, rf, ri, i)
             live += lane_count(mask & ALL_LANES) + lane_count(mask >> 4)
             i += 8
-        while i < n:
-            live += load_lane(org, inv, dirs, tmin, tmax, start + i, rf, ri, i)
-            i += 1
-        # The live rays' directions summed in lane order; a dead lane adds +0.0, which changes
-        # no sum's value (the sums start at +0.0) and needs no branch.
-        for i in range(n):
-            r = start + i
+        # Those rays' directions summed in lane order; a dead lane adds +0.0, which changes no
+        # sum's value (the sums start at +0.0) and needs no branch.
+        for k in range(i):
+            r = start + k
             alive = tmin[r] <= tmax[r]
             sum_x += dirs[r, 0] if alive else F32_ZERO
             sum_y += dirs[r, 1] if alive else F32_ZERO
             sum_z += dirs[r, 2] if alive else F32_ZERO
-    else:  # a 2x2 SIMD ray's packet (the baseline walks 262,144 of them a 1024^2 frame): one pass
-        for i in range(n):
-            r = start + i
-            if load_lane(org, inv, dirs, tmin, tmax, r, rf, ri, i):
-                live += 1
-                sum_x += dirs[r, 0]
-                sum_y += dirs[r, 1]
-                sum_z += dirs[r, 2]
+    # The rest one by one (all of a 2x2 SIMD ray's packet: the baseline walks 262,144 a frame).
+    while i < n:
+        r = start + i
+        if load_lane(org, inv, dirs, tmin, tmax, r, rf, ri, i):
+            live += 1
+            sum_x += dirs[r, 0]
+            sum_y += dirs[r, 1]
+            sum_z += dirs[r, 2]
+        i += 1
     # Travelling towards -axis, the upper child comes first: near offset = upper XOR negative.
     neg_x = 1 if sum_x < 0.0 else 0
     neg_y = 1 if sum_y < 0.0 else 0

@@ -149,33 +149,31 @@ def fill_camera_packets(eye, forward, right, up, half_w, half_h, width, height, 
     row_y = np.empty(height)
     for row in range(height):
         row_y[row] = image_y(row, height, half_h)
-    vector = rows_of_three(org) and rows_of_three(dirs) and rows_of_three(inv) and rows_of_three(weight)
-    if vector and n == 2:
-        for pair in prange((n_tiles + 1) // 2):
-            t = 2 * np.int64(pair)
-            if t + 1 < n_tiles and tile_inside(t, tiles_x, n, width, height) \
-                    and tile_inside(t + 1, tiles_x, n, width, height):
-                x0, y0 = block_corner(t, 0, tiles_x, n)
-                x1, y1 = block_corner(t + 1, 0, tiles_x, n)
-                camera8(column_x, row_y, forward, right, up, eye, width, x0, y0, x1, y1, org, dirs, inv, tmin,
-                        tmax, pixel, weight, offsets[t])
-                continue
-            for tile in range(t, min(t + 2, n_tiles)):
-                fill_camera_tile(tile, tiles_x, n, column_x, row_y, eye, forward, right, up, width, height, offsets,
-                                 org, dirs, inv, tmin, tmax, pixel, weight)
-        return
-    for t in prange(n_tiles):
-        if vector and n % 4 == 0 and tile_inside(t, tiles_x, n, width, height):
-            out = offsets[t]
-            for block in range(0, n * n // 4, 2):
-                x0, y0 = block_corner(t, block, tiles_x, n)
-                x1, y1 = block_corner(t, block + 1, tiles_x, n)
+    # The loop's unit: a tile, or for 2x2 packets two neighbouring tiles (eight lanes).
+    per_unit = 2 if n == 2 else 1
+    blocks_per_tile = n * n // 4
+    vector = (n == 2 or n % 4 == 0) and rows_of_three(org) and rows_of_three(dirs) and rows_of_three(inv) \
+        and rows_of_three(weight)
+    for unit in prange(-(-n_tiles // per_unit)):
+        first = np.int64(unit) * per_unit  # prange's index is unsigned: keep x, y integers
+        last = min(first + per_unit, n_tiles)
+        whole = vector and last - first == per_unit
+        for t in range(first, last):
+            whole = whole and tile_inside(t, tiles_x, n, width, height)
+        if whole:
+            out = offsets[first]
+            for step in range(0, per_unit * blocks_per_tile, 2):
+                tile0, block0 = divmod(step, blocks_per_tile)
+                tile1, block1 = divmod(step + 1, blocks_per_tile)
+                x0, y0 = block_corner(first + tile0, block0, tiles_x, n)
+                x1, y1 = block_corner(first + tile1, block1, tiles_x, n)
                 camera8(column_x, row_y, forward, right, up, eye, width, x0, y0, x1, y1, org, dirs, inv, tmin,
                         tmax, pixel, weight, out)
                 out += 8
             continue
-        fill_camera_tile(t, tiles_x, n, column_x, row_y, eye, forward, right, up, width, height, offsets,
-                         org, dirs, inv, tmin, tmax, pixel, weight)
+        for t in range(first, last):
+            fill_camera_tile(t, tiles_x, n, column_x, row_y, eye, forward, right, up, width, height, offsets,
+                             org, dirs, inv, tmin, tmax, pixel, weight)
 
 
 def camera_batch(scene: Scene, width: int, height: int, n: int, allocate=new_array) -> tuple[RayBatch, Packets]:

@@ -211,22 +211,17 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
     vector = rows_of_three(dirs) and rows_of_three(point) and rows_of_three(view) and rows_of_three(normal) \
         and rows_of_three(facing) and rows_of_three(leave)
     n_lanes = dirs.shape[0]
-    if vector:
-        blocks = n_lanes // 8
-        for b in prange(blocks):
-            surface8(dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
-                     texture_layout, has_normals, has_uvs, hit, point, magnitude, view, normal, facing, entering,
-                     material, leave, texel_row, 8 * b)
-        for j in range(8 * blocks, n_lanes):
-            fill_surface_row(j, pixel, prim, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material,
-                             corner_magnitude, (has_normals, has_uvs), texture_layout, hit, point, magnitude, view,
-                             normal, facing, entering, material, leave, texel_row)
-    else:
-        for k in prange(offsets.shape[0] - 1):
-            for j in range(offsets[k], offsets[k + 1]):
-                fill_surface_row(j, pixel, prim, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material,
-                                 corner_magnitude, (has_normals, has_uvs), texture_layout, hit, point, magnitude,
-                                 view, normal, facing, entering, material, leave, texel_row)
+    blocks = n_lanes // 8 if vector else 0
+    for b in prange(blocks):
+        surface8(dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
+                 texture_layout, has_normals, has_uvs, hit, point, magnitude, view, normal, facing, entering,
+                 material, leave, texel_row, 8 * b)
+    # The lanes past the last block -- or every lane, serially, of a batch whose rows are not 12
+    # contiguous bytes (not the renderer's): one inlined copy of the lane-by-lane step.
+    for j in range(8 * blocks, n_lanes):
+        fill_surface_row(j, pixel, prim, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
+                         (has_normals, has_uvs), texture_layout, hit, point, magnitude, view, normal, facing,
+                         entering, material, leave, texel_row)
     # Per packet (a pixel belongs to one packet's lanes): the background of the misses in lane
     # order, then the texels of the hits.
     for k in prange(offsets.shape[0] - 1):
