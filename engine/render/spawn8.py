@@ -4,10 +4,10 @@
 transmission, ior, reflect, children..., start)`` fills the ``Children`` rows of lanes
 start .. start+7 as ``engine.render.spawn.spawn_lane`` does for each hit lane -- the mirror
 direction and weight, and for transmissive materials the refraction by Snell's law or the total
-internal reflection -- with the same float32 operations in the same order, writing exactly the
-rows the scalar code writes (the others keep their bits) and the three flags of every lane
-(False without a hit). Only the lanes' pixels are left to the caller, which adds them in lane
-order.
+internal reflection -- with the same float32 operations in the same order, so the rows the
+scalar code writes get the same bits, and the three flags of every lane (False without a hit).
+Rows the scalar code leaves alone (a child that is not cast) get whatever the steps give. Only
+the lanes' pixels are left to the caller, which adds them in lane order.
 
 Why: per hit lane the spawn is three dot products, a division and a square root (refraction)
 and up to 18 stores, scalar: most of ``gather_and_spawn``'s 15 ms in the kitchen-paper frame.
@@ -94,11 +94,13 @@ def spawn8(typingctx, hit, weight, point, magnitude, view, normal, facing, enter
         p = lanes.rows3(a["point"], i)
         enter = tuple(p[k] + step * -ng[k] for k in range(3))
 
-        lanes.store_rows3(out["reflect_dir"], i, reflect_dir, mask=hits)
-        lanes.store_rows3(out["reflect_weight"], i, reflect_weight, mask=hits)
-        lanes.store_rows3(out["transmit_weight"], i, transmit_weight, mask=transmits)
-        lanes.store_rows3(out["refract_dir"], i, refract_dir, mask=refracts)
-        lanes.store_rows3(out["enter"], i, enter, mask=refracts)
+        # A child's rows mean something only where its flag is set (``Children``), so they are
+        # stored whole: masked rows of three floats are read, selected and written back.
+        lanes.store_rows3(out["reflect_dir"], i, reflect_dir)
+        lanes.store_rows3(out["reflect_weight"], i, reflect_weight)
+        lanes.store_rows3(out["transmit_weight"], i, transmit_weight)
+        lanes.store_rows3(out["refract_dir"], i, refract_dir)
+        lanes.store_rows3(out["enter"], i, enter)
         lanes.store_row(out["mirror"], i, mirror)
         lanes.store_row(out["total_internal"], i, total_internal)
         lanes.store_row(out["refract"], i, refracts)
