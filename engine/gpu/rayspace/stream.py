@@ -8,10 +8,9 @@ compaction by appending:
    launch left on the device) and tests every child of its node against the triangle's bounding
    sphere (``node_overlap``'s twin: the CPU's conservative test), remembering the survivors as
    bits (up to 63 children; a level-1 node with more slots re-tests them when writing);
-2. the block's threads count their survivors into a shared counter (each learns its offset from
-   the atomic add), one thread reserves the block's share of the output by a single atomic add
-   on the level's counter, and every thread writes its survivors there -- only those that fit
-   the output's capacity;
+2. the block's survivor counts are scanned in shared memory, one thread reserves the block's
+   share of the output by a single atomic add on the level's counter, and every thread writes
+   its survivors there -- only those that fit the output's capacity;
 3. the counters are int64 (nothing can wrap) and exact whether or not the pairs fit; the buffers
    hold the pair budget, and a launch whose input overflowed reads nothing.
 
@@ -28,6 +27,7 @@ import numpy as np
 
 from engine.gpu.device import BLOCK, blocks, require_cuda
 from engine.gpu.rayspace.hierarchy import child_grid, node_overlap
+from engine.gpu.scan import inclusive_in_block
 
 cuda = require_cuda()
 
@@ -36,8 +36,8 @@ MASK_BITS = 63    # children a pair's int64 mask remembers (sign bit unused)
 #: (kitchen-paper rayspace frame, _expand per frame): 2048 blocks 134-138 ms, 16384 116 ms,
 #: 131072 135 ms. The simulator's tests set it lower.
 GRID_BLOCKS = 16384
-#: Columns of the per-level work counters i64[levels+1, 2] (the survivors are level_kept).
-WORK_SLOTS, WORK_TESTS = 0, 1
+#: Columns of the per-level work counters i64[levels+1, 3].
+WORK_SLOTS, WORK_TESTS, WORK_KEPT = 0, 1, 2
 
 
 @cuda.jit
@@ -50,20 +50,14 @@ def _root_pairs(first, count, nodes, tris):
 
 
 @cuda.jit(device=True)
-def _block_sums(a, b, t, x, y):
-    """(sum of x, sum of y) over the block's threads, by one tree reduction of both (every
-    thread calls it; a, b: i64[BLOCK] shared)."""
-    a[t] = x
-    b[t] = y
+def _block_total(shared, t, value):
+    """The sum of ``value`` over the block's threads (every thread calls it; shared: i64[BLOCK])."""
+    shared[t] = value
     cuda.syncthreads()
-    half = BLOCK // 2
-    while half > 0:
-        if t < half:
-            a[t] += a[t + half]
-            b[t] += b[t + half]
-        cuda.syncthreads()
-        half //= 2
-    return a[0], b[0]
+    inclusive_in_block(shared, t)
+    total = shared[BLOCK - 1]
+    cuda.syncthreads()
+    return total
 
 
 @cuda.jit
@@ -72,28 +66,22 @@ def _expand(nodes, tris, level, base, centre, radius, axis, cos_a, sin_a, far, b
     """The level_kept[level] pairs at ``level`` >= 1 (their children start at global node
     ``base``) to the surviving (child, triangle) pairs, appended to out_nodes / out_tris (children
     as indices within level - 1) up to ``capacity`` rows; level_kept[level - 1] += survivors (all
-    of them, written or not); work[level - 1, :] += (child slots, tests).
+    of them, written or not); work[level - 1, :] += (child slots, tests, survivors).
 
     Any grid: blocks stride over the pairs. An input that overflowed its buffer (more pairs
     than ``capacity``) is not read: the host sees the overflow and streams fewer triangles.
-    A block's threads reserve their rows of its share by an atomic add on a shared counter,
-    not a prefix sum: two barriers a stride instead of 2 log2(BLOCK) (on the H100, replaying a
-    kitchen-paper frame's launches of levels 1-4: 64.6 -> 49 ms with the work counters below).
     """
-    taken = cuda.shared.array(1, np.int32)       # the block's survivors this stride, so far
-    start = cuda.shared.array(1, np.int64)       # where the block's share begins
-    sum_a = cuda.shared.array(BLOCK, np.int64)
-    sum_b = cuda.shared.array(BLOCK, np.int64)
+    ahead = cuda.shared.array(BLOCK, np.int32)   # survivors per thread, then their inclusive sums
+    totals = cuda.shared.array(BLOCK, np.int64)
+    start = cuda.shared.array(1, np.int64)
     t = cuda.threadIdx.x
     n_pairs = level_kept[level]
-    # Both exits are uniform over the block, so no thread is left waiting at a barrier.
-    if n_pairs > capacity or cuda.blockIdx.x * BLOCK >= n_pairs:
+    if n_pairs > capacity:
         return
     slots = 0
     tests = 0
+    survivors = 0
     for block_first in range(cuda.blockIdx.x * BLOCK, n_pairs, cuda.gridDim.x * BLOCK):
-        if t == 0:
-            taken[0] = 0
         p = block_first + t
         kept = 0
         bits = np.int64(0)
@@ -116,14 +104,15 @@ def _expand(nodes, tris, level, base, centre, radius, axis, cos_a, sin_a, far, b
                             if j < MASK_BITS:
                                 bits |= np.int64(1) << j
                     j += 1
-        cuda.syncthreads()   # taken is reset
-        mine = cuda.atomic.add(taken, 0, kept) if kept > 0 else 0
-        cuda.syncthreads()   # every thread has taken its rows
-        if t == 0:
-            start[0] = cuda.atomic.add(level_kept, level - 1, np.int64(taken[0]))
+            survivors += kept
+        ahead[t] = kept
+        cuda.syncthreads()
+        inclusive_in_block(ahead, t)
+        if t == BLOCK - 1:
+            start[0] = cuda.atomic.add(level_kept, level - 1, np.int64(ahead[t]))
         cuda.syncthreads()
         if kept > 0:
-            pos = start[0] + mine
+            pos = start[0] + ahead[t] - kept
             retest = nx * ny > MASK_BITS
             j = 0
             for jy in range(ny):
@@ -140,12 +129,15 @@ def _expand(nodes, tris, level, base, centre, radius, axis, cos_a, sin_a, far, b
                             out_tris[pos] = tri
                         pos += 1
                     j += 1
-        cuda.syncthreads()  # start is rewritten by the next stride
-    # The work counters: one block reduction, one global atomic per block and counter.
-    slots, tests = _block_sums(sum_a, sum_b, t, np.int64(slots), np.int64(tests))
+        cuda.syncthreads()  # ahead and start are rewritten by the next stride
+    # The work counters: one block reduction each, one global atomic per block.
+    slots = _block_total(totals, t, np.int64(slots))
+    tests = _block_total(totals, t, np.int64(tests))
+    survivors = _block_total(totals, t, np.int64(survivors))
     if t == 0 and slots != 0:
         cuda.atomic.add(work, (level - 1, WORK_SLOTS), slots)
         cuda.atomic.add(work, (level - 1, WORK_TESTS), tests)
+        cuda.atomic.add(work, (level - 1, WORK_KEPT), survivors)
 
 
 class Stream:
@@ -165,7 +157,7 @@ class Stream:
         ``budget`` rows (or the batch's triangles, if more), so a level that would exceed the
         budget is found then, and the levels below it did nothing.
 
-        work: device i64[levels+1, 2] (see ``_expand``); pairs_after: host list by level, added
+        work: device i64[levels+1, 3] (see ``_expand``); pairs_after: host list by level, added
         to. Returns (slots i32[P], tris i32[P], P, None, peak) with the final pairs (device
         views, valid until the next call), or (None, None, 0, (level, pairs needed), peak) for
         the first level that exceeds ``budget``.

@@ -151,8 +151,8 @@ class DeviceRaySpace:
         if h.n_slots == 0:
             self._finish_record(record, None)
             return
-        work = self.scratch.get("work", h.levels + 1, np.int64, 2)
-        work.copy_to_device(np.zeros((h.levels + 1, 2), np.int64))
+        work = self.scratch.get("work", h.levels + 1, np.int64, 3)
+        work.copy_to_device(np.zeros((h.levels + 1, 3), np.int64))
         budget = self.pair_budget
         first, size = 0, min(n_tris, max(1, budget // PROBE_SHARE))
         while first < n_tris:
