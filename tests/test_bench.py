@@ -427,3 +427,28 @@ def test_recorded_batches_are_the_rays_the_frame_cast():
     for (kind, _, rays, _), arrays in zip(recorder.batches, cast):
         for name, array in zip(("org", "dir", "tmin", "tmax", "pixel"), arrays):
             assert np.array_equal(getattr(rays, name), array), (kind, name)
+
+
+def _gpu_result(rays):
+    frame = {"scene": "bunny", "recursion": "shadows", "variant": "rayspace", "resolution": [64, 64],
+             "median_seconds": 0.0125, "fps": 80.0, "compile_seconds": 1.0}
+    return {"device": "Some GPU", "date": "2026-11-26", "labels": ["bvh", "rayspace"], "rays": rays,
+            "frames": [frame], "images": [], "audits": [{"scene": "bunny", "variant": "rayspace", "checked": 9,
+                                                         "mismatches": 0}]}
+
+
+def test_gpu_table_of_frames_only_has_no_ray_table():
+    """A gpu matrix whose variants cast no ray sets writes the frame and audit tables only (it
+    once wrote a ray table's header with an empty traversal column)."""
+    from engine.bench.gpu import table
+
+    text = table(_gpu_result([]))
+    assert "| scene | rays |" not in text
+    assert "| bunny | shadows | rayspace | 64x64 | 12.50 ms | 80.0 | 1.0 s |" in text
+    row = {"scene": "bunny", "rays": "primary", "resolution": 64, "count": 4096,
+           "bvh": {"grays_per_s": 2.0, "seconds": 0.001, "kernel_grays_per_s": 2.5,
+                   "embree": {"mismatches": 0, "ties": 1}},
+           "mitsuba": {"grays_per_s": 1.0, "seconds": 0.002}}
+    text = table(_gpu_result([row]))
+    assert "| scene | rays | count | bvh | Mitsuba 3 cuda_ad_rgb | ours / Mitsuba |" in text
+    assert "| 2.00x |" in text

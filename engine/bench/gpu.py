@@ -301,9 +301,10 @@ def image_check(scene: str, variant: str, cpu: np.ndarray, gpu: np.ndarray, tie_
 def table(result: dict) -> str:
     """The README's GPU tables (markdown) of a gpu.json result."""
     labels = [label for label in result["labels"] if any(label in row for row in result["rays"])]
-    lines = [f"GPU: {result['device']}; {result['date']}", "",
-             "| scene | rays | count | " + " | ".join(labels) + " | Mitsuba 3 cuda_ad_rgb | ours / Mitsuba |",
-             "|---|---|---:|" + "---:|" * (len(labels) + 2)]
+    lines = [f"GPU: {result['device']}; {result['date']}"]
+    if result["rays"]:  # a matrix of frames only has no ray-set table
+        lines += ["", "| scene | rays | count | " + " | ".join(labels) + " | Mitsuba 3 cuda_ad_rgb | ours / Mitsuba |",
+                  "|---|---|---:|" + "---:|" * (len(labels) + 2)]
     for row in result["rays"]:
         cells = []
         for label in labels:
