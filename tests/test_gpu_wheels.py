@@ -109,3 +109,30 @@ def test_a_path_out_of_the_folder_is_refused(tmp_path):
     with pytest.raises(ValueError, match="outside"):
         unpacker.unpack(out, tmp_path / "site")
     assert not (tmp_path / "escaped.py").exists() and not (tmp_path / "site").exists()
+
+
+carry = load_tool("gpu_carry")
+
+
+def test_carry_zips_scene_folders_relative_to_the_search_path(tmp_path):
+    """The scenes travel as one zip that unpacks into a search path of its own."""
+    search = tmp_path / "scenes"
+    (search / "box" / "sub").mkdir(parents=True)
+    (search / "box" / "box.obj").write_text("v 0 0 0\n")
+    (search / "box" / "sub" / "tex.ppm").write_bytes(b"P6 1 1 255\n\0\0\0")
+    (search / "other").mkdir()
+    (search / "other" / "left.txt").write_text("not carried")
+    out = tmp_path / "carry" / "scenes.zip"
+    assert carry.zip_scenes(search, ["box"], out) == 2
+    with zipfile.ZipFile(out) as z:
+        assert sorted(z.namelist()) == ["box/box.obj", "box/sub/tex.ppm"]
+        assert z.read("box/sub/tex.ppm") == b"P6 1 1 255\n\0\0\0"
+    with pytest.raises(PacketrtError, match="no scene folder"):
+        carry.zip_scenes(search, ["box", "missing"], tmp_path / "x.zip")
+
+
+def test_carry_refuses_what_one_device_call_cannot_take():
+    carry.check_size(60 * 2**20, 4 * 2**20)          # exactly the limit: fits
+    with pytest.raises(PacketrtError, match="64 MiB"):
+        carry.check_size(60 * 2**20, 4 * 2**20 + 1)
+    assert carry.tracked_bytes() > 0
