@@ -275,11 +275,19 @@ def static_transform(scale, axis, degrees, translation) -> np.ndarray:
     return m
 
 
+def _cross3(a, b) -> np.ndarray:
+    """np.cross of two f64[3], term for term (the same roundings), without its general-case
+    set-up, which was a third of BART Robots' keyframe evaluation."""
+    a0, a1, a2 = float(a[0]), float(a[1]), float(a[2])
+    b0, b1, b2 = float(b[0]), float(b[1]), float(b[2])
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
 def _qmul(p, q):
     """Hamilton product of quaternions (w, x, y, z)."""
     pw, pv = p[0], p[1:]
     qw, qv = q[0], q[1:]
-    return np.concatenate([[pw * qw - pv @ qv], pw * qv + qw * pv + np.cross(pv, qv)])
+    return np.concatenate([[pw * qw - pv @ qv], pw * qv + qw * pv + _cross3(pv, qv)])
 
 
 def _qconj(q):
@@ -364,9 +372,13 @@ class Track:
                                     ).reshape(-1, 3)
         else:
             self._deltas = np.diff(self.values, axis=0)                      # [K-1, D]
-
-    def _tangents(self, k: int):
+        # Each key's tangents depend on the keys only: made once, not per frame (BART Robots
+        # evaluates some 190 tracks a frame).
         h = np.diff(self.times)
+        self._key_tangents = [self._tangents(k, h) for k in range(len(self.times))]
+
+    def _tangents(self, k: int, h: np.ndarray):
+        """(outgoing, incoming) tangents at key k; h: the segments' time spans."""
         before = self._deltas[k - 1] if k > 0 else None
         after = self._deltas[k] if k < len(self._deltas) else None
         return _kb_tangents(before, after, h[k - 1] if k > 0 else 0.0,
@@ -380,8 +392,8 @@ class Track:
             return self._quats[k] if self.kind == "rot" else self.values[k]
         k = int(np.searchsorted(self.times, time, side="right")) - 1
         u = (time - self.times[k]) / (self.times[k + 1] - self.times[k])
-        out_k, _ = self._tangents(k)
-        _, in_next = self._tangents(k + 1)
+        out_k, _ = self._key_tangents[k]
+        _, in_next = self._key_tangents[k + 1]
         h00, h10, h01, h11 = _hermite(u)
         if self.kind == "rot":
             # Hermite in the log space of q_k^-1 q(t): 0 at u = 0, delta at u = 1.

@@ -88,6 +88,47 @@ def test_scene_at_equals_a_fresh_load_at_every_time(scene_file):
     assert not np.array_equal(path.scene_at(0.0).triangles.v0, path.scene_at(1.0).triangles.v0)
 
 
+def test_each_frame_keeps_arrays_of_its_own(scene_file):
+    """A path reuses its placement buffers and hands later frames' fresh arrays to the scene
+    uncopied: no frame may share memory with another, or change when the next is placed."""
+    path = AffAnimation(scene_file)
+    frames = [path.scene_at(t) for t in (0.0, 0.7, 1.3, 2.0)]
+    kept = [[np.array(a) for a in f.triangles] for f in frames]
+    for t in (0.2, 1.9):
+        path.scene_at(t)
+    for i, f in enumerate(frames):
+        for name, now, then in zip(f.triangles._fields, f.triangles, kept[i]):
+            assert np.array_equal(now, then), (i, name)
+        for g in frames[i + 1:]:
+            for x, y in zip(f.triangles, g.triangles):
+                assert x.size == 0 or not np.shares_memory(x, y)
+    # the moving rows of the path's own buffers are not any frame's arrays either
+    for buffer in (path.moving._placed, path.moving._placed_normals):
+        assert not any(np.shares_memory(buffer, a) for f in frames for a in f.triangles)
+
+
+def test_builder_keeps_owned_triangles_and_skips_checked_materials():
+    from engine.core.errors import SceneError
+    from engine.core.scene import Material, SceneBuilder, make_triangles
+
+    tris = make_triangles(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64), np.array([[0, 1, 2]]),
+                          np.zeros(1, np.int32))
+    copied = SceneBuilder("a")
+    copied.add_triangles(tris)
+    assert not np.shares_memory(copied.build().triangles.v0, tris.v0)
+    owned = SceneBuilder("b")
+    owned.add_triangles(tris, owned=True)
+    assert owned.build().triangles.v0 is tris.v0
+    owned.add_triangles(tris, owned=True)         # two parts: concatenated, so copied
+    assert not np.shares_memory(owned.build().triangles.v0, tris.v0)
+    bad = SceneBuilder("c")
+    bad.add_triangles(tris)
+    bad.materials = [Material("bad", diffuse=(float("nan"), 0.0, 0.0))]
+    with pytest.raises(SceneError, match="material 'bad' diffuse"):
+        bad.build()
+    assert bad.build(materials_checked=True).materials[0].name == "bad"   # the caller vouches
+
+
 def test_frames_of_a_bart_path_equal_fresh_loads(shared_scenes):
     from scenes.catalog import ANIMATORS, _resolve, load_named
 

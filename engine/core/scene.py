@@ -218,6 +218,7 @@ class SceneBuilder:
         self.materials: list = []
         self._material_index: dict = {}
         self._parts: list = []  # ("mesh", (vertices f64, faces, material, normals, uvs, source)) | ("tris", Triangles)
+        self._owned = False     # the only part is triangles build() may keep without a copy
 
     def add_material(self, material: Material, key=None) -> int:
         """Index of ``material``; a repeated ``key`` returns the first index."""
@@ -237,9 +238,12 @@ class SceneBuilder:
         vertices = checked_vertices(vertices, faces, source)
         self._parts.append(("mesh", (vertices, faces, material, normals, uvs, source)))
 
-    def add_triangles(self, tris: Triangles) -> None:
-        """Finished float32 triangles (kept where they are: a scene with any is never re-centred)."""
+    def add_triangles(self, tris: Triangles, owned: bool = False) -> None:
+        """Finished float32 triangles (kept where they are: a scene with any is never re-centred).
+        ``build`` copies them, unless they are the scene's only part and ``owned`` (the caller
+        made these arrays for this scene and keeps no other use of them: an animation's frame)."""
         self._parts.append(("tris", tris))
+        self._owned = owned and len(self._parts) == 1
 
     @property
     def n_triangles(self) -> int:
@@ -254,9 +258,11 @@ class SceneBuilder:
         return recentring(lo, hi)
 
     def build(self, *, camera: Optional[Camera] = None, lights=None, background=(0.0, 0.0, 0.0),
-              ambient_light=(1.0, 1.0, 1.0), **extra) -> Scene:
+              ambient_light=(1.0, 1.0, 1.0), materials_checked: bool = False, **extra) -> Scene:
         """The Scene; a missing camera is framed automatically, missing lights get one. Every
-        number is checked (``check_scene``); a scene far from the origin is re-centred."""
+        number is checked (``check_scene``; the materials too unless ``materials_checked``: an
+        animation's frames share the objects its first frame checked); a scene far from the
+        origin is re-centred."""
         if not self._parts:
             raise SceneError(f"{self.source}: the scene has no triangles")
         if not self.materials:
@@ -266,7 +272,7 @@ class SceneBuilder:
         parts = [p if kind == "tris" else
                  make_triangles(p[0] if offset is None else p[0] - offset, *p[1:5], source=p[5])
                  for kind, p in self._parts]
-        tris = concat_triangles(parts)
+        tris = parts[0] if self._owned and len(parts) == 1 else concat_triangles(parts)
         if camera is not None:
             checked_camera(camera, self.source)
             camera = replace(camera, eye=shift(camera.eye), look_at=shift(camera.look_at))
@@ -281,7 +287,7 @@ class SceneBuilder:
             scene.camera = auto_camera(scene.bounds())
         if not scene.lights:
             scene.lights = [default_light(scene.bounds(), scene.camera)]
-        return check_scene(scene)
+        return check_scene(scene, materials=not materials_checked)
 
 
 def checked_camera(camera: Camera, source: str) -> Camera:
@@ -304,13 +310,13 @@ def checked_light(light: PointLight, source: str) -> PointLight:
 MAX_COLOUR = 1e6
 
 
-def check_scene(scene: Scene) -> Scene:
+def check_scene(scene: Scene, materials: bool = True) -> Scene:
     """``scene`` if every number in it makes sense -- materials (colours >= 0 and finite,
-    shininess, transmission in [0, 1], ior > 0), lights, camera, background -- and its
-    geometry, camera and lights lie within +-MAX_CENTRED of its (re-centred) origin; else one
-    SceneError naming the scene's source and what is allowed."""
+    shininess, transmission in [0, 1], ior > 0; skipped with ``materials=False``), lights,
+    camera, background -- and its geometry, camera and lights lie within +-MAX_CENTRED of its
+    (re-centred) origin; else one SceneError naming the scene's source and what is allowed."""
     where = scene.source
-    for m in scene.materials:
+    for m in scene.materials if materials else ():
         named = f"{where}: material {m.name!r}"
         for key in ("ambient", "diffuse", "specular", "reflectance"):
             checked.vector(getattr(m, key), f"{named} {key}", lo=0.0, hi=MAX_COLOUR, error=SceneError)
