@@ -61,22 +61,8 @@ class MovingRows:
             self.blocks.append((k, start, start + len(g.corners)))
             start += len(g.corners)
         self.n_block_rows = start
-        empty3 = np.zeros((0, 3, 3))
-        self.corners = np.concatenate([g.corners for _, _, g, _ in chosen]) if chosen else empty3
-        self.node = np.concatenate([np.full(len(g.corners), node) for _, node, g, _ in chosen]).astype(np.int64) \
-            if chosen else np.zeros(0, np.int64)
-        self.normals = np.concatenate([g.normals if g.normals is not None else np.zeros_like(g.corners)
-                                       for _, _, g, _ in chosen]) if chosen else empty3
-        self.given_normals = np.concatenate([np.full(len(g.corners), g.normals is not None)
-                                             for _, _, g, _ in chosen]) if chosen else np.zeros(0, bool)
-        self.uvs = (np.concatenate([g.uvs if g.uvs is not None else np.zeros((len(g.corners), 3, 2))
-                                    for _, _, g, _ in chosen]) if chosen else np.zeros((0, 3, 2))) if has_uvs else None
-        self.material = np.concatenate([np.full(len(g.corners), m, np.int32) for _, _, g, m in chosen]) \
-            if chosen else np.zeros(0, np.int32)
         # tpa triangles, grouped by their key times (blended together), in file order.
         tpa = loader.animated_tris
-        self.tpa_node = np.array([node for node, _, _ in tpa], np.int64)
-        self.tpa_material = np.array([m for _, _, m in tpa], np.int32)
         groups: dict = {}
         for i, (_, triangle, _) in enumerate(tpa):
             groups.setdefault(triangle.times.tobytes(), []).append(i)
@@ -84,24 +70,32 @@ class MovingRows:
                             np.stack([tpa[i][1].corners for i in rows]), np.stack([tpa[i][1].normals for i in rows]))
                            for rows in groups.values()]
         self.n_rows = self.n_block_rows + len(tpa)
-        self.used_nodes = np.unique(np.concatenate([self.node, self.tpa_node]))
-        # What ``place`` reads and writes, made once: the rows' inputs (the tpa rows' tail is
-        # blended per frame), their nodes, uvs and materials, and the placed rows. A frame
-        # that allocated its 2 x 4.5 MB of output afresh (BART Robots, 62,490 moving rows)
-        # spent 5.1 of the pass's 6 ms faulting those pages in.
-        self.all_node = np.concatenate([self.node, self.tpa_node])
-        self.all_given = np.concatenate([self.given_normals, np.ones(len(self.tpa_node), bool)])
-        self.all_material = np.concatenate([self.material, self.tpa_material])
-        self.all_uvs = np.concatenate([self.uvs, np.zeros((len(self.tpa_node), 3, 2))]) if has_uvs else None
-        self._corners_in = np.concatenate([self.corners, np.zeros((len(self.tpa_node), 3, 3))])
-        self._normals_in = np.concatenate([self.normals, np.zeros((len(self.tpa_node), 3, 3))])
+        # What ``place`` reads and writes, made once, for every moving row: the blocks' rows,
+        # then the tpa rows (their corners and normals blended into the tail per frame), and the
+        # placed rows. A frame that allocated its 2 x 4.5 MB of output afresh (BART Robots,
+        # 62,490 moving rows) spent 5.1 of the pass's 6 ms faulting those pages in.
+        n_tpa = len(tpa)
+        self._corners_in = np.concatenate([g.corners for _, _, g, _ in chosen] + [np.zeros((n_tpa, 3, 3))])
+        self._normals_in = np.concatenate([g.normals if g.normals is not None else np.zeros_like(g.corners)
+                                           for _, _, g, _ in chosen] + [np.zeros((n_tpa, 3, 3))])
+        self.all_node = np.concatenate([np.full(len(g.corners), node, np.int64) for _, node, g, _ in chosen]
+                                       + [np.array([node for node, _, _ in tpa], np.int64)])
+        # Rows whose block has no normals get their geometric normal (tpa triangles have theirs).
+        self.all_given = np.concatenate([np.full(len(g.corners), g.normals is not None) for _, _, g, _ in chosen]
+                                        + [np.ones(n_tpa, bool)])
+        self.every_normal_given = bool(self.all_given.all())
+        self.all_material = np.concatenate([np.full(len(g.corners), m, np.int32) for _, _, g, m in chosen]
+                                           + [np.array([m for _, _, m in tpa], np.int32)])
+        self.all_uvs = np.concatenate([g.uvs if g.uvs is not None else np.zeros((len(g.corners), 3, 2))
+                                       for _, _, g, _ in chosen] + [np.zeros((n_tpa, 3, 2))]) if has_uvs else None
+        self.used_nodes = np.unique(self.all_node)
         self._placed = np.empty_like(self._corners_in)
         self._placed_normals = np.empty_like(self._corners_in)
 
     def _tpa_at(self, time: float):
         """(corners f64[P,3,3], normals f64[P,3,3]) of the tpa triangles at ``time``, unplaced:
         each blended linearly between its bracketing keys (held at the end keys)."""
-        p = len(self.tpa_node)
+        p = self.n_rows - self.n_block_rows
         corners, normals = np.empty((p, 3, 3)), np.empty((p, 3, 3))
         for times, rows, c, n in self.tpa_groups:
             if time <= times[0] or len(times) == 1:
@@ -136,7 +130,7 @@ class MovingRows:
                     np.ascontiguousarray(b), inverse, self.has_normals, placed, normals)
         if not self.has_normals:
             normals = None
-        elif not self.all_given.all():
+        elif not self.every_normal_given:
             normals[~self.all_given] = _face_normals(placed[~self.all_given])
         return placed, normals, self.all_uvs, self.all_material
 

@@ -116,6 +116,9 @@ def main(argv=None) -> int:
     except PacketrtError as exc:
         print(f"gpu_carry: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # an unwritable --out, a full disk
+        print(f"gpu_carry: {exc.filename or out}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     print(f"{out}: {carry / 2**20:.1f} MiB (+ {checkout / 2**20:.1f} MiB of checkout) for carry=[\"{out}\"]")
     return 0
 
