@@ -270,6 +270,31 @@ class Lanes:
             result = self.builder.insert_element(result, self.builder.load(address), lane)
         return V(self, result)
 
+    def gather_rows(self, array, row: V, n: int) -> list:
+        """The first ``n`` elements of row ``row`` (an i64 vector of valid row indices) of an
+        array whose rows (everything past the first axis) are contiguous, as n vectors: element
+        j of every lane's row in vector j. One n-element load per lane, then shuffles: a
+        ``gather`` per element extracts the lane's index and inserts one scalar each time, three
+        instructions an element (the surface pass spent three quarters of its code on them)."""
+        b = self.builder
+        element = array.data.type.pointee
+        row_elements = b.udiv(b.extract_value(array.strides, 0), ir.Constant(I64, self._element_size(element)))
+        piece = ir.VectorType(element, n)
+        pieces = []
+        for k in range(self.width):
+            start = b.mul(b.extract_element(row.value, ir.Constant(I32, k)), row_elements)
+            pieces.append(b.load(self._pointer(array, start, piece), align=4))
+        # Concatenate the lanes' rows pairwise into one <width * n> block, then deal it out.
+        while len(pieces) > 1:
+            size = pieces[0].type.count
+            both = ir.Constant(ir.VectorType(I32, 2 * size), list(range(2 * size)))
+            pieces = [b.shuffle_vector(pieces[i], pieces[i + 1], both) for i in range(0, len(pieces), 2)]
+        block = pieces[0]
+        undefined = ir.Constant(block.type, ir.Undefined)
+        return [V(self, b.shuffle_vector(block, undefined,
+                                         ir.Constant(self.vector_type(I32), [n * k + j for k in range(self.width)])))
+                for j in range(n)]
+
     def choose(self, flag, then_values, else_values) -> list:
         """Run ``then_values()`` or ``else_values()`` (each returning a list of V) as the scalar
         i1 ``flag`` says, in a real branch (so a side may read what the other may not, such as
@@ -357,6 +382,18 @@ class Lanes:
 def rows_of_three(a):
     """Whether f32[R,3] ``a`` has rows of 12 contiguous bytes (what ``Lanes.rows3`` reads)."""
     return a.shape[1] == 3 and a.strides[1] == 4 and a.strides[0] == 12
+
+
+@njit(cache=True, inline="always")
+def rows_contiguous(a):
+    """Whether each row of ``a`` (everything past its first axis) is contiguous in C order, as
+    ``Lanes.gather_rows`` reads it (the rows themselves may lie any distance apart)."""
+    expected = a.itemsize
+    for axis in range(a.ndim - 1, 0, -1):
+        if a.strides[axis] != expected:
+            return False
+        expected *= a.shape[axis]
+    return True
 
 
 @njit(cache=True, inline="always")

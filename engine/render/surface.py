@@ -20,7 +20,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from engine.core.lanes8 import rows_of_three
+from engine.core.lanes8 import rows_contiguous, rows_of_three
 from engine.core.offset import MIN_MAGNITUDE, OFFSET_SCALE
 from engine.packet.compact import new_array
 from engine.render.surface8 import surface8
@@ -207,9 +207,11 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
     has_normals = normals.shape[0] > 0
     has_uvs = uvs.shape[0] > 0
     # The rows: eight lanes a step (``surface8``: the same bits) where the rows allow it, over the
-    # whole batch regardless of packets (2x2 packets have four lanes); else lane by lane.
+    # whole batch regardless of packets (2x2 packets have four lanes); else lane by lane. The
+    # step loads each hit triangle's rows whole, so they must be contiguous.
     vector = rows_of_three(dirs) and rows_of_three(point) and rows_of_three(view) and rows_of_three(normal) \
-        and rows_of_three(facing) and rows_of_three(leave)
+        and rows_of_three(facing) and rows_of_three(leave) and rows_contiguous(v0) and rows_contiguous(v1) \
+        and rows_contiguous(v2) and rows_contiguous(ng) and rows_contiguous(normals) and rows_contiguous(uvs)
     n_lanes = dirs.shape[0]
     blocks = n_lanes // 8 if vector else 0
     for b in prange(blocks):
