@@ -124,3 +124,23 @@ def test_add_light_in_place_is_add_light_over_the_lit_lanes():
     assert np.array_equal(in_place, compacted)
     assert np.array_equal(in_place[~lit | occluded], color[~lit | occluded])
     assert not np.array_equal(in_place[lit & ~occluded], color[lit & ~occluded])
+
+
+def test_lanes_away_from_the_highlight_add_no_specular_unless_the_exponent_is_zero():
+    """Where the mirrored light direction points away from the eye the highlight base is 0:
+    0 ** s adds no specular for s > 0 (the step skips its pow there), and 0 ** 0 = 1 adds it
+    whole."""
+    rng = np.random.default_rng(8)
+    m = 64
+    color, args = shading_lanes(rng, m, 2)
+    ns, l, ndotl, view, mat, diffuse, specular, shininess, texel, lc = args
+    r = 2 * ndotl[:, None] * ns - l
+    view[:] = unit(r)  # -(r . view) < 0: the highlight base is max(., 0) = 0 on every lane
+    shininess[:] = (0.0, 7.5)
+    mat[:] = np.arange(m) % 2
+    before = color.copy()
+    add_light_in_place(color, np.ones(m, bool), np.zeros(m, bool), *args)
+    zero_exponent = (mat == 0)[:, None]
+    expected = before + lc * (diffuse[mat] * texel * ndotl[:, None] + np.where(zero_exponent, specular[mat], 0))
+    np.testing.assert_allclose(color, expected, rtol=1e-6, atol=1e-7)
+    assert not np.allclose(color[mat == 0], (before + lc * diffuse[mat] * texel * ndotl[:, None])[mat == 0])

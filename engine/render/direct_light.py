@@ -92,7 +92,10 @@ def add_light_lane(i, color, ns, to_light, ndotl, view, mat, diffuse, specular, 
     rz = _TWO * cos_s * ns[i, 2] - to_light[i, 2]
     highlight = max(-(rx * view[i, 0] + ry * view[i, 1] + rz * view[i, 2]), _ZERO)
     k = mat[i]
-    spec = highlight ** shininess[k]
+    # pow is most of this step's time (kitchen primary batch: 1.6 of 4.6 ms), and half the lanes
+    # face away from the highlight: 0 ** s is 0 for s > 0 (0 ** 0 is 1, so that case still calls).
+    s = shininess[k]
+    spec = _ZERO if highlight == _ZERO and s > _ZERO else highlight ** s
     for c in range(3):
         color[i, c] += light_color[c] * (diffuse[k, c] * texel[i, c] * cos_s + specular[k, c] * spec)
 
