@@ -60,10 +60,12 @@ class AutoTraversal(PacketTraversal):
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, any_hit, hits.t, hits.prim, hits.u, hits.v,
                    record=record, limits=self._limits)
 
-    def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats):
+    def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats,
+             from_end=False):
         choices = np.empty(len(packets.offsets) - 1, np.int8)
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
-                   None if stats is None else stats.counters, limits=self._limits, choices=choices)
+                   None if stats is None else stats.counters, limits=self._limits, choices=choices,
+                   from_end=from_end)
         if stats is not None:
             add_choices(stats, choices)
 

@@ -45,7 +45,7 @@ from engine.packet.strategies import ENTERED, MASKED, N_STRATEGIES, PARTITION, R
 
 def walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
                  offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
-                 counters, record, chosen=None):
+                 counters, record, chosen=None, visits=None):
     """Closest (any_hit False) or first (any_hit True) hits of every ray, walked by ``strategy``
     (``engine.packet.strategies``, not AUTO: see ``walk_packets_auto``) through its kernel in
     ``STRATEGY_KERNELS``.
@@ -57,12 +57,16 @@ def walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv,
     out_prim, out_u, out_v f32/i32[R]. counters: i64[threads,3,D] (nodes, ray-box and
     ray-triangle tests per depth, added to) or None. record: an ``engine.packet.record``
     PacketRecord for a batch of one packet, or None. chosen: None (every packet), or i8[K] and
-    only the packets k with chosen[k] == strategy are walked.
+    only the packets k with chosen[k] == strategy are walked. visits: i64[threads] that each
+    worker adds its node visits to (every walk counts them: one addition a node, nothing
+    measurable), or None.
     """
     counters, record = instrumented(counters, record)
+    if visits is None:
+        visits = np.zeros(numba.config.NUMBA_NUM_THREADS, np.int64)
     STRATEGY_KERNELS[strategy]((bmin, bmax, first, count, prim, v0, v1, v2, order),
                                (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit),
-                               (out_t, out_prim, out_u, out_v), counters, record,
+                               (out_t, out_prim, out_u, out_v, visits), counters, record,
                                EVERY_PACKET if chosen is None else chosen)
 
 
@@ -88,7 +92,7 @@ def instrumented(counters, record):
 # in 11.7 s without (one signature, the default scene, cold cache). The groups are unpacked and
 # made again inside the loop, so that the parallel body receives single arrays, not tuples.
 # scene (bmin, bmax, first, count, prim, v0, v1, v2, order), batch (org, inv, dirs, tmin, tmax,
-# offsets, planes, valid, n_chunks, any_hit), answers (out_t, out_prim, out_u, out_v): the
+# offsets, planes, valid, n_chunks, any_hit), answers (out_t, out_prim, out_u, out_v, visits): the
 # arguments of ``walk_packets``; counters and record stay arguments of their own, so numba drops
 # their code where they are None; chosen: i8[K], or empty for every packet. No kernel holds an
 # AUTO branch: each would then compile AUTO's three copies (a cold default render compiled for
@@ -97,56 +101,56 @@ def instrumented(counters, record):
 def walk_masked(scene, batch, answers, counters, record, chosen):
     bmin, bmax, first, count, prim, v0, v1, v2, order = scene
     org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
-    out_t, out_prim, out_u, out_v = answers
+    out_t, out_prim, out_u, out_v, visits = answers
     max_rays = longest_packet(offsets)
     max_leaf = largest_leaf(count)
     for chunk in prange(n_chunks):
         walk_packet_range(MASKED, (bmin, bmax, first, count, prim, v0, v1, v2, order),
                           (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit),
                           worker_scratch(max_rays, max_leaf), chunk, offsets.shape[0] - 1, n_chunks,
-                          (out_t, out_prim, out_u, out_v), counters, record, chosen)
+                          (out_t, out_prim, out_u, out_v, visits), counters, record, chosen)
 
 
 @njit(cache=True, parallel=True)
 def walk_ranged(scene, batch, answers, counters, record, chosen):
     bmin, bmax, first, count, prim, v0, v1, v2, order = scene
     org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
-    out_t, out_prim, out_u, out_v = answers
+    out_t, out_prim, out_u, out_v, visits = answers
     max_rays = longest_packet(offsets)
     max_leaf = largest_leaf(count)
     for chunk in prange(n_chunks):
         walk_packet_range(RANGED, (bmin, bmax, first, count, prim, v0, v1, v2, order),
                           (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit),
                           worker_scratch(max_rays, max_leaf), chunk, offsets.shape[0] - 1, n_chunks,
-                          (out_t, out_prim, out_u, out_v), counters, record, chosen)
+                          (out_t, out_prim, out_u, out_v, visits), counters, record, chosen)
 
 
 @njit(cache=True, parallel=True)
 def walk_partition(scene, batch, answers, counters, record, chosen):
     bmin, bmax, first, count, prim, v0, v1, v2, order = scene
     org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
-    out_t, out_prim, out_u, out_v = answers
+    out_t, out_prim, out_u, out_v, visits = answers
     max_rays = longest_packet(offsets)
     max_leaf = largest_leaf(count)
     for chunk in prange(n_chunks):
         walk_packet_range(PARTITION, (bmin, bmax, first, count, prim, v0, v1, v2, order),
                           (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit),
                           worker_scratch(max_rays, max_leaf), chunk, offsets.shape[0] - 1, n_chunks,
-                          (out_t, out_prim, out_u, out_v), counters, record, chosen)
+                          (out_t, out_prim, out_u, out_v, visits), counters, record, chosen)
 
 
 @njit(cache=True, parallel=True)
 def walk_simd(scene, batch, answers, counters, record, chosen):
     bmin, bmax, first, count, prim, v0, v1, v2, order = scene
     org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
-    out_t, out_prim, out_u, out_v = answers
+    out_t, out_prim, out_u, out_v, visits = answers
     max_rays = longest_packet(offsets)
     max_leaf = largest_leaf(count)
     for chunk in prange(n_chunks):
         walk_packet_range(SIMD, (bmin, bmax, first, count, prim, v0, v1, v2, order),
                           (org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit),
                           worker_scratch(max_rays, max_leaf), chunk, offsets.shape[0] - 1, n_chunks,
-                          (out_t, out_prim, out_u, out_v), counters, record, chosen)
+                          (out_t, out_prim, out_u, out_v, visits), counters, record, chosen)
 
 
 STRATEGY_KERNELS = {MASKED: walk_masked, RANGED: walk_ranged, PARTITION: walk_partition, SIMD: walk_simd}
@@ -157,7 +161,7 @@ EVERY_PACKET = np.empty(0, np.int8)
 
 def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
                       offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
-                      counters, limits, choices, record):
+                      counters, limits, choices, record, visits=None):
     """``walk_packets`` by AUTO: each packet walked by the strategy ``engine.packet.choose``
     picks for it under limits f64[N_LIMITS]; choices i8[K] receives each packet's strategy.
 
@@ -171,7 +175,7 @@ def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs
         if chosen_counts[strategy] > 0:
             walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
                          offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
-                         counters, record, choices)
+                         counters, record, choices, visits)
 
 
 @njit(cache=True, parallel=True)
@@ -211,16 +215,18 @@ def worker_scratch(max_rays, max_leaf):
 @njit(cache=True, inline="always")
 def walk_packet_range(strategy, scene, batch, work, begin, end, step, answers, counters, record, chosen):
     """Packets range(begin, end, step) (those with chosen[k] == strategy when chosen is not
-    empty), each loaded, walked by ``strategy`` (a constant: not AUTO) and its hits stored;
-    ``work`` is the worker's scratch (rf, ri, near, fr, leaf_tris, ids, masks, stack_node,
-    stack_carry, stack_depth, thread)."""
+    empty), each loaded, walked by ``strategy`` (a constant: not AUTO) and its hits stored
+    into answers (out_t, out_prim, out_u, out_v, visits: the nodes visited are added to
+    visits[thread]); ``work`` is the worker's scratch (rf, ri, near, fr, leaf_tris, ids, masks,
+    stack_node, stack_carry, stack_depth, thread)."""
     bmin, bmax, first, count, prim, v0, v1, v2, order = scene
     org, inv, dirs, tmin, tmax, offsets, planes, valid, n_chunks, any_hit = batch
-    out_t, out_prim, out_u, out_v = answers
+    out_t, out_prim, out_u, out_v, visits = answers
     rf, ri, near, fr, leaf_tris, ids, masks, stack_node, stack_carry, stack_depth, thread = work
     for k in range(begin, end, step):
         if chosen.shape[0] > 0 and chosen[k] != strategy:
             continue
+        nodes = 0
         start = offsets[k]
         n = offsets[k + 1] - start
         n_simd = n // 4
@@ -237,6 +243,7 @@ def walk_packet_range(strategy, scene, batch, work, begin, end, step, answers, c
                 node = stack_node[top]
                 depth = stack_depth[top]
                 carry_in = stack_carry[top]
+                nodes += 1
                 if counters is not None:
                     counters[thread, COUNTER_NODES, depth] += 1
                 box = node_box(bmin, bmax, node)
@@ -284,3 +291,7 @@ def walk_packet_range(strategy, scene, batch, work, begin, end, step, answers, c
                 stack_node[top + 1], stack_carry[top + 1], stack_depth[top + 1] = near_child, carry, depth + 1
                 top += 2
         store_hits(rf, ri, start, n, out_t, out_prim, out_u, out_v)
+        # Added per packet: a sum carried across the packets and added after the loop was lost
+        # (numba 0.68's parfor lowering wrote nothing), and per node the two threads' adjacent
+        # slots would share a cache line at every visit.
+        visits[thread] += nodes

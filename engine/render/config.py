@@ -7,6 +7,8 @@
     [render]     width = 512  height = 512  max_depth = 5  packet = 16  threads = 0  device = "cpu"
                  leaf_size = 4  bins = 16
                  max_reflection_depth = 64   # mirror reflections only off hits of depth < this
+                 shadow_order = "auto"  # walk shadow rays from the "surface" end, the "light" end, or
+                                        # "auto": per light, as the blockers found so far say
     [traversal]  primary = "ranged"  shadow = "partition"  reflection = "partition"  refraction = "partition"
     [frustum]    primary = "pinhole" shadow = "pointlight" reflection = "general"    refraction = "general"
     [materials]  override = "none"       # or "reflective" / "refractive"
@@ -29,6 +31,7 @@ from engine.core import checked
 from engine.core.errors import ConfigError
 from engine.packet.layout import PACKET_SIZES
 from engine.core.types import RAY_KINDS
+from engine.render.shadow_order import SHADOW_ORDERS
 
 #: The first paper's final system (Overbeck et al. 2008, Section 6), when its plugins exist.
 PAPER_TRAVERSAL = {"primary": "ranged", "shadow": "partition", "reflection": "partition", "refraction": "partition"}
@@ -89,6 +92,9 @@ class RenderConfig:
     max_reflection_depth: int = MAX_DEPTH
     # "cpu" (numba kernels on every core) or "cuda" (``engine.gpu``: the wavefront frame on a GPU).
     device: str = "cpu"
+    # Which end of their segments shadow rays are walked from (``engine.render.shadow_order``):
+    # "surface", "light" or "auto". Answers and images are the same either way; only speed differs.
+    shadow_order: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -184,6 +190,8 @@ def validate(config: Config) -> Config:
     checked.to_float(config.scene.time, "scene.time", -MAX_TIME, MAX_TIME)
     if r.device not in DEVICES:
         raise ConfigError(f"render.device must be one of {', '.join(DEVICES)}, got {r.device!r}")
+    if r.shadow_order not in SHADOW_ORDERS:
+        raise ConfigError(f"render.shadow_order must be one of {', '.join(SHADOW_ORDERS)}, got {r.shadow_order!r}")
     if r.packet not in PACKET_SIZES:
         raise ConfigError(f"render.packet must be one of {', '.join(map(str, PACKET_SIZES))}, got {r.packet}")
     if config.accel.update not in ("rebuild", "refit", "auto"):

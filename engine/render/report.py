@@ -17,9 +17,12 @@ def extra_dict(scene, result) -> dict:
     """The ``extra`` field: what a run knows beyond the counters -- plugin statistics per ray
     kind (filled by a counting pass: ``rayspace`` pair streams, ``embree`` version; {} for
     plugins that keep none), the scene's re-centring shift (``origin``, [0, 0, 0] unless the
-    scene lay far from the origin) and the loader's warnings (a missing texture)."""
+    scene lay far from the origin), the loader's warnings (a missing texture) and the end each
+    light's shadow rays were walked from (``shadow_order``: {"LIGHT/KIND": "surface" |
+    "light"}, ``engine.render.shadow_order``)."""
     return {"plugins": result.extra, "scene_origin": list(scene.origin),
-            "scene_warnings": list(scene.info.get("warnings", []))}
+            "scene_warnings": list(scene.info.get("warnings", [])),
+            "shadow_order": dict(getattr(result, "shadow_order", {}))}
 
 
 def stats_dict(scene, config, result, frames: list | None = None) -> dict:

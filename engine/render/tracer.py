@@ -68,12 +68,19 @@ class Tracer:
                 seconds[plugin.name] = plugin.prepare(self.tris)
         return seconds
 
-    def trace(self, kind: str, query: str, rays: RayBatch, packets, tally: Tally | None = None, answer=None):
+    def trace(self, kind: str, query: str, rays: RayBatch, packets, tally: Tally | None = None, answer=None,
+              from_end: bool = False, trial=None):
         """Hits (query "intersect") or bool[R] occlusion flags (query "occluded") of ``rays``
         (R rays in ``packets``), in batch order. ``answer``: arrays of that shape to answer
         into (reset here to all misses, unless the traversal declares ``writes_every_answer``:
         the packet walks store every ray's answer, and the serial reset of a frame's primary
-        answers alone is 16 MB of writes), instead of new ones."""
+        answers alone is 16 MB of writes), instead of new ones.
+
+        Occlusion through a traversal that ``orders_any_hit`` (the packet walks) also takes
+        ``from_end`` (walk the far child first: the rays' ends met first) and ``trial`` (a dict
+        that receives the seconds and rays of a walk from both ends, packet group by group: see
+        ``engine.render.shadow_order``). Other traversals ignore both and leave ``trial``
+        empty."""
         traversal = self.traversal[kind]
         stats = tally.stats_for(kind) if tally is not None else None
         n = rays.org.shape[0]
@@ -90,13 +97,20 @@ class Tracer:
                 answer = np.zeros(n, np.bool_)
             else:
                 answer.fill(False)
-            traversal.occluded(self.bvh, self.tris, rays, packets, frusta, answer, stats)
+            if self.orders_any_hit(kind):
+                traversal.occluded(self.bvh, self.tris, rays, packets, frusta, answer, stats, from_end, trial)
+            else:
+                traversal.occluded(self.bvh, self.tris, rays, packets, frusta, answer, stats)
         else:
             raise ValueError(f"query must be 'intersect' or 'occluded', got {query!r}")
         if tally is not None:
             tally.seconds[kind] += time.perf_counter() - start
             tally.rays[kind] += live_rays(rays.tmin, rays.tmax)
         return answer
+
+    def orders_any_hit(self, kind: str) -> bool:
+        """Whether the kind's traversal takes ``from_end`` and ``trial`` (see ``trace``)."""
+        return getattr(self.traversal[kind], "orders_any_hit", False)
 
     def frusta_for(self, kind: str, rays: RayBatch, packets):
         """The kind's frusta of ``rays`` (one per packet), or None when its traversal takes none."""

@@ -46,6 +46,7 @@ from engine.render.config import Config
 from engine.render.direct_light import add_light, add_light_in_place, light_directions
 from engine.render.materials import MaterialTable
 from engine.render.plugins import configured
+from engine.render.shadow_order import ShadowOrder
 from engine.core.scratch import Scratch
 from engine.render.spawn import gather_and_spawn, new_children
 from engine.render.surface import new_surface, shade_surface
@@ -67,8 +68,10 @@ class RenderResult:
     image: f32[H,W,3] linear RGB. seconds: {"bvh", "trace": {kind: s}, "shade", "total",
     "plugin_build": {plugin: s}}. rays: {kind: live rays cast}. counters: {"ray_aabb" |
     "ray_tri" | "nodes": {kind: n}} and counters_by_depth (the same per BVH depth, lists), empty
-    unless the render counted. extra: {kind: plugin statistics}. ``engine.render.report``
-    turns it into the ``--stats`` document.
+    unless the render counted. extra: {kind: plugin statistics}. shadow_order: {"LIGHT/KIND":
+    "surface" | "light"}, the end each light's shadow rays were walked from once decided
+    (``engine.render.shadow_order``). ``engine.render.report`` turns it into the ``--stats``
+    document.
     """
 
     image: np.ndarray
@@ -77,6 +80,7 @@ class RenderResult:
     counters: dict
     counters_by_depth: dict
     extra: dict = field(default_factory=dict)
+    shadow_order: dict = field(default_factory=dict)
 
     def mrays_per_s(self) -> dict:
         return {k: (self.rays[k] / self.seconds["trace"][k] / 1e6 if self.seconds["trace"][k] > 0 else 0.0)
@@ -109,6 +113,8 @@ class WhittedRenderer:
         self.threads = config.render.threads or numba.config.NUMBA_NUM_THREADS
         numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
         self.traversal, self.frustum = configured(config)
+        # Which end each light's shadow rays are walked from, learnt from frame to frame.
+        self.shadow_order = ShadowOrder(config.render.shadow_order)
         # Per-lane arrays reused from frame to frame (fresh pages cost more than the shading).
         self.scratch = Scratch()
         self.scene = None
@@ -144,6 +150,19 @@ class WhittedRenderer:
         if self.observer is not None:
             self.observer(kind, query, rays, packets, answer)
         return answer
+
+    def _trace_shadow(self, light: int, kind: str, rays, packets, tally):
+        """Occlusion of light ``light``'s shadow rays from hits of ``kind`` rays, walked from the
+        end ``shadow_order`` chooses (or as a trial of both: ``engine.render.shadow_order``)."""
+        trial = {} if self.shadow_order.wants_trial(light, kind) and self.tracer.orders_any_hit("shadow") else None
+        occluded = self.tracer.trace("shadow", "occluded", rays, packets, tally,
+                                     self.scratch.take(("shadow", "occluded"), rays.org.shape[0], (), np.bool_),
+                                     from_end=self.shadow_order.from_light(light, kind), trial=trial)
+        if self.observer is not None:
+            self.observer("shadow", "occluded", rays, packets, occluded)
+        if trial is not None:
+            self.shadow_order.add_trial(light, kind, trial)
+        return occluded
 
     # -- the loop ------------------------------------------------------------------------
     def warm_up(self) -> float:
@@ -191,7 +210,8 @@ class WhittedRenderer:
         counters, by_depth, extra = _summarise_stats(tally.stats)
         seconds = {"bvh": self.bvh.build_seconds, "trace": tally.seconds, "shade": shade_seconds, "total": total,
                    "plugin_build": self.prepare_seconds}
-        return RenderResult(image.reshape(height, width, 3), seconds, tally.rays, counters, by_depth, extra)
+        return RenderResult(image.reshape(height, width, 3), seconds, tally.rays, counters, by_depth, extra,
+                            self.shadow_order.chosen())
 
     def with_counters(self, result: RenderResult) -> RenderResult:
         """``result`` with counters and plugin statistics from a second, counting render (so the
@@ -226,7 +246,7 @@ class WhittedRenderer:
             lit = light("lit", r, (), np.bool_)
             unit_weight = self.scratch.constant(("light", "unit_weight"), r, 1.0, (3,))
             zero_tmin = self.scratch.constant(("light", "zero_tmin"), r, 0.0)
-        for light in self.scene.lights:
+        for index, light in enumerate(self.scene.lights):
             lit_lanes = light_directions(surface.hit, surface.leave, surface.normal, surface.facing,
                                          np.asarray(light.position, np.float32), to_light, dist, ndotl, lit,
                                          shadow_tmax, inv_to_light)
@@ -238,7 +258,7 @@ class WhittedRenderer:
                 # packets (the unlit ones dead) rather than copy them into compacted packets.
                 shadow = RayBatch(surface.leave, to_light, inv_to_light, zero_tmin, shadow_tmax, rays.pixel,
                                   unit_weight, "shadow")
-                occluded = self._trace("shadow", shadow, packets, "occluded", tally, "shadow")
+                occluded = self._trace_shadow(index, rays.kind, shadow, packets, tally)
                 add_light_in_place(surface.color, lit, occluded, surface.normal, to_light, ndotl, surface.view,
                                    surface.material, m.diffuse, m.specular, m.shininess, surface.texel, light_color)
                 continue
@@ -246,8 +266,8 @@ class WhittedRenderer:
                 n, packets.width, packets.height, (packets.offsets,), (rays.pixel,), (lit,), (surface.leave,),
                 (to_light,), (shadow_tmax,), (unit_weight,), self.scratch.allocator("shadow"))
             shadow = RayBatch(org, dirs, inv, tmin, tmax, pixel, weight, "shadow")
-            occluded = self._trace("shadow", shadow, Packets(offsets, n, packets.width, packets.height),
-                                   "occluded", tally, "shadow")
+            occluded = self._trace_shadow(index, rays.kind, shadow, Packets(offsets, n, packets.width, packets.height),
+                                          tally)
             add_light(surface.color, lane, occluded, surface.normal, to_light, ndotl, surface.view,
                       surface.material, m.diffuse, m.specular, m.shininess, surface.texel, light_color)
         children = new_children(r, take)

@@ -1,0 +1,141 @@
+"""Shadow rays walked from either end (``engine.render.shadow_order``): the far-child-first walk
+gives the same occlusion answers with other node visits, every walk counts its visits as the
+instrumented kernel does, a trial walks every packet once, ``ShadowOrder`` decides by counted
+visits per (light, kind), and renders are the same image whichever end is chosen."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numba
+import numpy as np
+import pytest
+
+from engine.core.errors import ConfigError
+from engine.core.types import Hits, new_stats, stats_totals
+from engine.packet.plugin import live_rays_of, walk_batch
+from engine.packet.strategies import STRATEGIES
+from engine.render import config as cfg
+from engine.render.plugins import make_frustum, make_traversal
+from engine.render.shadow_order import MARGIN, TRIAL_RAYS, ShadowOrder
+from engine.render.whitted import WhittedRenderer
+from packet_raysets import scene_rays
+from scenes.catalog import scene_from_config
+from scenes.whitted import whitted_scene
+
+
+@pytest.fixture(scope="module")
+def shadows():
+    """(SceneRays, RayBatch, Packets, Frusta) of the default scene's shadow rays, 16x16 packets."""
+    setup = scene_rays(whitted_scene([], {}, 0.0), 96, 96)
+    rays, packets = setup.rays["shadow"].batch(setup.width, setup.height, 16)
+    frusta = make_frustum("pointlight").build(rays, packets, setup.bounds)
+    return setup, rays, packets, frusta
+
+
+def walk(strategy, setup, rays, packets, frusta, from_end, counters=None):
+    """(hits, visits i64[threads]) of an any-hit walk from the surface or the far end."""
+    n = rays.org.shape[0]
+    hits = Hits(np.empty(n, np.float32), np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32))
+    visits = np.zeros(numba.config.NUMBA_NUM_THREADS, np.int64)
+    walk_batch(strategy, setup.bvh, setup.tris, rays, packets, frusta, True, *hits, counters, from_end=from_end,
+               visits=visits)
+    return hits, visits
+
+
+@pytest.mark.parametrize("name", ["ranged", "partition", "masked", "simd"])
+def test_walking_from_the_far_end_answers_the_same_with_other_visits(shadows, name):
+    setup, rays, packets, frusta = shadows
+    near_hits, near_visits = walk(STRATEGIES[name], setup, rays, packets, frusta, False)
+    far_hits, far_visits = walk(STRATEGIES[name], setup, rays, packets, frusta, True)
+    assert np.array_equal(near_hits.prim >= 0, far_hits.prim >= 0)
+    assert 0.05 < np.mean(near_hits.prim >= 0) < 0.95  # blocked and free rays both occur
+    # The order changed: some blocked ray stopped at another blocker, and the counts moved.
+    assert not np.array_equal(near_hits.t, far_hits.t)
+    assert near_visits.sum() != far_visits.sum()
+
+
+def test_every_walk_counts_the_visits_the_instrumented_walk_counts(shadows):
+    setup, rays, packets, frusta = shadows
+    for from_end in (False, True):
+        stats = new_stats(numba.get_num_threads())
+        _, counted = walk(STRATEGIES["partition"], setup, rays, packets, frusta, from_end, stats.counters)
+        _, plain = walk(STRATEGIES["partition"], setup, rays, packets, frusta, from_end)
+        assert counted.sum() == plain.sum() == stats_totals(stats)["nodes"] > 0
+
+
+def test_a_trial_walks_every_packet_once_from_alternate_ends(shadows):
+    setup, rays, packets, frusta = shadows
+    plugin = make_traversal("partition")
+    plain = np.zeros(rays.org.shape[0], np.bool_)
+    plugin.occluded(setup.bvh, setup.tris, rays, packets, frusta, plain, None)
+    tried, trial = np.zeros_like(plain), {}
+    plugin.occluded(setup.bvh, setup.tris, rays, packets, frusta, tried, None, False, trial)
+    assert np.array_equal(plain, tried)
+    # Each end walked half the packets (groups 0 and 3 from the surface, 1 and 2 from the light).
+    offsets = np.ascontiguousarray(packets.offsets, np.int32)
+    group = np.arange(len(offsets) - 1) % 4
+    from_light = np.where((group == 1) | (group == 2), 0, -1).astype(np.int8)
+    assert trial["light"][1] == live_rays_of(rays.tmin, rays.tmax, offsets, from_light)
+    assert trial["surface"][1] + trial["light"][1] == np.count_nonzero(rays.tmin <= rays.tmax)
+    assert trial["surface"][0] > 0 and trial["light"][0] > 0
+
+
+def test_auto_has_no_trial_of_its_own(shadows):
+    # auto's packets are split by strategy already: it walks from the end it is given and
+    # leaves the trial empty, which decides nothing.
+    setup, rays, packets, frusta = shadows
+    trial = {}
+    make_traversal("auto").occluded(setup.bvh, setup.tris, rays, packets, frusta,
+                                    np.zeros(rays.org.shape[0], np.bool_), None, True, trial)
+    assert trial == {}
+
+
+def test_shadow_order_decides_by_visits_per_ray_per_light_and_kind():
+    order = ShadowOrder("auto")
+    assert order.wants_trial(0, "primary") and not order.from_light(0, "primary")
+    half = TRIAL_RAYS // 2
+    order.add_trial(0, "primary", {"surface": (100 * half, half), "light": (10 * half, half)})
+    assert order.wants_trial(0, "primary")  # not enough rays yet: still the surface
+    order.add_trial(0, "primary", {})       # nothing learnt from an empty trial
+    order.add_trial(0, "primary", {"surface": (100 * half, half), "light": (10 * half, half)})
+    assert not order.wants_trial(0, "primary") and order.from_light(0, "primary")
+    # Within the margin the surface stays; each (light, kind) decides alone.
+    close = (1.0 - MARGIN / 2) * TRIAL_RAYS
+    order.add_trial(0, "reflection", {"surface": (TRIAL_RAYS, TRIAL_RAYS), "light": (close, TRIAL_RAYS)})
+    order.add_trial(1, "primary", {"surface": (TRIAL_RAYS, TRIAL_RAYS), "light": (3 * TRIAL_RAYS, TRIAL_RAYS)})
+    assert order.chosen() == {"0/primary": "light", "0/reflection": "surface", "1/primary": "surface"}
+    assert not order.wants_trial(0, "reflection")
+
+
+@pytest.mark.parametrize("mode, from_light", [("surface", False), ("light", True)])
+def test_fixed_orders_never_try(mode, from_light):
+    order = ShadowOrder(mode)
+    assert not order.wants_trial(0, "primary") and order.from_light(0, "primary") is from_light
+    with pytest.raises(ValueError):
+        ShadowOrder("middle")
+
+
+def test_renders_are_the_same_image_from_either_end_and_auto_chooses_alike_twice():
+    config = cfg.Config()
+    scene = scene_from_config(config.scene, "none")
+    images, chosen = {}, []
+    for mode in ("surface", "light", "auto", "auto"):
+        renderer = WhittedRenderer(scene, replace(config, render=replace(config.render, shadow_order=mode)))
+        result = renderer.render()  # 512x512: enough shadow rays of reflection hits to decide
+        images.setdefault(mode, result.image)
+        assert np.array_equal(result.image, images["surface"])
+        if mode == "auto":
+            chosen.append(result.shadow_order)
+    # The default scene's reflection and refraction hits cast shadow rays that are cheaper from
+    # the light (see the README), and the choice is counted, not timed: the same both times.
+    assert chosen[0] == chosen[1]
+    assert chosen[0].get("0/reflection") == "light"
+
+
+def test_config_checks_the_shadow_order(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text('[render]\nshadow_order = "light"\n')
+    assert cfg.load(str(path)).render.shadow_order == "light"
+    path.write_text('[render]\nshadow_order = "middle"\n')
+    with pytest.raises(ConfigError, match="shadow_order"):
+        cfg.load(str(path))
