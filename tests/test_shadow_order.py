@@ -139,3 +139,27 @@ def test_config_checks_the_shadow_order(tmp_path):
     path.write_text('[render]\nshadow_order = "middle"\n')
     with pytest.raises(ConfigError, match="shadow_order"):
         cfg.load(str(path))
+
+
+def test_the_benchmark_replays_shadow_batches_from_the_end_the_renderer_walks_them():
+    from engine.bench.runner import BatchRecorder, replay
+
+    config = cfg.Config()
+    config = replace(config, render=replace(config.render, shadow_order="light", width=128, height=128))
+    recorder = BatchRecorder()
+    renderer = WhittedRenderer(scene_from_config(config.scene, "none"), config, observer=recorder)
+    renderer.render()
+    kinds = [batch[0] for batch in recorder.batches]
+    assert "shadow" in kinds
+    assert recorder.from_end == [kind == "shadow" for kind in kinds]
+    seen = []
+    tracer = renderer.tracer
+    original = tracer.trace
+
+    def trace(*args, **kwargs):
+        seen.append(kwargs.get("from_end", False))
+        return original(*args, **kwargs)
+
+    tracer.trace = trace
+    replay(recorder.batches, tracer, recorder.from_end)
+    assert seen == recorder.from_end

@@ -70,17 +70,23 @@ def summarize(values) -> dict:
 
 
 class BatchRecorder:
-    """Renderer observer that keeps every cast batch: list of (kind, query, RayBatch, Packets).
+    """Renderer observer that keeps every cast batch: list of (kind, query, RayBatch, Packets),
+    and beside it ``from_end``: per batch, the end the renderer walks such a batch from (True:
+    a shadow batch walked from the light, ``engine.render.shadow_order``), for ``replay``.
 
     Each batch is copied as it is handed over: the renderer reuses its per-lane arrays within a
     frame (a shadow batch's arrays serve every light and generation, a generation's the one two
     after it), so views kept until the frame ends hold later batches' rays, not these."""
 
+    wants_walk_order = True
+
     def __init__(self):
         self.batches = []
+        self.from_end = []
 
-    def __call__(self, kind, query, rays, packets, answer):
+    def __call__(self, kind, query, rays, packets, answer, from_end=False):
         self.batches.append((kind, query, *copied_batch(rays, packets)))
+        self.from_end.append(from_end)
 
     def digest(self) -> str:
         """blake2b over every batch's query, rays (origins, directions, segments) and packet offsets."""
@@ -92,21 +98,24 @@ class BatchRecorder:
         return h.hexdigest()
 
 
-def replay(batches, tracer) -> tuple:
+def replay(batches, tracer, from_end=None) -> tuple:
     """({kind: seconds}, answers) of tracing the recorded batches again with ``tracer``, each
     batch timed by the tracer as a render times it (frustum build + query + answer arrays);
-    answers[i] is batch i's Hits or bool[R]."""
+    answers[i] is batch i's Hits or bool[R]. from_end: per batch, the end to walk an occlusion
+    batch from (``BatchRecorder.from_end``; None: the usual order)."""
     tally = Tally()
-    answers = [tracer.trace(kind, query, rays, packets, tally) for kind, query, rays, packets in batches]
+    ends = from_end if from_end is not None else [False] * len(batches)
+    answers = [tracer.trace(kind, query, rays, packets, tally, from_end=end)
+               for (kind, query, rays, packets), end in zip(batches, ends)]
     return tally.seconds, answers
 
 
-def timed_replays(batches, tracer, repeat: int) -> tuple:
+def timed_replays(batches, tracer, repeat: int, from_end=None) -> tuple:
     """([{kind: seconds}] of ``repeat`` replays, the last replay's answers)."""
     seconds, answers = [], None
     for _ in range(repeat):
         answers = None  # one set of answers alive at a time
-        run, answers = replay(batches, tracer)
+        run, answers = replay(batches, tracer, from_end)
         seconds.append(run)
     return seconds, answers
 
@@ -278,7 +287,7 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
     # Our share of the CPU while replaying: near 1 on an idle machine (parallel kernels keep
     # every thread busy), well below when other work competes for the cores.
     cpu, clock = time.process_time(), time.perf_counter()
-    replays, answers = timed_replays(recorder.batches, renderer.tracer, repeat)
+    replays, answers = timed_replays(recorder.batches, renderer.tracer, repeat, recorder.from_end)
     cpu_share = (time.process_time() - cpu) / max((time.perf_counter() - clock) * renderer.threads, 1e-9)
     reference = references.get(renderer, recorder)
     checks = {"ours": check_answers(recorder.batches, answers, reference, renderer.tracer, renderer.tris)}

@@ -25,6 +25,8 @@ through this one loop and the same shading kernels.
 A traversal plugin may define ``prepare(tris) -> seconds`` to build its own structure before
 timing starts. ``observer(kind, query, rays, packets, answer)`` is called after every cast batch
 (query "intersect" with Hits, or "occluded" with bool[R]); the audit and the benchmark use it.
+An observer with ``wants_walk_order = True`` also gets ``from_end`` with each shadow batch: the
+end such a batch is walked from (``engine.render.shadow_order``), so that a replay walks it so.
 The arrays are views of the renderer's per-lane arrays, which later batches of the same frame
 overwrite: an observer that keeps a batch keeps a copy (``engine.core.types.copied_batch``).
 """
@@ -158,10 +160,15 @@ class WhittedRenderer:
         occluded = self.tracer.trace("shadow", "occluded", rays, packets, tally,
                                      self.scratch.take(("shadow", "occluded"), rays.org.shape[0], (), np.bool_),
                                      from_end=self.shadow_order.from_light(light, kind), trial=trial)
-        if self.observer is not None:
-            self.observer("shadow", "occluded", rays, packets, occluded)
         if trial is not None:
             self.shadow_order.add_trial(light, kind, trial)
+        if self.observer is not None:
+            if getattr(self.observer, "wants_walk_order", False):
+                # The end such a batch is walked from from now on (a replay walks it so).
+                self.observer("shadow", "occluded", rays, packets, occluded,
+                              from_end=self.shadow_order.from_light(light, kind))
+            else:
+                self.observer("shadow", "occluded", rays, packets, occluded)
         return occluded
 
     # -- the loop ------------------------------------------------------------------------
