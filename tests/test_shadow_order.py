@@ -63,13 +63,15 @@ def test_every_walk_counts_the_visits_the_instrumented_walk_counts(shadows):
         assert counted.sum() == plain.sum() == stats_totals(stats)["nodes"] > 0
 
 
-def test_a_trial_walks_every_packet_once_from_alternate_ends(shadows):
+@pytest.mark.parametrize("name", ["partition", "auto"])
+def test_a_trial_walks_every_packet_once_from_alternate_ends(shadows, name):
     setup, rays, packets, frusta = shadows
-    plugin = make_traversal("partition")
+    plugin = make_traversal(name)
     plain = np.zeros(rays.org.shape[0], np.bool_)
     plugin.occluded(setup.bvh, setup.tris, rays, packets, frusta, plain, None)
     tried, trial = np.zeros_like(plain), {}
-    plugin.occluded(setup.bvh, setup.tris, rays, packets, frusta, tried, None, False, trial)
+    stats = new_stats(numba.get_num_threads())
+    plugin.occluded(setup.bvh, setup.tris, rays, packets, frusta, tried, stats, False, trial)
     assert np.array_equal(plain, tried)
     # Each end walked half the packets (groups 0 and 3 from the surface, 1 and 2 from the light).
     offsets = np.ascontiguousarray(packets.offsets, np.int32)
@@ -77,17 +79,9 @@ def test_a_trial_walks_every_packet_once_from_alternate_ends(shadows):
     from_light = np.where((group == 1) | (group == 2), 0, -1).astype(np.int8)
     assert trial["light"][1] == live_rays_of(rays.tmin, rays.tmax, offsets, from_light)
     assert trial["surface"][1] + trial["light"][1] == np.count_nonzero(rays.tmin <= rays.tmax)
-    assert trial["surface"][0] > 0 and trial["light"][0] > 0
-
-
-def test_auto_has_no_trial_of_its_own(shadows):
-    # auto's packets are split by strategy already: it walks from the end it is given and
-    # leaves the trial empty, which decides nothing.
-    setup, rays, packets, frusta = shadows
-    trial = {}
-    make_traversal("auto").occluded(setup.bvh, setup.tris, rays, packets, frusta,
-                                    np.zeros(rays.org.shape[0], np.bool_), None, True, trial)
-    assert trial == {}
+    assert trial["surface"][0] + trial["light"][0] == stats_totals(stats)["nodes"] > 0
+    if name == "auto":  # every packet's strategy counted once
+        assert sum(stats.extra["auto"]["packets"].values()) == len(offsets) - 1
 
 
 def test_shadow_order_decides_by_visits_per_ray_per_light_and_kind():

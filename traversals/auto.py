@@ -70,6 +70,15 @@ class AutoTraversal(PacketTraversal):
             add_choices(stats, choices)
 
 
+    def _walk_group(self, bvh, tris, rays, packets, frusta, any_hit, stats, from_end, chosen, visits):
+        choices = np.empty(len(packets.offsets) - 1, np.int8)
+        walk_batch(AUTO, bvh, tris, rays, packets, frusta, True, any_hit.t, any_hit.prim, any_hit.u, any_hit.v,
+                   None if stats is None else stats.counters, limits=self._limits, choices=choices,
+                   from_end=from_end, chosen=chosen, visits=visits)
+        if stats is not None:
+            add_choices(stats, choices[chosen >= 0])
+
+
 def add_choices(stats, choices: np.ndarray) -> None:
     """Count one batch's choices (i8[K]) into stats.extra["auto"]."""
     per = np.bincount(choices, minlength=len(CHOSEN_NAMES))

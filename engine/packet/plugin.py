@@ -89,8 +89,8 @@ def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_p
     first). Closest hits do not depend on the order; an any-hit walk may stop at another of a
     ray's blockers, and sooner or later than in the usual order (``engine.render.shadow_order``).
     chosen: None (every packet), or i8[K] and only packets k with chosen[k] == strategy are
-    walked (not with AUTO, whose own choices select its passes). visits: i64[threads] that
-    receives the nodes visited (added to), or None."""
+    walked (with AUTO: packets k with chosen[k] >= 0, each by the strategy it chooses).
+    visits: i64[threads] that receives the nodes visited (added to), or None."""
     check_answer_arrays(rays.org.shape[0], out_t, out_prim, out_u, out_v)
     offsets = np.ascontiguousarray(packets.offsets, np.int32)
     n_packets = offsets.shape[0] - 1
@@ -117,8 +117,6 @@ def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_p
     if strategy != AUTO:
         walk_packets(strategy, *args, record, chosen, visits)
         return
-    if chosen is not None:
-        raise ValueError("an AUTO walk chooses its packets' strategies itself: pass no 'chosen'")
     limits = limits_array(fitted_limits()) if limits is None else np.ascontiguousarray(limits, np.float64)
     if limits.shape != (N_LIMITS,):
         raise ValueError(f"auto limits must be f64[{N_LIMITS}], got shape {limits.shape}")
@@ -126,7 +124,7 @@ def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_p
         choices = np.empty(n_packets, np.int8)
     elif choices.shape != (n_packets,) or choices.dtype != np.int8:
         raise ValueError(f"auto choices must be i8[{n_packets}], got {choices.dtype}{list(choices.shape)}")
-    walk_packets_auto(*args, limits, choices, record, visits)
+    walk_packets_auto(*args, limits, choices, record, visits, chosen)
 
 
 class PacketTraversal:
@@ -152,12 +150,11 @@ class PacketTraversal:
         """occluded[r] = True when ray r hits anything in [tmin, tmax]. from_end: walk the far
         child first (see ``walk_batch``). trial: None, or a dict that receives {"surface":
         (nodes visited, live rays), "light": (nodes visited, live rays)} from a walk of the
-        packets in four interleaved groups from alternate ends (``engine.render.shadow_order``; left empty when
-        the batch has fewer than TRIAL_PACKETS packets or the strategy is AUTO, whose packets
-        are already split by strategy: then from_end decides)."""
+        packets in four interleaved groups from alternate ends (``engine.render.shadow_order``;
+        left empty when the batch has fewer than TRIAL_PACKETS packets: then from_end decides)."""
         any_hit = self._any_hit_scratch(rays.org.shape[0])  # which triangle stopped each ray
         n_packets = len(packets.offsets) - 1
-        if trial is None or self.strategy == AUTO or self.kernel is not None or n_packets < TRIAL_PACKETS:
+        if trial is None or self.kernel is not None or n_packets < TRIAL_PACKETS:
             self._run(bvh, tris, rays, packets, frusta, True, any_hit.t, any_hit.prim, any_hit.u, any_hit.v, stats,
                       from_end)
         else:
@@ -174,12 +171,16 @@ class PacketTraversal:
         for g, from_end in enumerate((False, True, True, False)):
             chosen = np.where(group == g, self.strategy, -1).astype(np.int8)
             visits = np.zeros(numba.config.NUMBA_NUM_THREADS, np.int64)
-            walk_batch(self.strategy, bvh, tris, rays, packets, frusta, True, any_hit.t, any_hit.prim, any_hit.u,
-                       any_hit.v, None if stats is None else stats.counters, from_end=from_end, chosen=chosen,
-                       visits=visits)
+            self._walk_group(bvh, tris, rays, packets, frusta, any_hit, stats, from_end, chosen, visits)
             nodes[from_end] += int(visits.sum())
             live[from_end] += live_rays_of(rays.tmin, rays.tmax, offsets, chosen)
         return {"surface": (nodes[False], live[False]), "light": (nodes[True], live[True])}
+
+    def _walk_group(self, bvh, tris, rays, packets, frusta, any_hit, stats, from_end, chosen, visits):
+        """One trial group's any-hit walk: the packets k with chosen[k] >= 0."""
+        walk_batch(self.strategy, bvh, tris, rays, packets, frusta, True, any_hit.t, any_hit.prim, any_hit.u,
+                   any_hit.v, None if stats is None else stats.counters, from_end=from_end, chosen=chosen,
+                   visits=visits)
 
     def _any_hit_scratch(self, n):
         """Hits arrays for n rays, kept by this instance from query to query: the walk writes

@@ -161,15 +161,19 @@ EVERY_PACKET = np.empty(0, np.int8)
 
 def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
                       offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
-                      counters, limits, choices, record, visits=None):
+                      counters, limits, choices, record, visits=None, only=None):
     """``walk_packets`` by AUTO: each packet walked by the strategy ``engine.packet.choose``
     picks for it under limits f64[N_LIMITS]; choices i8[K] receives each packet's strategy.
+    only: None (every packet), or i8[K] and only packets k with only[k] >= 0 are walked (their
+    choices; the others' choices are -1).
 
     All packets are chosen first, in parallel (``choose_packets``); then the kernel of each
     strategy some packet chose walks the packets chosen for it, so AUTO compiles no walk of its
     own. Choosing and walking packet by packet unpacked the walk's arguments once per packet
     (see the module doc)."""
     chosen_counts = choose_packets(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices)
+    if only is not None:
+        choices[only < 0] = -1
     # A strategy no packet chose costs no parallel pass (a launch and each worker's scratch).
     for strategy in (RANGED, PARTITION, MASKED):
         if chosen_counts[strategy] > 0:
