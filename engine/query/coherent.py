@@ -36,6 +36,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from engine.core.lanes8 import rows_contiguous, rows_of_three
 from engine.core.triangle import HUGE_INV
 from engine.packet.compact import new_array
 from engine.packet.frustum_builders import PINHOLE_OR_GENERAL, build_frusta
@@ -43,6 +44,7 @@ from engine.packet.plugin import deck_count
 from engine.packet.strategies import RANGED
 from engine.packet.walk import walk_packets
 from engine.query.frame import local_ray
+from engine.query.local8 import local_rays8
 from engine.query.walk import safe_inverse1
 
 #: Rays per packet. Rays come in the caller's order, often image rows, and a packet of 64 is a
@@ -199,9 +201,20 @@ def tiled_rows(n: int, width: int, allocate=new_array) -> np.ndarray:
 def packet_lanes(origins, directions, center, scale, rows, org, dirs, inv, tmin, tmax, ok):
     """Lane k takes input ray rows[k] (-1 or past the end: a dead padding lane) in the local
     frame: org, dirs, inv f32[L,3], tmin, tmax f32[L]; ok[ray] (bool[n]) False for a bad ray,
-    whose lane is dead too (tmin 1 > tmax 0)."""
+    whose lane is dead too (tmin 1 > tmax 0). Eight lanes a step where the rows allow it
+    (``engine.query.local8``: the same bits), the rest lane by lane."""
     n = rows.shape[0]
-    for k in prange(org.shape[0]):
+    vector = origins.shape[0] > 0 and rows_contiguous(origins) and rows_contiguous(directions) \
+        and origins.shape[1] == 3 and directions.shape[1] == 3 and rows_of_three(org) and rows_of_three(dirs) \
+        and rows_of_three(inv)
+    blocks = min(n, org.shape[0]) // 8 if vector else 0
+    for b in prange(blocks):
+        good = local_rays8(origins, directions, rows, 8 * b, center, scale, org, dirs, inv, tmin, tmax)
+        for j in range(8):
+            r = rows[8 * b + j]
+            if r >= 0:
+                ok[r] = (good >> j) & 1 == 1
+    for k in prange(8 * blocks, org.shape[0]):
         good = False
         if k < n and rows[k] >= 0:
             r = rows[k]
