@@ -50,3 +50,18 @@ def test_eight_lanes_at_a_time_give_the_lane_by_lane_bits():
     assert (dirs[dead] == (0, 0, 1)).all() and (org[dead] == 0).all()
     lane = 24 + 4  # ray 7, along -y
     assert inv[lane, 0] > 1e29 and inv[lane, 2] > 1e29 and inv[lane, 1] == -1.0
+
+
+def test_intrinsic_argument_checks_name_the_wrong_argument():
+    import pytest
+    from numba import types
+    from numba.core.errors import TypingError
+
+    from engine.core.lanes8 import check_arguments
+
+    array = types.Array(types.float64, 2, "C")
+    check_arguments(("origins", "start"), (array, types.int64), {"start": types.Integer})
+    with pytest.raises(TypingError, match="start must be an integer"):
+        check_arguments(("origins", "start"), (array, types.float64), {"start": types.Integer})
+    with pytest.raises(TypingError, match="origins must be an array"):
+        check_arguments(("origins", "start"), (types.int64, types.int64), {"start": types.Integer})

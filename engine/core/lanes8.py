@@ -25,6 +25,7 @@ import numpy as np
 from llvmlite import ir
 from numba import njit, types
 from numba.core import cgutils
+from numba.core.errors import TypingError
 
 WIDTH = 8
 F32 = ir.FloatType()
@@ -376,6 +377,19 @@ class Lanes:
         triple = b.shuffle_vector(mask.value, ir.Constant(mask.value.type, ir.Undefined),
                                   ir.Constant(ir.VectorType(I32, 3 * w), [k // 3 for k in range(3 * w)]))
         b.store(b.select(triple, block, b.load(pointer, align=4)), pointer, align=4)
+
+
+def check_arguments(names, values, scalars=None) -> None:
+    """An intrinsic's typing check: each value is a numba array, except those whose name
+    ``scalars`` maps to a numba type class (``types.Integer``, ``types.Float``,
+    ``types.Boolean``); a TypingError names the first that is not."""
+    scalars = scalars or {}
+    for name, value in zip(names, values):
+        expected = scalars.get(name, types.Array)
+        if not isinstance(value, expected):
+            what = {types.Array: "an array", types.Integer: "an integer", types.Float: "a float",
+                    types.Boolean: "a boolean"}.get(expected, expected.__name__)
+            raise TypingError(f"{name} must be {what}, got {value}")
 
 
 @njit(cache=True, inline="always")

@@ -26,7 +26,7 @@ from numba import types
 from numba.core.errors import TypingError
 from numba.extending import intrinsic
 
-from engine.core.lanes8 import F64, I64, Lanes
+from engine.core.lanes8 import F64, I64, Lanes, check_arguments
 from engine.core.triangle import HUGE_INV
 
 _NAMES = ("origins", "directions", "rows", "start", "center", "scale", "org", "dirs", "inv", "tmin", "tmax")
@@ -37,15 +37,7 @@ def local_rays8(typingctx, origins, directions, rows, start, center, scale, org,
     """Lanes start .. start+7 of ``packet_lanes`` (see the module doc); returns the good lanes'
     bit mask (i64)."""
     args_ = (origins, directions, rows, start, center, scale, org, dirs, inv, tmin, tmax)
-    for name, value in zip(_NAMES, args_):
-        if name == "start":
-            if not isinstance(value, types.Integer):
-                raise TypingError(f"start must be an integer, got {value}")
-        elif name == "scale":
-            if not isinstance(value, types.Float):
-                raise TypingError(f"scale must be a float, got {value}")
-        elif not isinstance(value, types.Array):
-            raise TypingError(f"{name} must be an array, got {value}")
+    check_arguments(_NAMES, args_, {"start": types.Integer, "scale": types.Float})
     for name, value, dtype in (("origins", origins, types.float64), ("directions", directions, types.float64),
                                ("rows", rows, types.int64), ("center", center, types.float64),
                                ("org", org, types.float32), ("dirs", dirs, types.float32),

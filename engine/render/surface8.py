@@ -25,10 +25,9 @@ triangles as ``shade_surface`` documents them.
 from __future__ import annotations
 
 from numba import types
-from numba.core.errors import TypingError
 from numba.extending import intrinsic
 
-from engine.core.lanes8 import I32, I64, Lanes
+from engine.core.lanes8 import I64, Lanes, check_arguments
 from engine.core.offset import MIN_MAGNITUDE, OFFSET_SCALE
 
 _NAMES = ("dirs", "pixel", "prim", "u", "v", "v0", "v1", "v2", "ng", "normals", "uvs", "tri_material",
@@ -44,15 +43,7 @@ def surface8(typingctx, dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, t
     args_ = (dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude, texture_layout,
              has_normals, has_uvs, hit, point, magnitude, view, normal, facing, entering, material, leave, texel_row,
              start)
-    for name, value in zip(_NAMES, args_):
-        if name in ("has_normals", "has_uvs"):
-            if not isinstance(value, types.Boolean):
-                raise TypingError(f"{name} must be a boolean, got {value}")
-        elif name == "start":
-            if not isinstance(value, types.Integer):
-                raise TypingError(f"start must be an integer, got {value}")
-        elif not isinstance(value, types.Array):
-            raise TypingError(f"{name} must be an array, got {value}")
+    check_arguments(_NAMES, args_, {"has_normals": types.Boolean, "has_uvs": types.Boolean, "start": types.Integer})
     sig = types.void(*args_)
 
     def codegen(context, builder, signature, args):
