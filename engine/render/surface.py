@@ -224,15 +224,13 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
         fill_surface_row(j, pixel, prim, dirs, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
                          (has_normals, has_uvs), texture_layout, hit, point, magnitude, view, normal, facing,
                          entering, material, leave, texel_row)
-    # Per packet (a pixel belongs to one packet's lanes): the background of the misses in lane
-    # order, then the texels of the hits.
+    # Per packet (a pixel belongs to one packet's lanes), lane by lane: the texel of a hit, or
+    # the background of a miss added to its pixel (in lane order, the only image writes here).
     for k in prange(offsets.shape[0] - 1):
-        lo, hi = offsets[k], offsets[k + 1]
-        for j in range(lo, hi):
-            if not hit[j] and pixel[j] >= 0:
-                for c in range(3):
-                    image[pixel[j], c] += weight[j, c] * background[c]
-        for j in range(lo, hi):
+        for j in range(offsets[k], offsets[k + 1]):
             if hit[j]:
                 texel_color_lane(j, texel_row[j], material[j], texels, palette, ambient_light, ambient, texel,
                                  color)
+            elif pixel[j] >= 0:
+                for c in range(3):
+                    image[pixel[j], c] += weight[j, c] * background[c]
