@@ -72,10 +72,11 @@ def test_eight_lane_children_are_the_lane_by_lane_ones(spawn, reflect):
     assert np.array_equal(image_8, image_1)
     got, want = dict(zip(CHILDREN_FIELDS, children_8)), dict(zip(CHILDREN_FIELDS, children_1))
     hit = lanes["hit"]
-    # The flags of every lane; each row where the lane-by-lane step writes it (``Children``: a
-    # row means something only where its flag is set).
+    # The flags of every lane; each row where a child reads it (``Children``: a row means
+    # something only where its flag is set, and the eight-lane step skips blocks that cast none).
     written = {"mirror": np.ones(R, bool), "total_internal": np.ones(R, bool), "refract": np.ones(R, bool),
-               "reflect_dir": hit, "reflect_weight": hit, "transmit_weight": want["total_internal"] | want["refract"],
+               "reflect_dir": want["mirror"] | want["total_internal"], "reflect_weight": want["mirror"],
+               "transmit_weight": want["total_internal"] | want["refract"],
                "refract_dir": want["refract"], "enter": want["refract"]}
     for name, rows in written.items():
         if spawn or name in ("mirror", "total_internal", "refract"):
