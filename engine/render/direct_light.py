@@ -16,8 +16,9 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from engine.core.lanes8 import bit_count8, rows_of_three
+from engine.core.lanes8 import bit_count8, rows_contiguous, rows_of_three
 from engine.packet.compact import inverse_component
+from engine.render.add_light8 import add_light8
 from engine.render.light8 import light_directions8
 
 _TINY = np.float32(1e-30)
@@ -120,8 +121,17 @@ def add_light(color, lane, occluded, ns, to_light, ndotl, view, mat, diffuse, sp
 def add_light_in_place(color, lit, occluded, ns, to_light, ndotl, view, mat, diffuse, specular, shininess, texel,
                        light_color):
     """``add_light`` for shadow rays walked in their own lanes (``light_directions``): lane i
-    adds the light when it is ``lit`` and its ray is not ``occluded`` (bool[R] each)."""
-    for i in prange(lit.shape[0]):
+    adds the light when it is ``lit`` and its ray is not ``occluded`` (bool[R] each). Eight
+    lanes a step where the rows allow it (``engine.render.add_light8``: the same bits), the rest
+    lane by lane."""
+    vector = rows_of_three(color) and rows_of_three(ns) and rows_of_three(to_light) and rows_of_three(view) \
+        and rows_of_three(texel) and rows_contiguous(diffuse) and rows_contiguous(specular) \
+        and diffuse.shape[1] == 3 and specular.shape[1] == 3
+    blocks = lit.shape[0] // 8 if vector else 0
+    for b in prange(blocks):
+        add_light8(color, lit, occluded, ns, to_light, ndotl, view, mat, diffuse, specular, shininess, texel,
+                   light_color, 8 * b)
+    for i in prange(8 * blocks, lit.shape[0]):
         if lit[i] and not occluded[i]:
             add_light_lane(i, color, ns, to_light, ndotl, view, mat, diffuse, specular, shininess, texel,
                            light_color)
