@@ -69,7 +69,6 @@ class AutoTraversal(PacketTraversal):
         if stats is not None:
             add_choices(stats, choices)
 
-
     def _walk_group(self, bvh, tris, rays, packets, frusta, any_hit, stats, from_end, chosen, visits):
         choices = np.empty(len(packets.offsets) - 1, np.int8)
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, True, any_hit.t, any_hit.prim, any_hit.u, any_hit.v,

@@ -272,8 +272,9 @@ class Lanes:
         return V(self, result)
 
     def gather_rows(self, array, row: V, n: int) -> list:
-        """The first ``n`` elements of row ``row`` (an i64 vector of valid row indices) of an
-        array whose rows (everything past the first axis) are contiguous, as n vectors: element
+        """The first ``n`` elements (n at most a row's length) of row ``row`` (an i64 vector of
+        valid row indices) of an array whose rows (everything past the first axis) are
+        contiguous, as n vectors: element
         j of every lane's row in vector j. One n-element load per lane, then shuffles: a
         ``gather`` per element extracts the lane's index and inserts one scalar each time, three
         instructions an element (the surface pass spent three quarters of its code on them)."""

@@ -174,6 +174,7 @@ def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs
     chosen_counts = choose_packets(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices)
     if only is not None:
         choices[only < 0] = -1
+        chosen_counts = np.bincount(choices[choices >= 0], minlength=N_STRATEGIES)
     # A strategy no packet chose costs no parallel pass (a launch and each worker's scratch).
     for strategy in (RANGED, PARTITION, MASKED):
         if chosen_counts[strategy] > 0:

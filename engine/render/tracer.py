@@ -78,8 +78,8 @@ class Tracer:
 
         Occlusion through a traversal that ``orders_any_hit`` (the packet walks) also takes
         ``from_end`` (walk the far child first: the rays' ends met first) and ``trial`` (a dict
-        that receives the seconds and rays of a walk from both ends, packet group by group: see
-        ``engine.render.shadow_order``). Other traversals ignore both and leave ``trial``
+        that receives the node visits and live rays of a walk from both ends, packet group by
+        group: see ``engine.render.shadow_order``). Other traversals ignore both and leave ``trial``
         empty."""
         traversal = self.traversal[kind]
         stats = tally.stats_for(kind) if tally is not None else None
