@@ -2,7 +2,8 @@
 frame of a tiny scene against the CPU renderer, and every ray it casts against Embree.
 
 Prints one JSON object; ``tests/test_gpu_frame.py`` runs it and checks the numbers. Usage:
-``python -m tests.gpu_sim_frame_check WIDTH HEIGHT TRAVERSAL [MAX_DEPTH [textured]]``.
+``python -m tests.gpu_sim_frame_check WIDTH HEIGHT TRAVERSAL [MAX_DEPTH [textured | ORDER]]``, ORDER
+a ``[render] shadow_order`` ("surface", "light", "auto").
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ def _textured(scene):
     return replace(scene, triangles=tris._replace(uvs=uvs), materials=materials)
 
 
-def main(width: int, height: int, traversal: str, depth: int, textured: bool = False) -> dict:
+def main(width: int, height: int, traversal: str, depth: int, textured: bool = False, shadow_order: str = "auto") -> dict:
     prepare()
     from engine.gpu.frame import GpuWhittedRenderer
     from engine.render.config import Config, RenderConfig, PerKind
@@ -43,7 +44,8 @@ def main(width: int, height: int, traversal: str, depth: int, textured: bool = F
     cpu_config = Config(render=render, traversal=PerKind("single", "single", "single", "single"),
                         frustum=PerKind("none", "none", "none", "none"))
     cpu = WhittedRenderer(scene, cpu_config).render()
-    gpu_config = Config(render=RenderConfig(width=width, height=height, max_depth=depth, packet=4, device="cuda"),
+    gpu_config = Config(render=RenderConfig(width=width, height=height, max_depth=depth, packet=4, device="cuda",
+                                            shadow_order=shadow_order),
                         traversal=PerKind(*[traversal] * 4), frustum=PerKind("none", "none", "none", "none"))
     gpu_renderer = GpuWhittedRenderer(scene, gpu_config)
     observer = AuditObserver(scene, gpu_renderer.bvh, [make_oracle("embree", scene.triangles)])
@@ -56,11 +58,13 @@ def main(width: int, height: int, traversal: str, depth: int, textured: bool = F
             "pixels_over_1_255": int((difference.max(axis=2) > 1 / 255).sum()),
             "image_nonzero": int((gpu.image.max(axis=2) > 0).sum()), "image_mean": float(gpu.image.mean()),
             "audit_checked": report["rays_checked"], "audit_mismatches": report["mismatch_count"],
-            "audit_by_kind": report["by_kind"], "traversal": gpu.extra["device"]["traversal"]}
+            "audit_by_kind": report["by_kind"], "traversal": gpu.extra["device"]["traversal"],
+            "shadow_far_first": getattr(gpu_renderer.traversal["shadow"], "far_first", None)}
 
 
 if __name__ == "__main__":
     args = sys.argv[1:]
-    result = main(int(args[0]), int(args[1]), args[2], int(args[3]) if len(args) > 3 else 3,
-                  len(args) > 4 and args[4] == "textured")
+    extra = args[4] if len(args) > 4 else ""
+    result = main(int(args[0]), int(args[1]), args[2], int(args[3]) if len(args) > 3 else 3, extra == "textured",
+                  extra if extra in ("surface", "light", "auto") else "auto")
     print(json.dumps(result))

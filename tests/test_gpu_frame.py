@@ -43,6 +43,19 @@ def test_every_gpu_ray_agrees_with_embree(frame_check):
     assert frame_check["audit_checked"] == total
     assert frame_check["audit_mismatches"] == 0
     assert frame_check["traversal"] == dict.fromkeys(("primary", "shadow", "reflection", "refraction"), "bvh")
+    assert frame_check["shadow_far_first"] is True  # "auto": shadow rays walked from the light's end
+
+
+def test_shadow_rays_walked_from_the_surface_end_give_the_same_frame(frame_check):
+    """``shadow_order = "surface"``: the device walk takes the near child first; the same rays,
+    image and audit as the far-first default."""
+    run = simulated("-m", "tests.gpu_sim_frame_check", "13", "11", "bvh", "3", "surface")
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert result["shadow_far_first"] is False
+    assert result["rays_gpu"] == frame_check["rays_gpu"]
+    assert result["max_abs_difference"] <= 1e-5 and result["pixels_over_1_255"] == 0
+    assert result["audit_mismatches"] == 0 and result["audit_checked"] == frame_check["audit_checked"]
 
 
 def test_gpu_benchmark_runs_on_the_simulator(tmp_path):

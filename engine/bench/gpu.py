@@ -166,7 +166,8 @@ def _mitsuba(scene):
 
 def _scene_rays(scene_table, scene, bvh, variants, matrix, cuda, tris_device, bvh_device) -> list:
     """Rows of the ray-set table of one scene."""
-    from engine.gpu.traversals import make_device_traversal
+    from engine.gpu.traversals import make_device_traversal, walks_far_first
+    from engine.render.config import RenderConfig
     from validation.audit import make_oracle
 
     rows = []
@@ -182,7 +183,9 @@ def _scene_rays(scene_table, scene, bvh, variants, matrix, cuda, tris_device, bv
             for variant in variants:
                 if not variant.get("rays", True):
                     continue
-                traversal = make_device_traversal(variant["traversal"], bvh_device, tris_device, scene.triangles)
+                # Shadow ray sets are walked as a frame walks them by default ([render] shadow_order).
+                traversal = make_device_traversal(variant["traversal"], bvh_device, tris_device, scene.triangles,
+                                                  far_first=walks_far_first(RenderConfig().shadow_order))
                 timing, answer = time_ray_set(traversal, query, rays, matrix.get("repeat_rays", 10), cuda)
                 closest = time_ray_set(traversal, "closest", rays, 1, cuda)[1] if query == "occluded" else None
                 row[variant["label"]] = {**timing, "grays_per_s": rays.org.shape[0] / timing["seconds"] / 1e9,

@@ -46,9 +46,11 @@ def _slab(ox, oy, oz, ix, iy, iz, t_lo, t_hi, box, row, at):
 
 
 @cuda.jit(device=True)
-def _walk(org, dirs, tmin, tmax, r, any_hit, child_boxes, links, prim, v0, v1, v2, root):
+def _walk(org, dirs, tmin, tmax, r, any_hit, far_first, child_boxes, links, prim, v0, v1, v2, root):
     """(t, prim, u, v) of ray r's closest hit (any_hit: some hit), (inf, -1, 0, 0) if none.
-    v0, v1, v2: the corners in leaf order (row i holds triangle prim[i])."""
+    v0, v1, v2: the corners in leaf order (row i holds triangle prim[i]). far_first: the child
+    the ray enters later is visited first (only an any-hit walk may: the answer is the same, only
+    how soon a blocked ray stops changes)."""
     best_t = F32_INF
     best_prim = -1
     best_u = np.float32(0.0)
@@ -86,7 +88,7 @@ def _walk(org, dirs, tmin, tmax, r, any_hit, child_boxes, links, prim, v0, v1, v
         t_right = _slab(ox, oy, oz, ix, iy, iz, t_lo, t_hi, child_boxes, node, 6)
         near, far = first, first + 1
         t_near, t_far = t_left, t_right
-        if t_right < t_left:
+        if (t_right < t_left) != far_first:
             near, far = first + 1, first
             t_near, t_far = t_right, t_left
         if t_far < F32_INF:
@@ -106,7 +108,7 @@ def closest_kernel(org, dirs, tmin, tmax, count, child_boxes, links, prim, leaf_
     n = min(count[0], org.shape[0])
     v0, v1, v2 = leaf_tris[0], leaf_tris[1], leaf_tris[2]
     for r in range(cuda.grid(1), n, cuda.gridsize(1)):
-        t, p, u, v = _walk(org, dirs, tmin, tmax, r, False, child_boxes, links, prim, v0, v1, v2, root)
+        t, p, u, v = _walk(org, dirs, tmin, tmax, r, False, False, child_boxes, links, prim, v0, v1, v2, root)
         t_out[r] = t
         prim_out[r] = p
         u_out[r] = u
@@ -114,12 +116,13 @@ def closest_kernel(org, dirs, tmin, tmax, count, child_boxes, links, prim, leaf_
 
 
 @cuda.jit
-def occluded_kernel(org, dirs, tmin, tmax, count, child_boxes, links, prim, leaf_tris, root, occluded):
-    """occluded[r] = 1 when ray r < count[0] hits anything in [tmin, tmax], else 0 (u8[C])."""
+def occluded_kernel(org, dirs, tmin, tmax, count, child_boxes, links, prim, leaf_tris, root, far_first, occluded):
+    """occluded[r] = 1 when ray r < count[0] hits anything in [tmin, tmax], else 0 (u8[C]);
+    far_first: walk the child the ray enters later first."""
     n = min(count[0], org.shape[0])
     v0, v1, v2 = leaf_tris[0], leaf_tris[1], leaf_tris[2]
     for r in range(cuda.grid(1), n, cuda.gridsize(1)):
-        t, p, u, v = _walk(org, dirs, tmin, tmax, r, True, child_boxes, links, prim, v0, v1, v2, root)
+        t, p, u, v = _walk(org, dirs, tmin, tmax, r, True, far_first, child_boxes, links, prim, v0, v1, v2, root)
         occluded[r] = 1 if p >= 0 else 0
 
 
@@ -133,13 +136,16 @@ class DeviceBVHTraversal:
 
     ``closest_queue`` / ``occluded_queue`` take a queue's length as a device counter (the frame
     never waits for the GPU); ``closest`` / ``occluded`` take a host count (the API, the bench).
+    far_first: occlusion walks visit the child a ray enters later first -- for shadow rays cast
+    from a surface, the end at the light (``engine.gpu.traversals.walks_far_first``).
     """
 
     name = "bvh"
     uses_bvh = True
 
-    def __init__(self, bvh, tris):
+    def __init__(self, bvh, tris, far_first: bool = False):
         self.bvh, self.tris = bvh, tris
+        self.far_first = bool(far_first)
 
     def closest_queue(self, org, dirs, tmin, tmax, pixel, count, bound, width, height, t_out, prim_out, u_out,
                       v_out) -> None:
@@ -153,16 +159,20 @@ class DeviceBVHTraversal:
         """out[r] = 1 where ray r < count[0] is blocked within [tmin, tmax], else 0 (u8)."""
         b = self.bvh
         occluded_kernel[launch_grid(bound), BLOCK](org, dirs, tmin, tmax, count, b.child_boxes, b.links, b.prim,
-                                                   b.leaf_tris, b.root_row, out)
+                                                   b.leaf_tris, b.root_row, self.far_first, out)
 
     def queue_launch(self, query: str, org, dirs, tmin, tmax, pixel, count, bound, width, height, *out, light=None):
         """A prepared launch (``engine.gpu.launch``) of ``closest_queue`` (query "closest", out =
         t, prim, u, v) or ``occluded_queue`` (query "occluded", out = flags) on fixed arrays.
         light: unused (the ray-space hierarchy reverses shadow rays to leave it)."""
         b = self.bvh
-        kernel = closest_kernel if query == "closest" else occluded_kernel
-        return PreparedLaunch(kernel, launch_grid(bound), BLOCK, (org, dirs, tmin, tmax, count, b.child_boxes, b.links,
-                                                                  b.prim, b.leaf_tris, b.root_row, *out))
+        if query == "closest":
+            return PreparedLaunch(closest_kernel, launch_grid(bound), BLOCK, (org, dirs, tmin, tmax, count,
+                                                                              b.child_boxes, b.links, b.prim,
+                                                                              b.leaf_tris, b.root_row, *out))
+        return PreparedLaunch(occluded_kernel, launch_grid(bound), BLOCK, (org, dirs, tmin, tmax, count, b.child_boxes,
+                                                                           b.links, b.prim, b.leaf_tris, b.root_row,
+                                                                           self.far_first, *out))
 
     def closest(self, org, dirs, tmin, tmax, pixel, n, width, height, t_out, prim_out, u_out, v_out) -> None:
         """Closest hits of the first n rays (host int) into t_out, prim_out (-1: miss), u_out, v_out."""
