@@ -166,13 +166,9 @@ class DeviceBVHTraversal:
         t, prim, u, v) or ``occluded_queue`` (query "occluded", out = flags) on fixed arrays.
         light: unused (the ray-space hierarchy reverses shadow rays to leave it)."""
         b = self.bvh
-        if query == "closest":
-            return PreparedLaunch(closest_kernel, launch_grid(bound), BLOCK, (org, dirs, tmin, tmax, count,
-                                                                              b.child_boxes, b.links, b.prim,
-                                                                              b.leaf_tris, b.root_row, *out))
-        return PreparedLaunch(occluded_kernel, launch_grid(bound), BLOCK, (org, dirs, tmin, tmax, count, b.child_boxes,
-                                                                           b.links, b.prim, b.leaf_tris, b.root_row,
-                                                                           self.far_first, *out))
+        kernel, order = (closest_kernel, ()) if query == "closest" else (occluded_kernel, (self.far_first,))
+        return PreparedLaunch(kernel, launch_grid(bound), BLOCK, (org, dirs, tmin, tmax, count, b.child_boxes, b.links,
+                                                                  b.prim, b.leaf_tris, b.root_row, *order, *out))
 
     def closest(self, org, dirs, tmin, tmax, pixel, n, width, height, t_out, prim_out, u_out, v_out) -> None:
         """Closest hits of the first n rays (host int) into t_out, prim_out (-1: miss), u_out, v_out."""

@@ -8,7 +8,8 @@
                  leaf_size = 4  bins = 16
                  max_reflection_depth = 64   # mirror reflections only off hits of depth < this
                  shadow_order = "auto"  # walk shadow rays from the "surface" end, the "light" end, or
-                                        # "auto": per light, as the blockers found so far say
+                                        # "auto": per light, the end its trials visited fewer nodes
+                                        # from (the GPU, which has no trials: the light end)
     [traversal]  primary = "ranged"  shadow = "partition"  reflection = "partition"  refraction = "partition"
     [frustum]    primary = "pinhole" shadow = "pointlight" reflection = "general"    refraction = "general"
     [materials]  override = "none"       # or "reflective" / "refractive"
