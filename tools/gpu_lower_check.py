@@ -100,7 +100,9 @@ def record(out: str) -> int:
     simulated.FakeCUDAKernel.__call__ = call
     _workloads()
     rows = [{"module": m, "kernel": k, "args": json.loads(a), "launches": n} for (m, k, a), n in sorted(launches.items())]
-    Path(out).write_text(json.dumps(rows, indent=1))
+    from engine.core.atomic import write_json
+
+    write_json(out, rows, "kernel launches")   # through a temporary file and a rename
     return 0
 
 
@@ -161,7 +163,9 @@ def lower(source: str, report: str | None) -> int:
     print(f"gpu_lower_check: {len(results)} launch signatures of {kernels} kernels lowered for sm_{CC[0]}{CC[1]}, "
           f"{failed} failed")
     if report:
-        Path(report).write_text(json.dumps(results, indent=1))
+        from engine.core.atomic import write_json
+
+        write_json(report, results, "lowering report")
     return 1 if failed else 0
 
 
@@ -171,6 +175,14 @@ def main(argv=None) -> int:
     parser.add_argument("--lower", metavar="IN", help="step 2 only")
     parser.add_argument("--json", metavar="REPORT", help="write the per-kernel report here")
     args = parser.parse_args(argv)
+    try:
+        return _run(args)
+    except (OSError, ValueError) as error:  # an unwritable --json path (PacketrtError), a full disk: one line
+        print(f"gpu_lower_check: {error}", file=sys.stderr)
+        return 2
+
+
+def _run(args) -> int:
     if args.record:
         return record(args.record)
     if args.lower:
