@@ -8,6 +8,7 @@ reference (``tests/numpy_whitted.py``) on scenes with shadows, textures, mirrors
 import numpy as np
 import pytest
 
+from engine.core.scratch import Scratch
 from engine.core.types import Packets, RayBatch, copied_batch
 from engine.packet.compact import compact_into_packets
 from engine.packet.layout import make_batch
@@ -90,6 +91,55 @@ def test_no_flagged_lane_gives_an_empty_batch():
     out = compact_into_packets(4, 16, 16, (packets.offsets,), (rays.pixel,), (none,), (rays.org,), (rays.dir,),
                                (rays.tmax,), (rays.weight,))
     assert out[0].tolist() == [0] and out[1].shape == (0, 3)
+
+
+def _columns(rng, width, height, n, counts, share):
+    """Compaction sources: one parent batch per entry of ``counts`` (rays), each lane flagged
+    with probability ``share``."""
+    sources = []
+    for count in counts:
+        rays, packets = _parent(rng, width, height, n, count)
+        flag = (rng.random(rays.pixel.shape[0]) < share) & (rays.pixel >= 0)
+        sources.append((packets.offsets, rays.pixel, flag, rays.org, rays.dir, rays.tmax, rays.weight))
+    return [tuple(s[i] for s in sources) for i in range(7)]
+
+
+@pytest.mark.parametrize("n", [2, 16])
+def test_compaction_into_reused_buffers_equals_compaction_into_fresh_arrays(n):
+    """The renderer's Scratch hands back the last call's buffers (the plan's per-tile arrays
+    too): a dense compaction, then sparse ones of other source counts, then a dense one again
+    must each equal the same compaction into new arrays."""
+    rng = np.random.default_rng(7 + n)
+    scratch = Scratch()
+    width, height = 61, 43
+    for counts, share in (((2500, 1800), 0.9), ((40,), 0.5), ((30, 25, 60, 12), 0.3), ((9,), 1.0),
+                          ((2600, 2000), 0.8)):
+        columns = _columns(rng, width, height, n, counts, share)
+        fresh = compact_into_packets(n, width, height, *columns)
+        reused = compact_into_packets(n, width, height, *columns, allocate=scratch.allocator("kind"))
+        live = fresh[6] >= 0
+        assert np.array_equal(fresh[0], reused[0])
+        for a, b in zip(fresh[1:], reused[1:]):
+            assert np.array_equal(a[live], b[live])
+
+
+def test_parent_packets_out_of_tile_order_are_refused():
+    """Planning merges the sources' packets by tile, which needs them in tile order (as
+    ``make_batch`` and the compaction make them); a batch whose packets are not is an error,
+    not a silently wrong merge."""
+    rng = np.random.default_rng(11)
+    rays, packets = _parent(rng, 32, 32, 4, 600)
+    offsets = packets.offsets
+    assert offsets.shape[0] > 3
+    # The first two packets swapped: their lanes moved, the offsets rebuilt.
+    first, second = np.arange(offsets[0], offsets[1]), np.arange(offsets[1], offsets[2])
+    order = np.r_[second, first, np.arange(offsets[2], offsets[-1])]
+    swapped = offsets.copy()
+    swapped[1] = offsets[0] + len(second)
+    flag = rays.pixel[order] >= 0
+    with pytest.raises(ValueError, match="tile order"):
+        compact_into_packets(4, 32, 32, (swapped,), (rays.pixel[order],), (flag,), (rays.org[order],),
+                             (rays.dir[order],), (rays.tmax[order],), (rays.weight[order],))
 
 
 def _config(traversal, **render):
