@@ -1,5 +1,9 @@
-"""The per-ray BVH walk every mesh query shares (one ray, a stack, nearest child first, over
-the 8-wide tree of ``engine.query.wide``).
+"""The per-ray BVH walk every mesh query shares (one ray, a stack, over the 8-wide tree of
+``engine.query.wide``): nearest child first for ``CLOSEST``; ``ANY`` and ``COLLECT`` take a
+node's children in slot order, unsorted: no order changes their answers (``COLLECT``'s hits
+are sorted afterwards), and unsorted measured faster: incoherent any-hit queries on the kitchen
+26.1 -> 21.7 ms (200,000 rays, one thread, medians of 15 in alternating processes), all hits
+25.1 -> 23.4 ms (50,000 rays); the bunny within its noise.
 
 Modes (integer constants, so one compiled helper serves every kernel and reaches the disk cache):
 
@@ -113,15 +117,15 @@ def walk(box, child, size, lane_tri, blocks, ox, oy, oz, dx, dy, dz, t_lo, t_hi,
                     leaf = size[node, s]
                     node = child[node, s]
                     continue
-                # Several: push them all, keeping stack[base:top] sorted far (bottom) to near
-                # (top), then take the nearest.
+                # Several: push them all (CLOSEST: keeping stack[base:top] sorted far (bottom)
+                # to near (top)), then take the top one.
                 base = top
                 while hit != 0:
                     s = trailing_zeros(hit)
                     hit &= hit - 1
                     tn = entry[s]
                     j = top
-                    while j > base and stack_t[j - 1] < tn:
+                    while mode == CLOSEST and j > base and stack_t[j - 1] < tn:
                         stack[j, 0] = stack[j - 1, 0]
                         stack[j, 1] = stack[j - 1, 1]
                         stack_t[j] = stack_t[j - 1]
