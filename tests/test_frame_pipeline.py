@@ -7,6 +7,7 @@ reference (``tests/numpy_whitted.py``) on scenes with shadows, textures, mirrors
 """
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from engine.core.scratch import Scratch
 from engine.core.types import Packets, RayBatch, copied_batch
@@ -55,17 +56,15 @@ def _parent(rng, width, height, n, count):
                       rng.random((count, 3)), width, height, n)
 
 
-@pytest.mark.parametrize("n_sources", [1, 2, 4])
-@pytest.mark.parametrize("n", [2, 8, 16])
-def test_children_stay_in_their_tile_in_the_order_of_a_stable_sort(n_sources, n):
-    """compact_into_packets == make_batch of the flagged lanes of the sources, concatenated."""
-    rng = np.random.default_rng(n_sources * 100 + n)
-    width, height = 45, 38
+def assert_compaction_is_a_stable_sort(rng, width, height, n, counts, share):
+    """compact_into_packets == make_batch of the flagged lanes of the sources (one parent batch
+    of counts[s] rays each, lanes flagged with probability ``share``), concatenated, and every
+    child names the parent lane it came from."""
     sources = []
-    for s in range(n_sources):
-        rays, packets = _parent(rng, width, height, n, 900 + 300 * s)
+    for count in counts:
+        rays, packets = _parent(rng, width, height, n, count)
         count = rays.pixel.shape[0]
-        flag = (rng.random(count) < 0.6) & (rays.pixel >= 0)
+        flag = (rng.random(count) < share) & (rays.pixel >= 0)
         sources.append((packets.offsets, rays.pixel, flag, rng.normal(size=(count, 3)).astype(np.float32),
                         rays.dir, (rng.random(count) * 9).astype(np.float32), rays.weight))
     columns = [tuple(s[i] for s in sources) for i in range(7)]
@@ -75,13 +74,30 @@ def test_children_stay_in_their_tile_in_the_order_of_a_stable_sort(n_sources, n)
                       width, height, n)
     got = (RayBatch(org, d, inv, tmin, tmax, pixel, weight, "reflection"), Packets(offsets, n, width, height))
     assert_same_layout(got, want)
-    # Every child names the parent lane it came from.
     live = pixel >= 0
     for s, (_, src_pixel, flag, src_org, *_rest) in enumerate(sources):
         mine = live & (source == s)
         assert flag[lane[mine]].all() and mine.sum() == flag.sum()
         assert np.array_equal(org[mine], src_org[lane[mine]]) and np.array_equal(pixel[mine], src_pixel[lane[mine]])
     assert (lane[~live] == -1).all() and (source[~live] == -1).all()
+
+
+@pytest.mark.parametrize("n_sources", [1, 2, 4])
+@pytest.mark.parametrize("n", [2, 8, 16])
+def test_children_stay_in_their_tile_in_the_order_of_a_stable_sort(n_sources, n):
+    rng = np.random.default_rng(n_sources * 100 + n)
+    assert_compaction_is_a_stable_sort(rng, 45, 38, n, [900 + 300 * s for s in range(n_sources)], 0.6)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), width=st.integers(1, 300), height=st.integers(1, 120),
+       n=st.sampled_from([2, 4, 8, 16, 32]), counts=st.lists(st.integers(0, 1500), min_size=1, max_size=4),
+       share=st.sampled_from([0.0, 0.05, 0.5, 1.0]))
+def test_compaction_of_any_image_packet_size_and_sparsity_is_a_stable_sort(seed, width, height, n, counts, share):
+    """Planning merges the sources' packets in parallel over ranges of the image's tiles (each
+    range finds its first packet per source by binary search): images from one tile to thousands,
+    sources without packets, nearly empty ones and full ones, every packet size."""
+    assert_compaction_is_a_stable_sort(np.random.default_rng(seed), width, height, n, counts, share)
 
 
 def test_no_flagged_lane_gives_an_empty_batch():
