@@ -281,8 +281,13 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
     recorder = BatchRecorder()
     renderer = WhittedRenderer(scene, config, observer=recorder)
     warm = renderer.render()  # JIT compilation happens here, untimed
+    # Only the measurements are kept: an image kept alive per frame (12 MiB at 1024x1024) made
+    # every timed frame's image fresh memory, whose page faults landed in the shading passes
+    # (15-25 ms a kitchen frame) in a process's first cell but not in later ones, whose images
+    # reused memory the earlier cells had freed.
+    warm.image = None
     renderer.observer = None
-    frames = [renderer.render() for _ in range(repeat)]
+    frames = [renderer.render().seconds for _ in range(repeat)]
 
     # Our share of the CPU while replaying: near 1 on an idle machine (parallel kernels keep
     # every thread busy), well below when other work competes for the cores.
@@ -345,7 +350,7 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
         total = sum(open3d_summary[k]["median"] for k in RAY_KINDS)
         open3d_fps = 1.0 / total if total > 0 else None
     _report_mismatches(cell, checks, kept={"open3d": open3d_mrays} if open3d_mrays else None)
-    frame = summarize([f.seconds["total"] for f in frames])
+    frame = summarize([f["total"] for f in frames])
     trace_total = sum(replay_median.values())
     record = {
         "schema": results_io.SCHEMA, "id": cell.key, "matrix": matrix_name, "tags": list(cell.tags),
@@ -353,8 +358,8 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
         "scene": {"name": scene.name, "triangles": scene.n_triangles, "lights": len(scene.lights)},
         "repeat": repeat, "threads": renderer.threads,
         "seconds": {"bvh": warm.seconds["bvh"], "plugin_build": warm.seconds["plugin_build"], "frame": frame,
-                    "shade": summarize([f.seconds["shade"] for f in frames]),
-                    "trace": {k: summarize([f.seconds["trace"][k] for f in frames]) for k in RAY_KINDS},
+                    "shade": summarize([f["shade"] for f in frames]),
+                    "trace": {k: summarize([f["trace"][k] for f in frames]) for k in RAY_KINDS},
                     "replay": replay_summary, "embree": embree_summary, "open3d": open3d_summary,
                     "floor": None if floors is None else {k: summarize([f[k] for f in floors]) for k in RAY_KINDS}},
         "rays": rays, "batches": batches, "packets": packets, "mrays_per_s": mrays, "embree_mrays_per_s": embree_mrays,
