@@ -245,3 +245,15 @@ def test_the_gpu_image_checks_recorder_keeps_only_cast_rays(monkeypatch):
     result = renderer.render()
     recorded = sum(len(record[0]) for record in recorder.batches["shadow"])
     assert recorded == sum(live) == result.rays["shadow"] > 0
+
+
+def test_shadow_rays_in_place_or_compacted_give_the_same_image(monkeypatch):
+    """A light's shadow rays are walked in their parent batch's lanes when enough of them are
+    lit (``IN_PLACE_SHADOWS``), else compacted into packets of their own: either way the image
+    is the same, bit for bit."""
+    config = _config("partition", width=61, height=47, packet=8)
+    images = []
+    for fraction in (0.0, 1.01):  # every batch in place; every batch compacted
+        monkeypatch.setattr(whitted, "IN_PLACE_SHADOWS", fraction)
+        images.append(WhittedRenderer(load_named("whitted"), config).render().image)
+    assert np.array_equal(images[0], images[1])
