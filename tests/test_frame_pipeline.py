@@ -257,3 +257,15 @@ def test_shadow_rays_in_place_or_compacted_give_the_same_image(monkeypatch):
         monkeypatch.setattr(whitted, "IN_PLACE_SHADOWS", fraction)
         images.append(WhittedRenderer(load_named("whitted"), config).render().image)
     assert np.array_equal(images[0], images[1])
+
+
+@pytest.mark.parametrize("name, can_spawn", [("cornell-box", False), ("erw6", False), ("whitted", True)])
+def test_scenes_that_cannot_cast_children_skip_the_spawn_step_with_the_same_image(name, can_spawn):
+    """Without a reflecting or transmitting material no hit casts a child ray, so the renderer
+    skips the spawn step (``MaterialTable.can_spawn``); the image is the one the full step gives."""
+    config = _config("partition", width=48, height=40, packet=8)
+    renderer = WhittedRenderer(load_named(name), config)
+    assert renderer.materials.can_spawn is can_spawn
+    skipped = renderer.render().image
+    renderer.materials.can_spawn = True
+    assert np.array_equal(renderer.render().image, skipped)

@@ -34,7 +34,8 @@ class MaterialTable:
     textures stacked row after row is palette[texels[j, c]] (texels u8/u16/u32[X,3], palette
     f32[P], see ``texture_palette``); texture_layout i64[3,M] holds, per material, where its
     texture begins in texels (row 0, -1: untextured), its width (row 1) and height (row 2).
-    ``texture`` keeps the f32[H,W,3] arrays (or None) as the scene gave them.
+    ``texture`` keeps the f32[H,W,3] arrays (or None) as the scene gave them. ``can_spawn``:
+    some material reflects or transmits, so a hit may cast a child ray.
     """
 
     def __init__(self, materials):
@@ -45,6 +46,9 @@ class MaterialTable:
         self.shininess = np.array([m.shininess for m in materials], np.float32)
         self.transmission = np.array([m.transmission for m in materials], np.float32)
         self.ior = np.array([m.ior if m.ior > 0 else 1.0 for m in materials], np.float32)
+        # Whether any hit can cast a child ray: a mirror child needs a positive reflectance and
+        # a refracted or totally reflected one a positive transmission (``engine.render.spawn``).
+        self.can_spawn = bool((self.reflectance > 0).any() or (self.transmission > 0).any())
         self.texture = [m.texture for m in materials]
         self.texture_layout = np.zeros((3, len(materials)), np.int64)
         self.texture_layout[0] = -1

@@ -198,7 +198,7 @@ class WhittedRenderer:
         batches = [camera_batch(self.scene, width, height, cfg.packet, self.scratch.allocator(("primary", 0)))]
         shade_seconds = 0.0
         for depth in range(cfg.max_depth + 1):
-            spawn = depth < cfg.max_depth
+            spawn = depth < cfg.max_depth and self.materials.can_spawn
             parents = []
             for rays, packets in batches:
                 slot = (rays.kind, depth % 2)  # a generation's arrays never overwrite its parents'
