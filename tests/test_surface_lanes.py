@@ -119,6 +119,10 @@ def test_triangle_rows_apart_or_scattered_give_the_same_surface(triangle_rows):
         assert np.array_equal(surface_2[name][rows].view(np.uint8), surface_1[name][rows].view(np.uint8)), name
 
 
+#: Catalogue scenes read from the shared scene folder (the others are procedural).
+SCENES_FROM_FILES = {"cornell-box", "bunny-floor"}
+
+
 @pytest.mark.parametrize("name", ["whitted", "cornell-box", "erw6", "bunny-floor"])
 def test_scenes_without_corner_normals_or_uvs_take_the_eight_lane_step(name):
     """The default scene has no uvs, the Cornell box, ERW6 and the bunny floor neither corner
@@ -126,8 +130,11 @@ def test_scenes_without_corner_normals_or_uvs_take_the_eight_lane_step(name):
     read, and must not send the surface pass lane by lane and serial (as they did until session
     20: ERW6's pass took 17.8 ms a 1024x1024 frame instead of 5.8). Rows that are not 12
     contiguous bytes still do."""
+    from conftest import needs_shared_scenes
     from scenes.catalog import load_named
 
+    if name in SCENES_FROM_FILES:
+        needs_shared_scenes()
     tris = load_named(name).triangles
     assert tris.normals.shape[0] == 0 or tris.uvs.shape[0] == 0
     lanes = new_surface(64)
