@@ -272,3 +272,31 @@ def test_scenes_that_cannot_cast_children_skip_the_spawn_step_with_the_same_imag
     skipped = renderer.render().image
     renderer.materials.can_spawn = True
     assert np.array_equal(renderer.render().image, skipped)
+
+
+def test_the_warm_up_compiles_both_shadow_paths_and_leaves_the_first_frame_to_decide(monkeypatch):
+    """``warm_up`` is what ``packetrt render`` reports as compile time apart from the frames: it
+    must reach the in-place and the compacted shadow paths (a real frame's batches may take
+    either), run a shadow-order trial, and then forget what that trial learnt."""
+    calls = {"in place": 0, "compacted": 0}
+    real_in_place, real_compacted = whitted.add_light_in_place, whitted.add_light
+
+    def in_place(*args):
+        calls["in place"] += 1
+        return real_in_place(*args)
+
+    def compacted(*args):
+        calls["compacted"] += 1
+        return real_compacted(*args)
+
+    monkeypatch.setattr(whitted, "add_light_in_place", in_place)
+    monkeypatch.setattr(whitted, "add_light", compacted)
+    renderer = WhittedRenderer(load_named("whitted"), _config("partition", width=200, height=150, packet=16))
+    trials = []
+    real_add_trial = renderer.shadow_order.add_trial
+    renderer.shadow_order.add_trial = lambda *args: (trials.append(args), real_add_trial(*args))
+    renderer.warm_up()
+    assert calls["in place"] > 0 and calls["compacted"] > 0, calls
+    assert any(trial for _, _, trial in trials)  # some batch had the packets of a trial
+    assert renderer.in_place_shadows == whitted.IN_PLACE_SHADOWS
+    assert renderer.shadow_order.trials == {} and renderer.shadow_order.wants_trial(0, "primary")

@@ -119,6 +119,7 @@ class WhittedRenderer:
         self.traversal, self.frustum = configured(config)
         # Which end each light's shadow rays are walked from, learnt from frame to frame.
         self.shadow_order = ShadowOrder(config.render.shadow_order)
+        self.in_place_shadows = IN_PLACE_SHADOWS  # the warm-up tries both sides of it
         # Per-lane arrays reused from frame to frame (fresh pages cost more than the shading).
         self.scratch = Scratch()
         self.scene = None
@@ -175,17 +176,25 @@ class WhittedRenderer:
 
     # -- the loop ------------------------------------------------------------------------
     def warm_up(self) -> float:
-        """Compile (or load from numba's disk cache) the kernels this config uses, by one small
-        render (WARM_UP_SIZE square, at least two packets a side) that no observer sees; returns
-        its seconds, which ``packetrt render`` reports as ``seconds.compile``. A kernel only
-        reached by rays the small image does not cast still compiles in the first frame."""
-        side = max(WARM_UP_SIZE, 2 * self.config.render.packet)
+        """Compile (or load from numba's disk cache) the kernels this config uses, by small
+        renders (WARM_UP_SIZE square, at least four packets a side, so that a shadow batch has
+        the packets of a shadow-order trial) that no observer sees; returns their seconds, which
+        ``packetrt render`` reports as ``seconds.compile``. The small image is rendered twice,
+        with every shadow batch walked in place and with every one compacted, as a real frame's
+        batches may go either way; what the trials learnt is then forgotten, so that the first
+        real frame decides. A kernel only reached by rays the small image does not cast still
+        compiles in the first frame."""
+        side = max(WARM_UP_SIZE, 4 * self.config.render.packet)
         observer, self.observer = self.observer, None
         start = time.perf_counter()
         try:
-            self.render(size=(side, side))
+            for in_place in (0.0, 2.0):
+                self.in_place_shadows = in_place
+                self.render(size=(side, side))
         finally:
             self.observer = observer
+            self.in_place_shadows = IN_PLACE_SHADOWS
+            self.shadow_order = ShadowOrder(self.config.render.shadow_order)
         return time.perf_counter() - start
 
     def render(self, size: tuple | None = None) -> RenderResult:
@@ -262,7 +271,7 @@ class WhittedRenderer:
             if lit_lanes == 0:
                 continue  # no hit faces this light
             light_color = np.asarray(light.color, np.float32)
-            if lit_lanes >= IN_PLACE_SHADOWS * r:
+            if lit_lanes >= self.in_place_shadows * r:
                 # Nearly every lane casts a shadow ray: walk them in this batch's own lanes and
                 # packets (the unlit ones dead) rather than copy them into compacted packets.
                 shadow = RayBatch(surface.leave, to_light, inv_to_light, zero_tmin, shadow_tmax, rays.pixel,
