@@ -272,8 +272,9 @@ class WhittedRenderer:
                 continue  # no hit faces this light
             light_color = np.asarray(light.color, np.float32)
             if lit_lanes >= self.in_place_shadows * r:
-                # Nearly every lane casts a shadow ray: walk them in this batch's own lanes and
-                # packets (the unlit ones dead) rather than copy them into compacted packets.
+                # Enough lanes cast a shadow ray (``IN_PLACE_SHADOWS``): walk them in this batch's
+                # own lanes and packets (the unlit ones dead) rather than copy them into
+                # compacted packets.
                 shadow = RayBatch(surface.leave, to_light, inv_to_light, zero_tmin, shadow_tmax, rays.pixel,
                                   unit_weight, "shadow")
                 occluded = self._trace_shadow(index, rays.kind, shadow, packets, tally)
