@@ -14,9 +14,10 @@ import pytest
 from engine.core.errors import ConfigError
 from engine.core.types import Frusta, empty_hits, new_stats
 from engine.packet.auto_limits import fitted_limits, limits_array
-from engine.packet.choose import LIMIT_NAMES, SAMPLED_LANES, measure_packets
+from engine.packet.choose import LIMIT_NAMES, SAMPLED_LANES, SAMPLED_PACKETS, measure_packets
 from engine.packet.layout import make_batch
 from engine.packet.plugin import walk_batch
+from engine.packet.walk import choose_batch
 from engine.packet.strategies import AUTO, CHOSEN_NAMES, MASKED, PARTITION, RANGED
 from engine.render.plugins import make_frustum, make_traversal
 from packet_raysets import scene_rays
@@ -176,7 +177,9 @@ def test_options_override_the_fitted_thresholds(rayset):
 
 @pytest.mark.parametrize("options,message", [({"ranged": 1.0}, "unknown key"),
                                              ({"min_live": "half"}, "must be a number"),
-                                             ({"invalid_frustum": "simd"}, "must be one of")])
+                                             ({"invalid_frustum": "simd"}, "must be one of"),
+                                             ({"split_min_packets": -1}, "integer >= 0"),
+                                             ({"split_min_packets": 1.5}, "integer >= 0")])
 def test_bad_options_are_one_line_errors(options, message):
     with pytest.raises(ConfigError, match=message):
         make_traversal("auto", options)
@@ -218,6 +221,82 @@ def test_a_packet_given_to_a_strategy_is_walked_exactly_as_that_strategy_walks_i
     assert stats.extra["auto"]["packets"] == {n: (2 * n_packets if n == name else 0) for n in CHOSEN_NAMES}
 
 
+def sampled_packets(n_packets):
+    """The packets ``engine.packet.choose.batch_choice`` asks the rule for, by its doc."""
+    n = min(n_packets, SAMPLED_PACKETS)
+    return sorted({(j * n_packets) // n for j in range(n)})
+
+
+def batch_with_odd_packets(rayset, odd):
+    """The primary batch of 8x8 packets with pinhole frusta, the packets ``odd`` without one; and
+    an auto plugin's options under which a packet is Ranged with a frustum and Masked without."""
+    rays, packets = rayset.rays["primary"].batch(rayset.width, rayset.height, 8)
+    frusta = make_frustum("pinhole").build(rays, packets, rayset.bounds)
+    valid = frusta.valid.copy()
+    assert valid.all()
+    valid[odd] = False
+    options = {"ranged_max_footprint": math.inf, "masked_max_footprint": -1.0, "min_live": 0.0,
+               "invalid_frustum": "masked"}
+    return rays, packets, Frusta(frusta.planes, valid), options
+
+
+@pytest.mark.parametrize("per", ["batch", "packet"])
+@pytest.mark.parametrize("split", [False, True])
+def test_a_batch_is_walked_by_its_samples_majority_or_packet_by_packet(rayset, per, split):
+    """Every packet is Ranged by the rule but for a few Masked ones. A sample that agrees (the
+    Masked packets outside it) gives Ranged to every packet. A split sample (one of them inside
+    it): a batch of fewer than ``split_min_packets`` packets goes whole to the sample's majority
+    (Ranged), a batch of as many is chosen packet by packet. All answer as Ranged does."""
+    n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, 8)[1].offsets) - 1
+    sampled = sampled_packets(n_packets)
+    outside = sorted(set(range(n_packets)) - set(sampled))
+    assert n_packets > SAMPLED_PACKETS and len(outside) >= 2
+    odd = [outside[0], outside[-1]] + ([sampled[len(sampled) // 2]] if split else [])
+    rays, packets, frusta, options = batch_with_odd_packets(rayset, odd)
+    plugin = make_traversal("auto", {**options, "split_min_packets": n_packets + (per == "batch")})
+    expected = np.full(n_packets, RANGED, np.int8)
+    if split and per == "packet":
+        expected[odd] = MASKED
+    np.testing.assert_array_equal(plugin.choose(rayset.bvh, rays, packets, frusta), expected)
+    stats = new_stats(numba.get_num_threads())
+    hits, ref = empty_hits(rays.org.shape[0]), empty_hits(rays.org.shape[0])
+    plugin.intersect(rayset.bvh, rayset.tris, rays, packets, frusta, hits, stats)
+    assert stats.extra["auto"]["per_batch"] == [{name: int((expected == i).sum()) for i, name in
+                                                 enumerate(CHOSEN_NAMES)}]
+    make_traversal("ranged").intersect(rayset.bvh, rayset.tris, rays, packets, frusta, ref, None)
+    for field in ("prim", "t", "u", "v"):
+        np.testing.assert_array_equal(getattr(hits, field), getattr(ref, field))
+
+
+def test_a_tie_in_the_sample_goes_to_the_lower_strategy_number(rayset):
+    n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, 8)[1].offsets) - 1
+    sampled = sampled_packets(n_packets)
+    rays, packets, frusta, options = batch_with_odd_packets(rayset, sampled[::2])
+    assert 2 * len(sampled[::2]) == len(sampled)
+    assert (make_traversal("auto", options).choose(rayset.bvh, rays, packets, frusta) == MASKED).all()
+
+
+def test_packets_left_out_of_a_walk_are_left_out_of_its_sample(rayset):
+    """A shadow-order trial walks some packets only (``only``): a sampled packet outside them
+    does not split the sample, and gets no choice."""
+    n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, 8)[1].offsets) - 1
+    odd = sampled_packets(n_packets)[3]
+    rays, packets, frusta, options = batch_with_odd_packets(rayset, [odd])
+    limits = make_traversal("auto", options)._limits
+    offsets = np.ascontiguousarray(packets.offsets, np.int32)
+    only = np.zeros(n_packets, np.int8)
+    only[odd] = -1
+    choices = np.empty(n_packets, np.int8)
+    counts, whole = choose_batch(rayset.bvh.bmin, rayset.bvh.bmax, rays.org, rays.dir, rays.tmin, rays.tmax,
+                                 offsets, frusta.valid, limits, choices, only, per_packet=True)
+    assert whole == RANGED
+    assert choices[odd] == -1 and (np.delete(choices, odd) == RANGED).all()
+    assert counts[RANGED] == n_packets - 1 and counts.sum() == n_packets - 1
+    counts, whole = choose_batch(rayset.bvh.bmin, rayset.bvh.bmax, rays.org, rays.dir, rays.tmin, rays.tmax,
+                                 offsets, frusta.valid, limits, choices, per_packet=True)
+    assert whole == -1 and choices[odd] == MASKED and counts[MASKED] == 1
+
+
 @pytest.mark.parametrize("kind", sorted(FRUSTUM_FOR))
 def test_choices_are_recorded_per_packet_and_counted_per_batch(rayset, kind):
     """The walk's per-packet choices are the chooser's, and --stats counts them per batch."""
@@ -226,14 +305,15 @@ def test_choices_are_recorded_per_packet_and_counted_per_batch(rayset, kind):
     # Thresholds at the batch's median footprint: both strategies get packets.
     footprint = measured(rayset.bvh, rays, packets)[1]
     plugin = make_traversal("auto", {"ranged_max_footprint": float(np.median(footprint)), "min_live": 0.0,
-                                     "invalid_frustum": "partition"})
-    expected = plugin.choose(rayset.bvh, rays, packets, frusta)
+                                     "invalid_frustum": "partition", "split_min_packets": 0})
+    expected = np.where(frusta.valid & (footprint <= np.median(footprint)), RANGED, PARTITION).astype(np.int8)
+    np.testing.assert_array_equal(plugin.choose(rayset.bvh, rays, packets, frusta), expected)
     if frusta.valid.all():
         assert set(expected.tolist()) == {RANGED, PARTITION}
     choices = np.full(len(expected), -1, np.int8)
     hits = empty_hits(rays.org.shape[0])
     walk_batch(AUTO, rayset.bvh, rayset.tris, rays, packets, frusta, False, hits.t, hits.prim, hits.u, hits.v,
-               limits=plugin._limits, choices=choices)
+               limits=plugin._limits, choices=choices, per_packet=True)
     np.testing.assert_array_equal(choices, expected)
     stats = new_stats(numba.get_num_threads())
     for _ in range(2):

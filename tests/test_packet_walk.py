@@ -105,8 +105,8 @@ rs = scene_rays(whitted_scene([], {"subdivisions": 1}, 0.0), 16, 16)
 for kind, frustum in %r.items():
     rays, packets = rs.rays[kind].batch(rs.width, rs.height, 4)
     frusta = make_frustum(frustum).build(rays, packets, rs.bounds)
-    for name in %r:
-        plugin = make_traversal(name)
+    # auto choosing packet by packet as well: these small batches it would walk whole.
+    for plugin in [make_traversal(name) for name in %r] + [make_traversal("auto", {"split_min_packets": 0})]:
         for stats in (None, new_stats(numba.get_num_threads())):
             plugin.intersect(rs.bvh, rs.tris, rays, packets, frusta, empty_hits(rays.org.shape[0]), stats)
             plugin.occluded(rs.bvh, rs.tris, rays, packets, frusta, np.zeros(rays.org.shape[0], np.bool_), stats)
@@ -129,5 +129,5 @@ def test_a_second_process_loads_every_packet_kernel_from_the_cache():
     assert not [line for line in second if "data saved" in line]
     loaded = [line for line in second if "data loaded" in line]
     for kernel in ("walk.walk_masked", "walk.walk_ranged", "walk.walk_partition", "walk.walk_simd",
-                   "walk.choose_packets", "frustum_builders.build_frusta"):
+                   "walk.choose_packets", "choose.batch_choice", "frustum_builders.build_frusta"):
         assert [line for line in loaded if f"{kernel}-" in line], kernel

@@ -1,13 +1,21 @@
-"""``auto``: each packet is walked by Ranged, Partition or Masked, chosen per packet.
+"""``auto``: packets walked by Ranged, Partition or Masked, chosen from measures of the packets.
 
 Overbeck, Ramamoorthi and Mark (2008) find Ranged the faster traversal on coherent packets and
-Partition on incoherent ones, and pick one per ray kind. ``auto`` picks one per packet, from
-measures of 16 of its lanes taken in a pass before the walk (``engine.packet.choose``): the
+Partition on incoherent ones, and pick one per ray kind. ``auto`` asks a rule for a strategy per
+packet, from measures of 16 of its lanes taken before the walk (``engine.packet.choose``): the
 fraction of them that are live, its footprint (the spread of its origins plus the widening of its
 direction cone over its rays' reach, in the scene's typical leaf widths) and whether it has a
-frustum. The packets are then walked, one pass per strategy, by the chosen strategy's own copy
-of the one packet walk (``engine.packet.walk``), so their hits are the other traversals' hits,
-bit for bit.
+frustum. It asks for 32 packets spread over each batch (``engine.packet.walk.choose_batch``). When
+they all get the same strategy, it walks the whole batch. When they do not, a batch of at least
+``split_min_packets`` packets is chosen packet by packet (a parallel pass asks the rule for every
+packet, then each strategy walks its own packets); a smaller one is walked whole by the strategy
+most of the 32 got. Small batches go whole because splitting them measured slower: on the small
+scenes at 256x256 a batch walked by two strategies in two passes lost to the better single
+strategy by up to 18%, where a packet's whole walk costs about a microsecond, while the
+kitchen's 1024x1024 reflection batch (1,710 16x16 packets) walked 17% faster chosen packet by
+packet than whole by the sample's majority (Ranged) (see the README). The packets are walked by the chosen strategy's own copy of the
+one packet walk (``engine.packet.walk``), so their hits are the other traversals' hits, bit for
+bit.
 
 Options (``[options.auto]``), each defaulting to the fitted value in
 ``engine/packet/auto_thresholds.json`` (``tools/fit_auto.py``):
@@ -16,7 +24,9 @@ Options (``[options.auto]``), each defaulting to the fitted value in
 - ``masked_max_footprint``: packets at most this wide (and live enough) walk by Masked
   (negative: never);
 - ``min_live``: the least fraction of live lanes for Ranged or Masked;
-- ``invalid_frustum``: the strategy for packets without a frustum.
+- ``invalid_frustum``: the strategy for packets without a frustum;
+- ``split_min_packets``: the fewest packets a batch whose sample is split must have to be chosen
+  packet by packet (0: every such batch; a huge number: never), default SPLIT_MIN_PACKETS.
 
 Statistics (``--stats``: ``extra.plugins.KIND.auto``): ``packets``, the packets walked by each
 strategy, and ``per_batch``, the same for every batch traced, in order.
@@ -25,11 +35,18 @@ from __future__ import annotations
 
 import numpy as np
 
+from engine.core.errors import ConfigError
 from engine.core.registry import register_traversal
 from engine.packet.auto_limits import fitted_limits, limits_array
-from engine.packet.choose import LIMIT_NAMES, choose_packets
+from engine.packet.choose import LIMIT_NAMES
 from engine.packet.plugin import PacketTraversal, walk_batch
 from engine.packet.strategies import AUTO, CHOSEN_NAMES
+from engine.packet.walk import choose_batch
+
+#: ``split_min_packets``'s default, set between two measurements, not fitted: the split batches of
+#: the 256x256 frames (at most 1,024 packets) walked faster whole, and the kitchen's 1024x1024
+#: reflection batch (1,710 16x16 packets) walked 17% faster chosen packet by packet.
+SPLIT_MIN_PACKETS = 1536
 
 
 @register_traversal("auto")
@@ -37,35 +54,43 @@ class AutoTraversal(PacketTraversal):
     """Large packets, each walked by Ranged, Partition or Masked as its measures suggest."""
 
     strategy = AUTO
-    OPTIONS = dict.fromkeys(LIMIT_NAMES)  # None: the fitted value
+    OPTIONS = {**dict.fromkeys(LIMIT_NAMES), "split_min_packets": SPLIT_MIN_PACKETS}  # a limit None: fitted
 
-    def __init__(self, **limits):
+    def __init__(self, split_min_packets=SPLIT_MIN_PACKETS, **limits):
+        if isinstance(split_min_packets, bool) or not isinstance(split_min_packets, int) or split_min_packets < 0:
+            raise ConfigError(f"options.auto.split_min_packets must be an integer >= 0, got {split_min_packets!r}")
+        self.split_min_packets = split_min_packets
         chosen = fitted_limits()
         chosen.update({name: value for name, value in limits.items() if value is not None})
         self.limits = chosen
         self._limits = limits_array(chosen)
 
+    def _per_packet(self, packets) -> bool:
+        """Whether a batch in ``packets`` whose sample is split is chosen packet by packet."""
+        return len(packets.offsets) - 1 >= self.split_min_packets
+
     def choose(self, bvh, rays, packets, frusta) -> np.ndarray:
         """i8[K]: the strategy (``engine.packet.strategies`` number) each packet would be walked
-        by, without walking (``packetrt show``, tests)."""
+        by, without walking (``packetrt show``, tests): the walk's own choice
+        (``engine.packet.walk.choose_batch``)."""
         offsets = np.ascontiguousarray(packets.offsets, np.int32)
         n_packets = offsets.shape[0] - 1
         valid = np.zeros(n_packets, np.bool_) if frusta is None else np.ascontiguousarray(frusta.valid, np.bool_)
         out = np.empty(n_packets, np.int8)
-        choose_packets(bvh.bmin, bvh.bmax, rays.org, rays.dir, rays.tmin, rays.tmax, offsets, valid,
-                       self._limits, out)
+        choose_batch(bvh.bmin, bvh.bmax, rays.org, rays.dir, rays.tmin, rays.tmax, offsets, valid, self._limits,
+                     out, per_packet=self._per_packet(packets))
         return out
 
     def walk_recorded(self, bvh, tris, rays, packets, frusta, any_hit, hits, record):
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, any_hit, hits.t, hits.prim, hits.u, hits.v,
-                   record=record, limits=self._limits)
+                   record=record, limits=self._limits, per_packet=self._per_packet(packets))
 
     def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats,
              from_end=False):
         choices = np.empty(len(packets.offsets) - 1, np.int8)
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
                    None if stats is None else stats.counters, limits=self._limits, choices=choices,
-                   from_end=from_end)
+                   from_end=from_end, per_packet=self._per_packet(packets))
         if stats is not None:
             add_choices(stats, choices)
 
@@ -73,7 +98,8 @@ class AutoTraversal(PacketTraversal):
         choices = np.empty(len(packets.offsets) - 1, np.int8)
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, True, any_hit.t, any_hit.prim, any_hit.u, any_hit.v,
                    None if stats is None else stats.counters, limits=self._limits, choices=choices,
-                   from_end=from_end, chosen=chosen, visits=visits)
+                   from_end=from_end, chosen=chosen, visits=visits,
+                   per_packet=self._per_packet(packets))
         if stats is not None:
             add_choices(stats, choices[chosen >= 0])
 

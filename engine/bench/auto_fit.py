@@ -12,17 +12,19 @@ small resolution. Per (scene, packet size):
    (``engine.packet.choose.measure_packets``) and the batch's paper frusta.
 3. **Cells.** The packets of one (scene, packet size, ray kind) are binned by footprint
    (quantile edges over all packets of the run), live fraction (``LIVE_EDGES``) and frustum
-   validity; each non-empty bin becomes a sub-batch of its packets, which Masked, Ranged and
-   Partition walk in turn, interleaved, ``repeat`` times on one thread (a packet's walk does
-   not depend on the other packets of its batch). Best of the repeats per strategy.
+   validity; each non-empty bin becomes a sub-batch of its packets (repeated up to at least
+   ``MIN_CELL_PACKETS``, the time divided by the copies), which Masked, Ranged and Partition
+   walk in turn, interleaved, ``repeat`` times on one thread (a packet's walk does not depend
+   on the other packets of its batch). Best of the repeats per strategy.
 4. **Fit.** The chooser's rule (``engine.packet.choose``) applied to a bin is one strategy
    for all its packets when its thresholds sit on bin edges, so the fitted thresholds are the
    edges (and the frustum-less strategy) that minimise the summed cell times: an exhaustive
    search over every combination (``fit_limits``).
 5. **Measure.** Every batch of the frame replayed through the renderer's ``Tracer`` (frustum
-   build + query, as a render times it) with ``ranged``, ``partition`` and ``auto`` (the fitted
-   thresholds), interleaved, ``measure_repeat`` times on ``threads`` threads (0: all); median
-   trace time per frame and kind. ``auto``'s answers are checked equal to Partition's.
+   build + query, as a render times it) with ``ranged``, ``partition``, ``auto`` (the fitted
+   thresholds) and ``auto`` with every split batch chosen packet by packet, interleaved, ``measure_repeat`` times on
+   ``threads`` threads (0: all); median trace time per frame and kind. Both autos' answers are
+   checked equal to Partition's.
 
 Writes the thresholds file (``engine/packet/auto_thresholds.json`` by default), a markdown
 report and, beside it, a figure of the measurement (``figure``: the report's name with .png),
@@ -59,6 +61,11 @@ SOURCE = {"primary": "shadows", "shadow": "shadows", "reflection": "reflection2"
 FOOTPRINT_BINS = 16
 #: Live-fraction bin edges (a bin is [edge, next edge)).
 LIVE_EDGES = (0.0, 0.25, 0.5, 0.75, 0.9, 1.0)
+#: A cell of fewer packets is timed on copies of them, this many packets or more, and its time
+#: divided by the copies: a walk call costs about 17 us before its first packet (erw6, one
+#: thread), as much as a few packets' walks, and in the cells of one to a dozen packets that
+#: fixed cost hid which strategy walked the packets faster.
+MIN_CELL_PACKETS = 64
 #: A footprint threshold above every packet's footprint.
 EVERY = 1e9
 
@@ -213,13 +220,15 @@ def collect(scenes, packets, size, repeat, log, threads=0):
                 chosen = [(p[1], p[2], p[3], np.flatnonzero((fb == fbin) & (lb == lbin) & (valid == ok)))
                           for p, ((fb, lb), valid) in zip(parts, per_part)]
                 chosen = [c for c in chosen if len(c[3])]
-                rays, pk, frusta = sub_batch(chosen)
-                seconds = time_strategies(renderer, rays, pk, frusta, parts[0][0] == "occluded", repeat)
+                n_packets = sum(len(c[3]) for c in chosen)
+                copies = -(-MIN_CELL_PACKETS // n_packets)
+                rays, pk, frusta = sub_batch(chosen * copies)
+                seconds = time_strategies(renderer, rays, pk, frusta, parts[0][0] == "occluded", repeat) / copies
                 table["group"].append((name, n, kind))
                 table["fb"].append(fbin)
                 table["lb"].append(lbin)
                 table["valid"].append(ok)
-                table["packets"].append(sum(len(c[3]) for c in chosen))
+                table["packets"].append(n_packets)
                 table["seconds"].append(seconds)
             log(f"  {name} {n}x{n} {kind}: {len(keys)} cells timed in {time.perf_counter() - start:.1f} s")
     finally:
@@ -230,12 +239,14 @@ def collect(scenes, packets, size, repeat, log, threads=0):
 
 def measure(frames, limits, repeat, log):
     """{(scene, packet, kind): {traversal: median seconds per frame}} of replaying each frame's
-    batches with ranged, partition and auto (``limits``), interleaved; and {(scene, packet,
-    kind): auto's packets per strategy}. Auto's answers must equal Partition's."""
-    names = ("ranged", "partition", "auto")
+    batches with ranged, partition, auto (``limits``) and "auto/packet" (the same limits, every
+    batch whose sample is split chosen packet by packet: ``split_min_packets = 0``), interleaved; and {(scene, packet, kind): auto's
+    packets per strategy}. Both autos' answers must equal Partition's."""
+    names = ("ranged", "partition", "auto", "auto/packet")
+    options = {"auto": limits, "auto/packet": {**limits, "split_min_packets": 0}}
     out, counts = {}, {}
     for (name, n), (renderer, batches) in frames.items():
-        plugins = {t: make_traversal(t, limits if t == "auto" else None) for t in names}
+        plugins = {t: make_traversal(t.split("/")[0], options.get(t)) for t in names}
         tracers = {t: renderer.tracer.with_traversal(dict.fromkeys(RAY_KINDS, p))
                    for t, p in plugins.items()}
         runs = {t: [] for t in names}
@@ -249,11 +260,12 @@ def measure(frames, limits, repeat, log):
                     runs[t].append(dict(tally.seconds))
                 else:
                     answers[t] = got
-        for a, b, (kind, query, _, _) in zip(answers["auto"], answers["partition"], batches):
-            same = np.array_equal(a, b) if query == "occluded" else all(
-                np.array_equal(x, y) for x, y in zip(a, b))
-            if not same:
-                raise AssertionError(f"auto's answers differ from partition's on {name} {kind}")
+        for auto in ("auto", "auto/packet"):
+            for a, b, (kind, query, _, _) in zip(answers[auto], answers["partition"], batches):
+                same = np.array_equal(a, b) if query == "occluded" else all(
+                    np.array_equal(x, y) for x, y in zip(a, b))
+                if not same:
+                    raise AssertionError(f"{auto}'s answers differ from partition's on {name} {kind}")
         for kind in {k for k, *_ in batches}:
             out[(name, n, kind)] = {t: float(np.median([r[kind] for r in runs[t]])) for t in names}
         tally = Tally(count=True)  # one counting replay: auto's choices per kind
@@ -309,11 +321,13 @@ def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds, 
     lines += ["", "## Frame trace time: auto against the better of Ranged and Partition", "",
               "Median trace time per frame (frustum build + traversal, ms) per ray kind; `auto/best` is auto "
               "over the faster of Ranged and Partition for that row (above 1: auto is slower). `choices` are "
-              "auto's packets walked by Masked / Ranged / Partition.", "",
+              "auto's packets walked by Masked / Ranged / Partition. `auto by packet` is auto with "
+              "`split_min_packets = 0` (every batch whose sample is split chosen packet by packet).", "",
               *([f"![auto over the better of Ranged and Partition per row]({plot.name})", ""] if plot else []),
-              "| scene | packet | kind | ranged | partition | auto | auto/best | choices M/R/P |",
-              "|---|---|---|---|---|---|---|---|"]
-    sums = {t: 0.0 for t in ("ranged", "partition", "auto", "best")}
+              "| scene | packet | kind | ranged | partition | auto | auto/best | choices M/R/P | auto by packet | "
+              "by packet/best |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    sums = {t: 0.0 for t in ("ranged", "partition", "auto", "auto/packet", "best")}
     for (scene, n, kind) in sorted(timing, key=lambda k: (k[0], k[1], RAY_KINDS.index(k[2]))):
         t = timing[(scene, n, kind)]
         best = min(t["ranged"], t["partition"])
@@ -321,12 +335,16 @@ def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds, 
         sums["ranged"] += t["ranged"]
         sums["partition"] += t["partition"]
         sums["auto"] += t["auto"]
+        by_packet = t.get("auto/packet", np.nan)
+        sums["auto/packet"] += by_packet
         sums["best"] += best
         lines.append(f"| {scene} | {n} | {kind} | {1e3 * t['ranged']:.2f} | {1e3 * t['partition']:.2f} | "
                      f"{1e3 * t['auto']:.2f} | {t['auto'] / best:.3f} | "
-                     + "/".join(str(c.get(x, 0)) for x in CHOSEN_NAMES) + " |")
+                     + "/".join(str(c.get(x, 0)) for x in CHOSEN_NAMES)
+                     + f" | {1e3 * by_packet:.2f} | {by_packet / best:.3f} |")
     lines += [f"| **all** | | | {1e3 * sums['ranged']:.1f} | {1e3 * sums['partition']:.1f} | "
-              f"{1e3 * sums['auto']:.1f} | {sums['auto'] / sums['best']:.3f} (vs per-row best) | |", ""]
+              f"{1e3 * sums['auto']:.1f} | {sums['auto'] / sums['best']:.3f} (vs per-row best) | | "
+              f"{1e3 * sums['auto/packet']:.1f} | {sums['auto/packet'] / sums['best']:.3f} |", ""]
     return "\n".join(lines) + "\n"
 
 

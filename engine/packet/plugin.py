@@ -77,14 +77,16 @@ def deck_count(n_packets: int) -> int:
 
 def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
                counters=None, record=None, kernel=None, limits=None, choices=None, from_end=False, chosen=None,
-               visits=None):
+               visits=None, per_packet=False):
     """Walk every packet of ``rays`` (in ``packets``) through ``bvh`` by ``strategy``, with its
     frustum from ``frusta`` (None: no culling), writing the best (any_hit: first) hits into
     out_t, out_prim, out_u, out_v (f32/i32[R]). counters: i64[threads,3,D] or None; record: a
     PacketRecord for a batch of one packet, or None. ``kernel``: instead of the walk, a kernel
     of the walk's arguments without strategy, AUTO's arrays and record (``engine.bench.floor``).
     AUTO only: limits f64[N_LIMITS] the chooser's thresholds (None: the fitted ones,
-    ``engine.packet.auto_limits``); choices i8[K] receives each packet's strategy (None: not kept).
+    ``engine.packet.auto_limits``); choices i8[K] receives each packet's strategy (None: not kept);
+    per_packet: choose each packet of a batch whose sample is split, instead of giving the whole
+    batch the sample's majority (``engine.packet.walk.choose_batch``).
     from_end: take the far child first at every node (the packet's rays met from their ends
     first). Closest hits do not depend on the order; an any-hit walk may stop at another of a
     ray's blockers, and sooner or later than in the usual order (``engine.render.shadow_order``).
@@ -124,7 +126,7 @@ def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_p
         choices = np.empty(n_packets, np.int8)
     elif choices.shape != (n_packets,) or choices.dtype != np.int8:
         raise ValueError(f"auto choices must be i8[{n_packets}], got {choices.dtype}{list(choices.shape)}")
-    walk_packets_auto(*args, limits, choices, record, visits, chosen)
+    walk_packets_auto(*args, limits, choices, record, visits, chosen, per_packet)
 
 
 class PacketTraversal:

@@ -17,9 +17,10 @@ of each: the plain walk, and the instrumented one with both counters and a recor
 ``instrumented``). Each inlines ``walk_packet_range`` with its strategy a constant, so numba
 prunes the other strategies' steps from it: with the strategy a run-time number instead, the
 branches cost up to 5% on primary and shadow rays; and a config compiles only the strategies it
-uses. AUTO (``walk_packets_auto``) asks
-``engine.packet.choose.choose_packet`` for every packet first, then runs the kernel of each
-strategy it chose, walking only the packets chosen for it.
+uses. AUTO (``walk_packets_auto``) chooses first (``choose_batch``: one strategy for the whole
+batch from a sample of its packets, each asked ``engine.packet.choose.choose_packet``; or, in a
+batch whose sample is split, the rule for every packet), then runs the kernel of each strategy
+chosen, walking only its packets.
 
 The packet body unpacks its grouped arguments once per range of packets, not once per packet:
 the 2x2 SIMD baseline has 262,144 packets in a 1024^2 batch, and unpacking per packet made its
@@ -39,7 +40,7 @@ from engine.packet.kernels import (STACK_SIZE, intersect_lanes, intersect_lanes_
                                    load_packet, longest_packet, node_box, packet_scratch, store_hits)
 from engine.packet.record import new_record, record_visit
 from engine.packet.steps import leaf_ray, leaf_rays, node_step, visit_record, walk_start, walkers
-from engine.packet.choose import choose_packet, scene_scales
+from engine.packet.choose import batch_choice, choose_packet, scene_scales
 from engine.packet.strategies import ENTERED, MASKED, N_STRATEGIES, PARTITION, RANGED, SIMD
 
 
@@ -161,26 +162,54 @@ EVERY_PACKET = np.empty(0, np.int8)
 
 def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
                       offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
-                      counters, limits, choices, record, visits=None, only=None):
-    """``walk_packets`` by AUTO: each packet walked by the strategy ``engine.packet.choose``
-    picks for it under limits f64[N_LIMITS]; choices i8[K] receives each packet's strategy.
-    only: None (every packet), or i8[K] and only packets k with only[k] >= 0 are walked (their
-    choices; the others' choices are -1).
+                      counters, limits, choices, record, visits=None, only=None, per_packet=False):
+    """``walk_packets`` by AUTO: each packet walked by the strategy ``choose_batch`` gives it
+    under limits f64[N_LIMITS] (packet by packet when the sample is split and ``per_packet``);
+    choices i8[K] receives each packet's strategy. only: None (every packet), or i8[K] and only
+    packets k with only[k] >= 0 are walked (their choices; the others' choices are -1).
 
-    All packets are chosen first, in parallel (``choose_packets``); then the kernel of each
-    strategy some packet chose walks the packets chosen for it, so AUTO compiles no walk of its
-    own. Choosing and walking packet by packet unpacked the walk's arguments once per packet
-    (see the module doc)."""
-    chosen_counts = choose_packets(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices)
-    if only is not None:
-        choices[only < 0] = -1
-        chosen_counts = np.bincount(choices[choices >= 0], minlength=N_STRATEGIES)
+    The batch is chosen first (``choose_batch``); then the kernel of each strategy some packet
+    got walks the packets given to it, so AUTO compiles no walk of its own. A batch given whole
+    to one strategy is walked by its kernel without the per-packet filter. Choosing and walking
+    packet by packet unpacked the walk's arguments once per packet (see the module doc)."""
+    chosen_counts, whole = choose_batch(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices, only,
+                                        per_packet)
+    if whole >= 0 and only is None:
+        walk_packets(whole, bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax, offsets,
+                     planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v, counters, record,
+                     None, visits)
+        return
     # A strategy no packet chose costs no parallel pass (a launch and each worker's scratch).
     for strategy in (RANGED, PARTITION, MASKED):
         if chosen_counts[strategy] > 0:
             walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
                          offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
                          counters, record, choices, visits)
+
+
+def choose_batch(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices, only=None, per_packet=False):
+    """Fill choices i8[K] with the strategy AUTO walks each packet of a batch with (rays org,
+    dirs f32[R,3], tmin, tmax f32[R] in packets offsets i32[K+1], frusta valid bool[K]) under
+    limits f64[N_LIMITS], in a scene of BVH boxes bmin, bmax f32[N,3]; only: None, or i8[K] and
+    packets k with only[k] < 0 get -1. Returns (i64[N_STRATEGIES] packets per strategy, the
+    strategy the whole batch was given, or -1 when it was chosen packet by packet).
+
+    ``engine.packet.choose.batch_choice`` asks the rule for a sample of the packets; a sample
+    that agrees gives the whole batch its strategy. A split one gives the whole batch the
+    strategy most sampled packets got (a tie to the lower strategy number), or, when
+    ``per_packet``, has every packet chosen by the rule (``choose_packets``, in parallel). See
+    ``engine.packet.choose``."""
+    whole, given = batch_choice(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits,
+                                EVERY_PACKET if only is None else only, per_packet, choices)
+    counts = np.zeros(N_STRATEGIES, np.int64)
+    if whole >= 0:
+        counts[whole] = given
+        return counts, whole
+    choose_packets(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices)
+    if only is not None:
+        choices[only < 0] = -1
+    counts[:] = np.bincount(choices[choices >= 0], minlength=N_STRATEGIES)
+    return counts, whole
 
 
 @njit(cache=True, parallel=True)
