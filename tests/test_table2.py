@@ -193,3 +193,20 @@ def test_table2_rows_prefer_simd_and_the_papers_system():
     assert row["baseline"] == "simd 2×2"
     assert row["records"]["plain"]["labels"]["traversal"] == "paper"
     assert row["frame"]["culled"] == pytest.approx(25.0)
+
+
+def test_table2_report_adds_auto_beside_the_papers_system_when_measured(tmp_path):
+    """A 16×16 `auto` record with frusta gets its frame FPS and its frame and trace ratios to 2×2
+    SIMD in three more columns, and a row in "Where a frame goes"; the paper's columns keep the
+    paper's system."""
+    records = three("bart-kitchen", "kitchen-paper", (2.0, 1.0), (0.5, 0.25), (0.4, 0.2))
+    records.append(record("bart-kitchen", "kitchen-paper", "auto", "paper", 16, 0.25, 0.125))
+    text = table2(records, tmp_path)[0].read_text()
+    kitchen = table_rows(text)["bart-kitchen", "kitchen-paper"]
+    assert kitchen[6:10] == ["0.50", "2.00", "2.50", "5.00×"]       # the paper's system, as before
+    assert kitchen[17:20] == ["4.00", "8.00×", "8.00×"]             # auto: frame FPS, frame and trace / 2×2
+    assert "frame `auto` / 2×2" in text
+    where = text.split("## Where a frame goes")[1]
+    assert "| bart-kitchen | kitchen-paper | 16×16 `auto`, culling | 250.0 | 125.0 | 125.0 | 50% |" in where
+    (row,) = table2_rows(records)
+    assert row["records"]["culled"]["labels"]["traversal"] == "paper"

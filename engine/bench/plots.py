@@ -292,8 +292,10 @@ def fig6(records: list, out: Path) -> list:
 
 # -- table2 -------------------------------------------------------------------------------------
 
-#: The three columns of Table 2: (key, label).
-TABLE2_VARIANTS = (("small", "2×2 SIMD"), ("plain", "16×16, no culling"), ("culled", "16×16, culling"))
+#: The variants of Table 2: (key, label); "auto" (16×16 packets walked by the ``auto`` traversal,
+#: with the paper's frusta: beyond the paper) only where the matrix has it.
+TABLE2_VARIANTS = (("small", "2×2 SIMD"), ("plain", "16×16, no culling"), ("culled", "16×16, culling"),
+                   ("auto", "16×16 `auto`, culling"))
 
 
 def _prefer(records: list, **labels):
@@ -312,9 +314,9 @@ def _times(value) -> str:
 
 def table2_rows(records: list) -> list:
     """One dict per (scene, recursion, size) that has a baseline below 16×16 and a 16×16 record:
-    the records of the three variants (small = the baseline, ``simd`` 2×2 when present;
-    plain / culled = 16×16 without / with frusta, the paper's system when present; a variant not
-    measured is None) and their whole-frame and trace-only FPS, Embree's and Open3D's trace FPS
+    the records of the variants (small = the baseline, ``simd`` 2×2 when present;
+    plain / culled = 16×16 without / with frusta, the paper's system when present; auto = 16×16
+    by the ``auto`` traversal with frusta; a variant not measured is None) and their whole-frame and trace-only FPS, Embree's and Open3D's trace FPS
     on the culled cell's rays (None where not measured)."""
     groups = {}
     for r in records:
@@ -328,7 +330,9 @@ def table2_rows(records: list) -> list:
         plain = _prefer([r for r in large if r["labels"]["frustum"] == "none"], traversal="paper")
         if small is None or (culled is None and plain is None):
             continue
-        cells = {"small": small, "plain": plain, "culled": culled}
+        adaptive = next((r for r in large if r["labels"]["traversal"] == "auto" and r["labels"]["frustum"] != "none"),
+                        None)
+        cells = {"small": small, "plain": plain, "culled": culled, "auto": adaptive}
         fps = {key: (r.get("fps") or {}) if r is not None else {} for key, r in cells.items()}
         frame = {key: fps[key].get("frame") for key in cells}
         trace = {key: (1 / trace_seconds(r) if r is not None and trace_seconds(r) > 0 else None)
@@ -351,6 +355,7 @@ def table2(records: list, out: Path) -> list:
     if not rows:
         return []
     open3d = any(row["open3d"] for row in rows)
+    adaptive = any(row["records"]["auto"] is not None for row in rows)
     lines = ["# Table 2: 2×2 SIMD rays vs 16×16 packets (Overbeck et al. 2008)", "",
              f"Machine: {machine_line(records)}.", "",
              "**Frame FPS** = 1 / median time of a timed render: camera rays, every traversal, shading and the "
@@ -360,14 +365,17 @@ def table2(records: list, out: Path) -> list:
              "2×2 SIMD = `simd` in 2×2 packets without frusta; 16×16 = the paper's system (Ranged primary, "
              "Partition secondary) in 16×16 packets, without and with frustum culling. 16×16 / 2×2 compares "
              "16×16 with culling to 2×2 SIMD (the paper: 3.2–6.1× per frame, 8 cores); culling benefit = with "
-             "culling over without.", "",
+             "culling over without." + (" Beyond the paper, 16×16 `auto` = the `auto` traversal (a strategy "
+             "chosen from measured packets) in 16×16 packets with the paper's frusta, over 2×2 SIMD per frame "
+             "and per trace." if adaptive else ""), "",
              "| scene | configuration | size | triangles | lights | rays / frame "
              "| frame FPS 2×2 SIMD | frame FPS 16×16, no culling | frame FPS 16×16 | frame 16×16 / 2×2 "
              "| trace FPS 2×2 SIMD | trace FPS 16×16, no culling | trace FPS 16×16 | trace 16×16 / 2×2 "
              "| culling benefit, frame / trace | Embree trace FPS | 16×16 / Embree, trace |"
-             + (" Open3D trace FPS | 16×16 / Open3D, trace |" if open3d else ""),
+             + (" Open3D trace FPS | 16×16 / Open3D, trace |" if open3d else "")
+             + (" frame FPS 16×16 `auto` | frame `auto` / 2×2 | trace `auto` / 2×2 |" if adaptive else ""),
              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
-             + ("---:|---:|" if open3d else "")]
+             + ("---:|---:|" if open3d else "") + ("---:|---:|---:|" if adaptive else "")]
     for row in rows:
         frame, trace = row["frame"], row["trace"]
         config = row["recursion"] + ("" if row["baseline"] == "simd 2×2" else f" (baseline: {row['baseline']})")
@@ -379,6 +387,9 @@ def table2(records: list, out: Path) -> list:
                 f"{fmt(row['embree'])} | {_times(_ratio(trace['culled'], row['embree']))} |")
         if open3d:
             line += f" {fmt(row['open3d'])} | {_times(_ratio(trace['culled'], row['open3d']))} |"
+        if adaptive:
+            line += (f" {fmt(frame['auto'])} | {_times(_ratio(frame['auto'], frame['small']))} | "
+                     f"{_times(_ratio(trace['auto'], trace['small']))} |")
         lines.append(line)
     lines += ["", "## Where a frame goes", "",
               "Medians over the timed renders, ms per frame: trace = the traversal time the render itself measured "
@@ -418,7 +429,8 @@ def _table2_figure(rows: list, path: Path, open3d: bool) -> Path:
                                                                else ())))
     for ax, key, title, yardsticks in panels:
         series = [(label, f"C{i}", [row[key][variant] or nan for row in rows])
-                  for i, (variant, label) in enumerate(TABLE2_VARIANTS)]
+                  for i, (variant, label) in enumerate(TABLE2_VARIANTS)
+                  if variant != "auto" or any(row["records"]["auto"] is not None for row in rows)]
         series += [(label, colour, [row[name] or nan for row in rows]) for name, label, colour in yardsticks]
         width = 0.8 / len(series)
         for s, (label, colour, values) in enumerate(series):
