@@ -344,15 +344,22 @@ def test_the_fit_picks_the_thresholds_that_minimise_the_summed_time():
 
 
 @pytest.mark.parametrize("packet", [4, 16])
-def test_a_whitted_frame_by_auto_audits_clean_against_embree(tmp_path, packet):
+@pytest.mark.parametrize("split_min_packets", [None, 0])
+def test_a_whitted_frame_by_auto_audits_clean_against_embree(tmp_path, packet, split_min_packets):
     """Every ray of a whole Whitted frame (camera, shadow, reflection and refraction rays of the
-    default scene) walked by ``auto`` is checked against Embree: no mismatch."""
+    default scene) walked by ``auto`` is checked against Embree: no mismatch. With the default
+    ``split_min_packets`` these small batches are walked whole; with 0 every batch whose sample
+    is split is chosen packet by packet."""
     import json
 
     from engine.cli import main
 
     report = tmp_path / "audit.json"
-    assert main(["audit", "--size", "64x64", "--traversal", "auto", "--packet", str(packet),
+    config = []
+    if split_min_packets is not None:
+        config = [str(tmp_path / "auto.toml")]
+        (tmp_path / "auto.toml").write_text(f"[options.auto]\nsplit_min_packets = {split_min_packets}\n")
+    assert main(["audit", *config, "--size", "64x64", "--traversal", "auto", "--packet", str(packet),
                  "--json", str(report)]) == 0
     data = json.loads(report.read_text())
     assert data["mismatches"] == [] and data["agreement"] == 1.0
