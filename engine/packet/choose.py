@@ -172,8 +172,9 @@ def batch_choice(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, only
     ``per_packet``, the one all of them got. Returns (that strategy, the packets given it), with
     choices i8[K] filled, or (-1, 0) when no packet was sampled or, per packet, the sample is
     split. only: i8[K], and packets k with only[k] < 0 are left out of the sample and get -1,
-    or empty (every packet). One call, so that a batch given whole costs no Python-level
-    array work (about 15 us a batch, 3% of a Ranged walk of erw6's camera rays)."""
+    or empty (every packet). One jitted call: with the votes counted and the choices filled
+    in numpy, a batch given whole took 19 us more than Ranged's walk of erw6's 256 16x16 camera
+    packets (3%), now 7 us."""
     n_packets = offsets.shape[0] - 1
     scales = scene_scales(bmin, bmax)
     n_sampled = min(n_packets, SAMPLED_PACKETS)
