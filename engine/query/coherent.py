@@ -62,6 +62,8 @@ TILE = 8
 MAX_ROW = 8192
 #: A row break is a step between consecutive unit directions this many times the median step.
 ROW_BREAK = 4.0
+#: Steps whose median is the typical step (see ``row_length``).
+TYPICAL_STEPS = 2048
 #: Blocks measured at most (evenly spaced): the median of a few hundred is as good a verdict as
 #: that of all of them, and measuring every block cost 0.9 ms of a 15 ms kitchen query (447^2
 #: camera rays, two threads).
@@ -77,7 +79,7 @@ def block_spreads(origins, directions, scale, block, step, out_dir, out_org):
     n = origins.shape[0]
     for b in prange(out_dir.shape[0]):
         sx = sy = sz = 0.0
-        far = 0.0
+        far2 = 0.0  # squared: one square root a block, not one a ray
         bad = False
         lo = b * step * block
         hi = min(n, lo + block)
@@ -86,15 +88,17 @@ def block_spreads(origins, directions, scale, block, step, out_dir, out_org):
             if not (norm > 0.0 and np.isfinite(norm)):
                 bad = True
                 continue
-            sx += directions[i, 0] / norm
-            sy += directions[i, 1] / norm
-            sz += directions[i, 2] / norm
+            inverse = 1.0 / norm  # a measure, not an answer: one division a ray, not three
+            sx += directions[i, 0] * inverse
+            sy += directions[i, 1] * inverse
+            sz += directions[i, 2] * inverse
             dx = origins[i, 0] - origins[lo, 0]
             dy = origins[i, 1] - origins[lo, 1]
             dz = origins[i, 2] - origins[lo, 2]
-            far = max(far, np.sqrt(dx * dx + dy * dy + dz * dz))
+            far2 = max(far2, dx * dx + dy * dy + dz * dz)
         count = hi - lo
         mean = np.sqrt(sx * sx + sy * sy + sz * sz) / count
+        far = np.sqrt(far2)
         out_dir[b] = 1.0 if bad or not np.isfinite(mean) else 1.0 - mean
         out_org[b] = 1.0 if not np.isfinite(far) else far / scale
 
@@ -134,7 +138,8 @@ def unit_direction(directions, i):
     length = np.sqrt(directions[i, 0] ** 2 + directions[i, 1] ** 2 + directions[i, 2] ** 2)
     if not (length > 0.0 and np.isfinite(length)):
         return False, 0.0, 0.0, 0.0
-    return True, directions[i, 0] / length, directions[i, 1] / length, directions[i, 2] / length
+    inverse = 1.0 / length  # a measure for ``row_length``, not an answer: one division, not three
+    return True, directions[i, 0] * inverse, directions[i, 1] * inverse, directions[i, 2] * inverse
 
 
 def row_length(directions: np.ndarray) -> int:
@@ -152,21 +157,24 @@ def row_length(directions: np.ndarray) -> int:
         return 0
     steps = np.empty(count)
     direction_steps(directions, count, steps)
-    finite = steps[np.isfinite(steps)]
+    finite_step = np.isfinite(steps)
+    finite = steps[finite_step]
     if finite.size < count // 2:
         return 0
-    typical = float(np.median(finite))
+    # The typical step from the first TYPICAL_STEPS finite steps: breaks are at most one step in
+    # TILE, so their median is a within-row step as surely as all 16,384 steps' (0.1 ms less).
+    typical = float(np.median(finite[:TYPICAL_STEPS]))
     if not typical > 0.0:
         return 0  # parallel rays: no rows to see
     # A bad ray's (infinite) steps say nothing either way: only finite steps count.
-    breaks = np.flatnonzero(np.isfinite(steps) & (steps > ROW_BREAK * typical))
+    breaks = np.flatnonzero(finite_step & (steps > ROW_BREAK * typical))
     if breaks.size == 0:
         return 0
     width = int(breaks[0]) + 1
     if not TILE <= width <= MAX_ROW or n < TILE * width:
         return 0
     expected = np.arange(width - 1, count, width)
-    expected = expected[np.isfinite(steps[expected])]
+    expected = expected[finite_step[expected]]
     return width if np.array_equal(breaks, expected) else 0
 
 
