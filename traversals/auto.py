@@ -51,7 +51,7 @@ SPLIT_MIN_PACKETS = 1536
 
 @register_traversal("auto")
 class AutoTraversal(PacketTraversal):
-    """Large packets, each walked by Ranged, Partition or Masked as its measures suggest."""
+    """Large packets walked by Ranged, Partition or Masked, chosen from measures of the packets."""
 
     strategy = AUTO
     OPTIONS = {**dict.fromkeys(LIMIT_NAMES), "split_min_packets": SPLIT_MIN_PACKETS}  # a limit None: fitted
