@@ -147,10 +147,10 @@ def row_length(directions: np.ndarray) -> int:
     rays show no such width (TILE <= width <= MAX_ROW, at least TILE rows).
 
     Within a row the direction moves by about one pixel's angle a ray; at a row break it jumps
-    back across the row. The first step over ROW_BREAK times the median step ends the first row;
-    the width must then also end every other row of the sample. A bad ray (zero or non-finite
-    direction) makes an infinite step, so a wrong guess is refused, never harmful: the width
-    only decides how rays are grouped into packets."""
+    back across the row. The first step over ROW_BREAK times the median step (of the first
+    TYPICAL_STEPS) ends the first row; the width must then also end every other row of the
+    sample. A bad ray (zero or non-finite direction) makes an infinite step, so a wrong guess is
+    refused, never harmful: the width only decides how rays are grouped into packets."""
     n = directions.shape[0]
     count = min(n - 1, 2 * MAX_ROW)
     if count < 2 * TILE:
