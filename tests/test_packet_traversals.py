@@ -20,6 +20,9 @@ from packet_raysets import scene_rays
 from scenes.catalog import load_named
 
 PACKET_TRAVERSALS = ["simd", "masked", "ranged", "partition", "auto"]
+#: ``auto`` with every batch whose sample is split chosen packet by packet: the test batches are
+#: smaller than its default ``split_min_packets`` and would otherwise all be walked whole.
+OPTIONS = {"auto-split": ("auto", {"split_min_packets": 0})}
 FRUSTUM_FOR = {"primary": "pinhole", "shadow": "pointlight", "reflection": "general", "refraction": "general"}
 SCENES = {"bunny": {"lod": 3}, "cornell-box": {}, "whitted": {}}
 SIZE = 64
@@ -39,8 +42,8 @@ def rayset(request):
 
 
 def answers(name, rs, rays, packets, frusta, stats=None):
-    """(Hits, occluded bool[R]) of traversal ``name``."""
-    traversal = make_traversal(name)
+    """(Hits, occluded bool[R]) of traversal ``name`` (or of a variant in ``OPTIONS``)."""
+    traversal = make_traversal(*OPTIONS.get(name, (name,)))
     hits = empty_hits(rays.org.shape[0])
     traversal.intersect(rs.bvh, rs.tris, rays, packets, frusta, hits, stats)
     occluded = np.zeros(rays.org.shape[0], np.bool_)
@@ -57,7 +60,7 @@ def batch_and_reference(rs, kind, n):
 
 
 @pytest.mark.parametrize("frustum", [False, True], ids=["no-frustum", "frustum"])
-@pytest.mark.parametrize("traversal", PACKET_TRAVERSALS)
+@pytest.mark.parametrize("traversal", PACKET_TRAVERSALS + list(OPTIONS))
 @pytest.mark.parametrize("kind", RAY_KINDS)
 def test_same_hits_as_single(rayset, kind, traversal, frustum):
     for n in PACKET_SIZES:
