@@ -316,8 +316,9 @@ def table2_rows(records: list) -> list:
     """One dict per (scene, recursion, size) that has a baseline below 16×16 and a 16×16 record:
     the records of the variants (small = the baseline, ``simd`` 2×2 when present;
     plain / culled = 16×16 without / with frusta, the paper's system when present; auto = 16×16
-    by the ``auto`` traversal with frusta; a variant not measured is None) and their whole-frame and trace-only FPS, Embree's and Open3D's trace FPS
-    on the culled cell's rays (None where not measured)."""
+    by the ``auto`` traversal with frusta; a variant not measured is None) and their whole-frame
+    and trace-only FPS, Embree's and Open3D's trace FPS on the culled cell's rays (None where not
+    measured)."""
     groups = {}
     for r in records:
         groups.setdefault((r["labels"]["scene"], r["labels"]["recursion"], r["labels"]["resolution"]), []).append(r)
@@ -412,10 +413,10 @@ def table2(records: list, out: Path) -> list:
                          f"{'–' if outside is None else f'{outside:.0%}'} |")
     md = out / "table2.md"
     write_text(md, "\n".join(lines) + "\n")
-    return [md, _table2_figure(rows, out / "table2.png", open3d)]
+    return [md, _table2_figure(rows, out / "table2.png", open3d, adaptive)]
 
 
-def _table2_figure(rows: list, path: Path, open3d: bool) -> Path:
+def _table2_figure(rows: list, path: Path, open3d: bool, adaptive: bool) -> Path:
     """Two panels of grouped bars per row (log FPS): whole frames, and trace only with the
     yardsticks; the 16×16-with-culling bar is labelled with its ratio to 2×2 SIMD."""
     plt = pyplot()
@@ -429,8 +430,7 @@ def _table2_figure(rows: list, path: Path, open3d: bool) -> Path:
                                                                else ())))
     for ax, key, title, yardsticks in panels:
         series = [(label, f"C{i}", [row[key][variant] or nan for row in rows])
-                  for i, (variant, label) in enumerate(TABLE2_VARIANTS)
-                  if variant != "auto" or any(row["records"]["auto"] is not None for row in rows)]
+                  for i, (variant, label) in enumerate(TABLE2_VARIANTS) if variant != "auto" or adaptive]
         series += [(label, colour, [row[name] or nan for row in rows]) for name, label, colour in yardsticks]
         width = 0.8 / len(series)
         for s, (label, colour, values) in enumerate(series):

@@ -201,14 +201,14 @@ def choose_batch(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choi
     ``engine.packet.choose``."""
     whole, given = batch_choice(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits,
                                 EVERY_PACKET if only is None else only, per_packet, choices)
-    counts = np.zeros(N_STRATEGIES, np.int64)
     if whole >= 0:
+        counts = np.zeros(N_STRATEGIES, np.int64)
         counts[whole] = given
         return counts, whole
-    choose_packets(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices)
-    if only is not None:
+    counts = choose_packets(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices)
+    if only is not None:  # the packets left out are not walked: count the others only
         choices[only < 0] = -1
-    counts[:] = np.bincount(choices[choices >= 0], minlength=N_STRATEGIES)
+        counts = np.bincount(choices[choices >= 0], minlength=N_STRATEGIES).astype(np.int64)
     return counts, whole
 
 
