@@ -12,7 +12,7 @@ from brute_force import brute_force
 from engine.core.bvh import build_bvh
 from engine.query.frame import local_ray
 from engine.query.intersector import RayMeshIntersector
-from engine.query.leaf_blocks import leaf_blocks
+from engine.query.leaf_blocks import TRI_ROW, leaf_blocks
 from engine.query.wide import collapse
 from scenes.catalog import load_named
 
@@ -22,9 +22,11 @@ def test_every_leaf_slot_points_at_its_triangles_in_prim_order(leaf_size):
     tris = load_named("whitted", {"checks": 4, "subdivisions": 1}).triangles
     bvh = build_bvh(tris, leaf_size=leaf_size)
     box, child, size = collapse(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
-    child_blocks, lane_tri, blocks = leaf_blocks(bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
-                                                 child, size)
-    assert blocks.shape == (len(lane_tri) // 4, 9, 4) and blocks.flags.c_contiguous
+    child_blocks, block_tri, blocks = leaf_blocks(bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
+                                                  child, size)
+    assert blocks.shape == block_tri.shape == (len(blocks), 10, 4) and blocks.flags.c_contiguous
+    assert np.shares_memory(blocks, block_tri) and block_tri.dtype == np.int32
+    lane_tri = block_tri[:, TRI_ROW, :].reshape(-1)   # the triangle in each lane, block by block
     np.testing.assert_array_equal(child_blocks[size <= 0], child[size <= 0])   # inner and empty slots kept
     seen = np.zeros(len(lane_tri), bool)
     for w, s in zip(*np.nonzero(size > 0)):
@@ -35,7 +37,7 @@ def test_every_leaf_slot_points_at_its_triangles_in_prim_order(leaf_size):
         seen[lanes] = True
         for k, tri in enumerate(lane_tri[lanes[:n]]):
             g_k, j = divmod(int(lanes[k]), 4)
-            corners = blocks[g_k, :, j].reshape(3, 3)
+            corners = blocks[g_k, :TRI_ROW, j].reshape(3, 3)
             np.testing.assert_array_equal(corners, np.stack([tris.v0[tri], tris.v1[tri], tris.v2[tri]]))
     assert seen.all()   # every block belongs to exactly one leaf slot
     assert sorted(lane_tri[lane_tri >= 0]) == list(range(len(tris.v0)))

@@ -99,11 +99,8 @@ def children_vector(box, org, inv, t_lo, t_hi):
     masks = np.zeros((org.shape[0], box.shape[0]), np.int64)
     for r in range(org.shape[0]):
         for w in range(box.shape[0]):
-            mask, entry = slab1x8(box, w, org[r, 0], org[r, 1], org[r, 2], inv[r, 0], inv[r, 1], inv[r, 2],
-                                  t_lo[r], t_hi[r])
-            masks[r, w] = mask
-            for s in range(8):
-                out[r, w, s] = entry[s]
+            masks[r, w] = slab1x8(box, w, org[r, 0], org[r, 1], org[r, 2], inv[r, 0], inv[r, 1], inv[r, 2],
+                                  t_lo[r], t_hi[r], out[r, w])
     return out, masks
 
 

@@ -224,22 +224,23 @@ def test_intersect4x2_is_the_scalar_leaf_loop_on_two_simd_rays(seed, any_hit):
 
 @njit(cache=True)
 def windows_vector(rf, ri, windows, blocks):
-    """f32[LANES, W, 12]: triangles_block of every lane and window k (block k, its first n lanes)."""
-    out = np.zeros((rf.shape[1], windows.shape[0], 12), np.float32)
+    """(f32[LANES, W, 12], i64[LANES, W]): triangles_block's answers and hit masks for every lane
+    and window k (block k, its first n lanes)."""
+    out = np.full((rf.shape[1], windows.shape[0], 12), np.nan, np.float32)
+    masks = np.zeros((rf.shape[1], windows.shape[0]), np.int64)
     for r in range(rf.shape[1]):
         for k in range(windows.shape[0]):
-            res = triangles_block(blocks, k, windows[k, 1], rf[OKX, r], rf[OKY, r], rf[OKZ, r],
-                                  ri[KX, r], ri[KY, r], ri[KZ, r], rf[SX, r], rf[SY, r], rf[SZ, r], rf[TLO, r], rf[THI, r])
-            for j in range(12):
-                out[r, k, j] = res[j]
-    return out
+            masks[r, k] = triangles_block(blocks, k, windows[k, 1], rf[OKX, r], rf[OKY, r], rf[OKZ, r],
+                                          ri[KX, r], ri[KY, r], ri[KZ, r], rf[SX, r], rf[SY, r], rf[SZ, r],
+                                          rf[TLO, r], rf[THI, r], out[r, k])
+    return out, masks
 
 
 def window_blocks(windows, v0, v1, v2):
-    """f32[W,9,4]: window k's triangles first .. first+n-1 in block k's first n lanes (the
+    """f32[W,10,4]: window k's triangles first .. first+n-1 in block k's first n lanes (the
     ``engine.query.leaf_blocks`` layout); the lanes past n hold other triangles of the mesh,
-    which the test must ignore."""
-    blocks = np.empty((len(windows), 9, 4), np.float32)
+    which the test must ignore, and the last row (the triangle indices there) holds NaN."""
+    blocks = np.full((len(windows), 10, 4), np.nan, np.float32)
     for k, (first, n) in enumerate(windows):
         rows = [first + j if j < n else (first + n + 3 * j) % len(v0) for j in range(4)]
         for c, corner in enumerate((v0, v1, v2)):
@@ -282,9 +283,11 @@ def test_triangles_block_is_intersect_triangle_on_four_triangles(seed):
         for k in range(8):
             tri, n = hits[rng.integers(len(hits)), 1], windows[k, 1]
             windows[k, 0] = min(max(tri - rng.integers(0, n), 0), len(v0) - n)
-    vector = windows_vector(rf, ri, windows, window_blocks(windows, v0, v1, v2))
+    vector, masks = windows_vector(rf, ri, windows, window_blocks(windows, v0, v1, v2))
     np.testing.assert_array_equal(bits(vector), bits(windows_scalar(rf, ri, windows, v0, v1, v2)))
     assert np.isfinite(vector[:, :, :4]).any() == (len(hits) > 0)
+    lanes_hit = (np.isfinite(vector[:, :, :4]) << np.arange(4)).sum(axis=2)   # the mask: exactly the hits
+    np.testing.assert_array_equal(masks, lanes_hit)
 
 
 def test_cases_reach_the_edge_cases():

@@ -13,9 +13,9 @@ emit the <4 x float> operations themselves, as the paper's SSE code does:
   compares), so each lane's answer is exactly slab_test's.
 - ``slab4x2(rf, lane0, lane1, ...)``: the same test of two SIMD rays at once, as one <8 x float>
   test (AVX2 has 8 float lanes): an 8-bit mask, lane0's lanes in the low 4 bits.
-- ``slab1x8(box, node, ox, ..., t_hi)``: one ray against the eight child boxes of a node of
-  the mesh queries' 8-wide tree (``engine.query.wide``), as one <8 x float> test: the mask of
-  the children hit and their eight entry distances (inf: missed).
+- ``slab1x8(box, node, ox, ..., t_hi, entries)``: one ray against the eight child boxes of a node
+  of the mesh queries' 8-wide tree (``engine.query.wide``), as one <8 x float> test: the mask of
+  the children hit, their eight entry distances (inf: missed) stored in ``entries``.
 - ``planes4_box(fr, b0x, ..., b1z)`` / ``planes4_triangle(fr, ax, ..., cz)``: a box / triangle
   against the four planes of a packet frustum stored in SoA order (fr: f32[16] = nx[4], ny[4],
   nz[4], d[4]); True when it lies wholly outside one of them. Same arithmetic as the scalar
@@ -157,19 +157,23 @@ def _f32_inf_vector(width):
 
 
 @intrinsic
-def slab1x8(typingctx, box, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi):
+def slab1x8(typingctx, box, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi, entries):
     """One ray against the eight child boxes of a node of the mesh queries' 8-wide tree
     (box: f32[W,6,8], C order, rows lo x, y, z then hi x, y, z, ``engine.query.wide``; node: its
-    row), as one <8 x float> test (this machine's AVX2 width). Returns (mask, entries): bit s of
-    the int64 mask is set when child s is hit, and entries is a tuple of eight float32 entry
-    distances, each the child's ``engine.core.triangle.slab_test`` answer (inf: missed), the
-    same operations in the same order, lane by lane. A slot whose box is NaN is never hit."""
+    row), as one <8 x float> test (this machine's AVX2 width). Returns the int64 mask (bit s set
+    when child s is hit) and stores the eight entry distances in entries[0:8] (f32, C order),
+    each the child's ``engine.core.triangle.slab_test`` answer (inf: missed), the same
+    operations in the same order, lane by lane. A slot whose box is NaN is never hit.
+
+    The entries go to memory as one vector store rather than back as a tuple: a walk reads the
+    entry of a slot it picks at run time, and numba compiles ``tuple[s]`` into a jump table, one
+    indirect branch per child pushed (bunny, incoherent rays: 9% of the walk)."""
     _check_f32_array(box, 3, "box")
+    _check_f32_array(entries, 1, "entries")
     if not isinstance(node, types.Integer):
         raise TypingError(f"node must be an integer, got {node}")
     _check_scalars((ox, oy, oz, ix, iy, iz, t_lo, t_hi))
-    sig = types.Tuple((types.int64, types.UniTuple(types.float32, 8)))(box, node, ox, oy, oz, ix, iy, iz, t_lo,
-                                                                         t_hi)
+    sig = types.int64(box, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi, entries)
     width = 8
     vector = ir.VectorType(_F32, width)
 
@@ -182,7 +186,7 @@ def slab1x8(typingctx, box, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi):
             index = builder.add(builder.mul(node_, node_elems), ir.Constant(_I64, k * width))
             return builder.load(builder.bitcast(builder.gep(arr.data, [index]), vector.as_pointer()), align=4)
 
-        ray = [_splat_n(builder, v, width) for v in _float32_args(context, builder, signature, args, 2)]
+        ray = [_splat_n(builder, v, width) for v in _float32_args(context, builder, signature, args[:10], 2)]
         origin, inverse, (segment_lo, segment_hi) = ray[0:3], ray[3:6], ray[6:8]
         tn = tf = None
         for axis in range(3):
@@ -196,11 +200,10 @@ def slab1x8(typingctx, box, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi):
         tf = _min(builder, builder.fadd(tf, builder.fmul(_fabs_n(builder, tf, width), slack)), segment_hi)
         # NaN (an empty slot) fails the ordered compare: a miss.
         hit = builder.fcmp_ordered("<=", tn, tf)
-        mask = builder.zext(builder.bitcast(hit, ir.IntType(width)), _I64)
-        entry = builder.select(hit, tn, _f32_inf_vector(width))
-        entries = context.make_tuple(builder, signature.return_type.types[1],
-                                     [builder.extract_element(entry, ir.Constant(_I32, k)) for k in range(width)])
-        return context.make_tuple(builder, signature.return_type, [mask, entries])
+        out = context.make_array(signature.args[10])(context, builder, args[10])
+        builder.store(builder.select(hit, tn, _f32_inf_vector(width)), builder.bitcast(out.data, vector.as_pointer()),
+                      align=4)
+        return builder.zext(builder.bitcast(hit, ir.IntType(width)), _I64)
 
     return sig, codegen
 

@@ -317,30 +317,35 @@ def _sheared_edges(builder, w, corners, sx, sy):
 
 
 @intrinsic
-def triangles_block(typingctx, blocks, g, n, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
+def triangles_block(typingctx, blocks, g, n, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax, answers):
     """One ray against the triangles in the first n (1..4) lanes of block g of ``blocks``
-    (f32[G,9,4], C order: ``engine.query.leaf_blocks``): a tuple (t0..t3, u0..u3, v0..v3) of
-    float32, each lane's ``engine.core.triangle.intersect_triangle`` answer, bit for bit (t = inf,
-    u = v = 0 for a miss and for the lanes past n). The ray comes as ``intersect_triangle`` takes
-    it: its permuted origin okx, oky, okz, axes kx, ky, kz and shear sx, sy, sz, segment
-    [tmin, tmax]. The lanes are triangles here, so the per-ray mesh queries test four in one go;
-    each corner component is one <4 x float> load from the block's row 3 * corner + axis, at an
-    offset computed from the ray's permutation (the rows of (x, y, z) corners it replaced needed
-    36 scalar loads and inserts)."""
+    (f32[G,R,4], C order, R >= 9: ``engine.query.leaf_blocks``). Returns the int64 mask of the
+    lanes hit and stores each lane's ``engine.core.triangle.intersect_triangle`` answer, bit for
+    bit, in answers (f32, C order): t in [0:4], u in [4:8], v in [8:12] (t = inf, u = v = 0 for a
+    miss and for the lanes past n). A lane is in the mask when its t is finite. The ray comes as ``intersect_triangle`` takes it: its
+    permuted origin okx, oky, okz, axes kx, ky, kz and shear sx, sy, sz, segment [tmin, tmax].
+    The lanes are triangles here, so the per-ray mesh queries test four in one go; each corner
+    component is one <4 x float> load from the block's row 3 * corner + axis, at an offset
+    computed from the ray's permutation (the rows of (x, y, z) corners it replaced needed 36
+    scalar loads and inserts). The answers go to memory, not back as a tuple, so that a walk
+    visits the hit lanes by the mask instead of indexing a tuple by a run-time lane (a jump
+    table)."""
     _check(blocks, types.float32, 3, "blocks")
+    _check(answers, types.float32, 1, "answers")
     for x in (g, n, kx, ky, kz):
         if not isinstance(x, types.Integer):
             raise TypingError(f"expected an integer, got {x}")
     for x in (okx, oky, okz, sx, sy, sz, tmin, tmax):
         if not isinstance(x, types.Float):
             raise TypingError(f"expected a float, got {x}")
-    sig = types.UniTuple(types.float32, 12)(blocks, g, n, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax)
+    sig = types.int64(blocks, g, n, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax, answers)
     w = _Width(1)
 
     def codegen(context, builder, signature, args):
         s = signature.args
         array = context.make_array(s[0])(context, builder, args[0])
-        block = builder.mul(context.cast(builder, args[1], s[1], types.int64), ir.Constant(_I64, 36))
+        block_elems = builder.udiv(builder.extract_value(array.strides, 0), ir.Constant(_I64, 4))
+        block = builder.mul(context.cast(builder, args[1], s[1], types.int64), block_elems)
         n_ = context.cast(builder, args[2], s[2], types.int64)
         ok = [w.splat(builder, context.cast(builder, args[k], s[k], types.float32), w.f) for k in (3, 4, 5)]
         axes = [context.cast(builder, args[k], s[k], types.int64) for k in (6, 7, 8)]
@@ -368,10 +373,14 @@ def triangles_block(typingctx, blocks, g, n, okx, oky, okz, kx, ky, kz, sx, sy, 
         slots = ir.Constant(ir.VectorType(_I64, 4), [0, 1, 2, 3])
         present = builder.icmp_signed("<", slots, w.splat(builder, n_, ir.VectorType(_I64, 4)))
         hit = builder.and_(builder.and_(present, builder.not_(builder.or_(mixed, flat))), inside)
-        t_out = builder.select(hit, t, w.const(w.f, float("inf")))
-        u_out = builder.select(hit, builder.fmul(ev, rcp), zero)
-        v_out = builder.select(hit, builder.fmul(ew, rcp), zero)
-        values = [builder.extract_element(vec, ir.Constant(_I32, j)) for vec in (t_out, u_out, v_out) for j in range(4)]
-        return context.make_tuple(builder, signature.return_type, values)
+        out = builder.bitcast(context.make_array(s[14])(context, builder, args[14]).data, w.f.as_pointer())
+        builder.store(builder.select(hit, t, w.const(w.f, float("inf"))), out, align=4)
+        builder.store(builder.select(hit, builder.fmul(ev, rcp), zero), builder.gep(out, [ir.Constant(_I32, 1)]),
+                      align=4)
+        builder.store(builder.select(hit, builder.fmul(ew, rcp), zero), builder.gep(out, [ir.Constant(_I32, 2)]),
+                      align=4)
+        # The mask leaves out a t that overflowed to inf: such a lane answers as a miss.
+        counted = builder.and_(hit, builder.fcmp_ordered("<", t, w.const(w.f, float("inf"))))
+        return builder.zext(builder.bitcast(counted, ir.IntType(4)), _I64)
 
     return sig, codegen

@@ -5,7 +5,7 @@
 - ``order``: optional ray order, sorted in numba by direction octant and a Morton code of the origin.
 - ``wide``: the 8-wide BVH collapsed from the binary one (children's boxes side by side).
 - ``leaf_blocks``: the leaves' triangles in blocks of four, each corner component of the four
-  side by side, as the four-triangle test loads them.
+  side by side, as the four-triangle test loads them, and the four triangle indices.
 - ``walk``: the one inlined per-ray walk over it (closest, any, or every hit).
 - ``hits``: parallel kernels over sorted rays: first hit, any hit, all hits (count, then fill).
 - ``locations``: float64 hit points from the triangle's plane (or barycentrics).

@@ -28,11 +28,12 @@ DIRECTIONS = DIRECTIONS / np.linalg.norm(DIRECTIONS, axis=1, keepdims=True)
 
 
 @njit(cache=True, inline="always")
-def _line(box, child, size, lane_tri, blocks, ox, oy, oz, dx, dy, dz, stack, stack_t, bt, btri, bu, bv,
-          gap):
+def _line(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz, stack, stack_t, entries, answers, bt,
+          btri, bu, bv, gap):
     """(crossings ahead, crossings behind, ambiguous) of the line (ox, oy, oz) + t (dx, dy, dz)."""
-    n, _, _, _, _ = walk(box, child, size, lane_tri, blocks, ox, oy, oz, dx, dy, dz,
-                         np.float32(-np.inf), np.float32(np.inf), COLLECT, stack, stack_t, bt, btri, bu, bv, CAP)
+    n, _, _, _, _ = walk(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz,
+                         np.float32(-np.inf), np.float32(np.inf), COLLECT, stack, stack_t, entries, answers,
+                         bt, btri, bu, bv, CAP)
     if n > CAP:
         return 0, 0, True
     ambiguous = False
@@ -49,7 +50,7 @@ def _line(box, child, size, lane_tri, blocks, ox, oy, oz, dx, dy, dz, stack, sta
 
 
 @njit(cache=True, parallel=True)
-def contains_kernel(box, child, size, lane_tri, blocks, points, center, scale, lo, hi, directions, gap,
+def contains_kernel(box, child, size, block_tri, blocks, points, center, scale, lo, hi, directions, gap,
                     out):
     """out (bool[n]): is each world point (f64[n,3]) inside the closed mesh. center (f64[3]),
     scale: the mesh's frame; lo, hi (f64[3]): the mesh's box in that frame (points outside it, or
@@ -57,7 +58,7 @@ def contains_kernel(box, child, size, lane_tri, blocks, points, center, scale, l
     n = points.shape[0]
     chunk = 64
     for c in prange((n + chunk - 1) // chunk):
-        stack, stack_t = new_stack()
+        stack, stack_t, entries, answers = new_stack()
         bt, btri, bu, bv = new_hit_buffers(CAP)
         for i in range(c * chunk, min(n, (c + 1) * chunk)):
             out[i] = False
@@ -71,9 +72,9 @@ def contains_kernel(box, child, size, lane_tri, blocks, points, center, scale, l
             casts = 0
             decided = False
             for k in range(directions.shape[0]):
-                ahead, behind, unclear = _line(box, child, size, lane_tri, blocks, ox, oy, oz,
+                ahead, behind, unclear = _line(box, child, size, block_tri, blocks, ox, oy, oz,
                                                directions[k, 0], directions[k, 1], directions[k, 2],
-                                               stack, stack_t, bt, btri, bu, bv, gap)
+                                               stack, stack_t, entries, answers, bt, btri, bu, bv, gap)
                 p_forward = ahead % 2
                 p_backward = behind % 2
                 votes += p_forward + p_backward

@@ -83,8 +83,9 @@ class _Structure(NamedTuple):
     frame: MeshFrame
     bvh: BVH
     wide: tuple            # (box, child, size) of the 8-wide tree over bvh, leaf slots at blocks
-    lane_tri: np.ndarray   # i32[G*4] triangle of each block lane (engine.query.leaf_blocks)
-    blocks: np.ndarray     # f32[G,9,4] the leaves' local corners, four triangles a block
+    block_tri: np.ndarray  # i32[G,10,4] blocks' memory as int32: row 9, each lane's triangle
+    blocks: np.ndarray     # f32[G,10,4] the leaves' local corners, four triangles a block
+                           # (engine.query.leaf_blocks)
     tris: Triangles        # the local float32 triangles in face order (the packet walk's)
     order_keys: np.ndarray  # the packet walk's child_order_keys of bvh (made once: 0.5 ms a query)
 
@@ -204,9 +205,10 @@ class RayMeshIntersector:
         else:
             bvh = build_bvh(tris, leaf_size=self._leaf_size, bins=self._bins)
         box, child, size = collapse(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
-        child, lane_tri, blocks = leaf_blocks(bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2, child, size)
+        child, block_tri, blocks = leaf_blocks(bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2, child,
+                                               size)
         keys = child_order_keys(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
-        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, (box, child, size), lane_tri,
+        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, (box, child, size), block_tri,
                                            blocks, tris, keys)
         return self._structure_cache
 
@@ -252,7 +254,7 @@ class RayMeshIntersector:
 
     @staticmethod
     def _tree(s: _Structure):
-        return (*s.wide, s.lane_tri, s.blocks)
+        return (*s.wide, s.block_tri, s.blocks)
 
     @staticmethod
     def _frame_args(s: _Structure, rays: _Rays):

@@ -1,10 +1,13 @@
 """The mesh queries' leaf triangles in blocks of four, laid out as the four-triangle test loads
-them: one <4 x float> per corner and axis.
+them: one <4 x float> per corner and axis, then the four triangles' indices.
 
-    blocks: f32[G, 9, 4]   blocks[g, 3 * c + a, j]: axis a (x, y, z) of corner c (v0, v1, v2)
-                           of the block's lane j: 144 contiguous bytes a block
-    lane_tri: i32[G * 4]   the triangle (row of the local ``Triangles``) in each lane; -1 in the
-                           padding lanes of a leaf's last block (which repeat its last triangle)
+    blocks: f32[G, 10, 4]     blocks[g, 3 * c + a, j]: axis a (x, y, z) of corner c (v0, v1, v2)
+                              of the block's lane j; row 9 (``TRI_ROW``) holds the lanes'
+                              triangle indices as int32 bits: 160 contiguous bytes a block
+    block_tri: i32[G, 10, 4]  the same memory as int32 (``blocks.view(np.int32)``): block_tri[g,
+                              TRI_ROW, j] is the triangle (row of the local ``Triangles``) in
+                              lane j; -1 in the padding lanes of a leaf's last block (which
+                              repeat its last triangle)
 
 A leaf of n triangles takes ceil(n / 4) consecutive blocks, the leaves in the BVH's ``prim``
 order, so a walk meets the triangles in the same order as in ``prim``. The 8-wide tree's leaf
@@ -13,20 +16,25 @@ slots point at their leaf's first block (``child``); ``size`` stays its number o
 Why: the four-triangle test (``engine.packet.simd4_triangle.triangles_block``) picks each
 corner's components by the ray's axis permutation. From rows of (x, y, z) corners that took 36
 scalar loads and 36 inserts a group; from these blocks it is 9 vector loads at computed offsets.
+The indices sit in the block because a walk that finds a hit reads its lane's index next: kept in
+an array of their own, that read was a cache miss of its own (the bunny's incoherent rays: 3.5%
+of the walk's time on that one load).
 """
 import numpy as np
 from numba import njit
 
 LANES = 4
-ROWS = 9  # 3 corners x 3 axes
+TRI_ROW = 9  # after 3 corners x 3 axes
+ROWS = 10
 
 
 @njit(cache=True)
 def leaf_blocks(first, count, prim, v0, v1, v2, child, size):
-    """(child_blocks i32[W,8], lane_tri i32[G*4], blocks f32[G,9,4]) for the binary BVH's leaves
-    (first, count i32[N], prim i32[P]), the local triangle corners v0, v1, v2 (f32[T,3], triangle
-    order) and the 8-wide tree's child, size (i32[W,8], ``engine.query.wide``): child_blocks is
-    child with every leaf slot's first prim row replaced by its first block."""
+    """(child_blocks i32[W,8], block_tri i32[G,10,4], blocks f32[G,10,4]) for the binary BVH's
+    leaves (first, count i32[N], prim i32[P]), the local triangle corners v0, v1, v2 (f32[T,3],
+    triangle order) and the 8-wide tree's child, size (i32[W,8], ``engine.query.wide``):
+    child_blocks is child with every leaf slot's first prim row replaced by its first block;
+    block_tri is blocks' memory as int32 (see the module doc)."""
     leaves = np.flatnonzero(count > 0)
     order = np.argsort(first[leaves])
     block_of_row = np.full(prim.shape[0], -1, np.int32)
@@ -36,7 +44,8 @@ def leaf_blocks(first, count, prim, v0, v1, v2, child, size):
         block_of_row[first[leaf]] = n_blocks
         n_blocks += (count[leaf] + LANES - 1) // LANES
     blocks = np.empty((n_blocks, ROWS, LANES), np.float32)
-    lane_tri = np.full(n_blocks * LANES, -1, np.int32)
+    block_tri = blocks.view(np.int32)
+    block_tri[:, TRI_ROW, :] = -1
     for k in order:
         leaf = leaves[k]
         g0 = block_of_row[first[leaf]]
@@ -46,7 +55,7 @@ def leaf_blocks(first, count, prim, v0, v1, v2, child, size):
             j = slot % LANES
             tri = prim[first[leaf] + min(slot, n - 1)]   # padding repeats the last triangle
             if slot < n:
-                lane_tri[g * LANES + j] = tri
+                block_tri[g, TRI_ROW, j] = tri
             for a in range(3):
                 blocks[g, a, j] = v0[tri, a]
                 blocks[g, 3 + a, j] = v1[tri, a]
@@ -56,4 +65,4 @@ def leaf_blocks(first, count, prim, v0, v1, v2, child, size):
         for s in range(child.shape[1]):
             if size[w, s] > 0:
                 child_blocks[w, s] = block_of_row[child[w, s]]
-    return child_blocks, lane_tri, blocks
+    return child_blocks, block_tri, blocks

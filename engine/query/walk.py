@@ -17,7 +17,11 @@ Triangles are the watertight test's float32 corners in the mesh's local frame, i
 four per leaf (``engine.query.leaf_blocks``), in the BVH's ``prim`` order. A node's eight child
 boxes are one <8 x float> test (``engine.packet.simd4.slab1x8``) and a leaf's blocks are tested
 one at a time (``engine.packet.simd4_triangle.triangles_block``), each lane the scalar
-watertight test's operations: numba leaves such small loops scalar.
+watertight test's operations: numba leaves such small loops scalar. Both tests store their lanes'
+answers in the walk's scratch (``new_stack``) and return a mask of the lanes hit, which the walk
+visits bit by bit: a tuple indexed by a run-time lane compiles to a jump table, and its indirect
+branches were the walk's costliest mispredictions. The stack is indexed by an unsigned counter,
+so numba adds no negative-index wraparound to its loads and stores.
 """
 import numpy as np
 from numba import njit
@@ -26,6 +30,7 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 from engine.core.triangle import F32_INF, F32_ONE, HUGE_INV, closer, ray_shear
 from engine.packet.simd4 import slab1x8
 from engine.packet.simd4_triangle import triangles_block
+from engine.query.leaf_blocks import TRI_ROW
 from engine.query.wide import WIDTH
 from engine.core.types import MAX_BVH_DEPTH
 
@@ -45,9 +50,11 @@ def safe_inverse1(d):
 
 @njit(cache=True)
 def new_stack():
-    """Scratch for one thread's walks: (stack i32[STACK_SIZE, 2]: node (or first triangle) and
-    size of each entry, stack_t f32[STACK_SIZE]: its entry distance)."""
-    return np.empty((STACK_SIZE, 2), np.int32), np.empty(STACK_SIZE, np.float32)
+    """Scratch for one thread's walks: (stack i32[STACK_SIZE, 2]: node (or first block) and size
+    of each entry, stack_t f32[STACK_SIZE]: its entry distance, entries f32[8]: the last node
+    test's child entry distances, answers f32[12]: the last leaf block's t, u, v per lane)."""
+    return (np.empty((STACK_SIZE, 2), np.int32), np.empty(STACK_SIZE, np.float32), np.empty(8, np.float32),
+            np.empty(12, np.float32))
 
 
 @njit(cache=True)
@@ -58,17 +65,17 @@ def new_hit_buffers(cap):
 
 
 @njit(cache=True, inline="always")  # inlined: a call per ray costs as much as a short walk
-def walk(box, child, size, lane_tri, blocks, ox, oy, oz, dx, dy, dz, t_lo, t_hi, mode, stack, stack_t,
-         buf_t, buf_tri, buf_u, buf_v, cap):
+def walk(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz, t_lo, t_hi, mode, stack, stack_t,
+         entries, answers, buf_t, buf_tri, buf_u, buf_v, cap):
     """Walk the ray (ox, oy, oz) + t (dx, dy, dz) (f32 scalars, local frame, non-zero direction)
     over [t_lo, t_hi] through the 8-wide tree (box, child, size: ``engine.query.wide``).
 
-    lane_tri i32[G*4], blocks f32[G,9,4]: the leaves' triangles (``engine.query.leaf_blocks``;
-    a leaf slot's child is its first block). Returns (n, t, tri, u, v): tri is a triangle (mesh
-    face) index. For CLOSEST / ANY, n is 1 on a hit and (t, tri, u, v) the hit;
-    for COLLECT, n is the number of hits (all of them, even past ``cap``); the first min(n, cap)
-    are in buf_t, buf_tri, buf_u, buf_v (f32/i32/f32/f32[cap]) in the order found.
-    stack, stack_t: scratch from ``new_stack``.
+    blocks f32[G,10,4], block_tri (its int32 view): the leaves' triangles
+    (``engine.query.leaf_blocks``; a leaf slot's child is its first block). Returns
+    (n, t, tri, u, v): tri is a triangle (mesh face) index. For CLOSEST / ANY, n is 1 on a hit
+    and (t, tri, u, v) the hit; for COLLECT, n is the number of hits (all of them, even past
+    ``cap``); the first min(n, cap) are in buf_t, buf_tri, buf_u, buf_v (f32/i32/f32/f32[cap]) in
+    the order found. stack, stack_t, entries, answers: scratch from ``new_stack``.
     """
     best_t = F32_INF
     best_tri = -1
@@ -82,35 +89,36 @@ def walk(box, child, size, lane_tri, blocks, ox, oy, oz, dx, dy, dz, t_lo, t_hi,
     okz = ox if kz == 0 else (oy if kz == 1 else oz)
     node = 0  # the current entry: a wide node (leaf 0) or a leaf's first block and triangle count
     leaf = 0
-    top = 0
+    one = np.uint64(1)
+    top = np.uint64(0)
     while True:
         if leaf > 0:
             for done in range(0, leaf, 4):
                 # A block of up to four triangles in one <4 x float> test; within a block a hit
                 # does not shrink the others' segment, but ``closer`` drops any hit beyond it.
                 g = node + done // 4
-                group = min(4, leaf - done)
-                tuv = triangles_block(blocks, g, group, okx, oky, okz, kx, ky, kz, sx, sy, sz, t_lo, t_hi)
-                for j in range(group):
-                    t = tuv[j]
-                    if t == F32_INF:
-                        continue
-                    tri = lane_tri[4 * g + j]
+                lanes = triangles_block(blocks, g, min(4, leaf - done), okx, oky, okz, kx, ky, kz, sx, sy, sz,
+                                        t_lo, t_hi, answers)
+                while lanes != 0:  # the lanes hit, in lane order
+                    j = trailing_zeros(lanes)
+                    lanes &= lanes - 1
+                    t = answers[j]
+                    tri = block_tri[g, TRI_ROW, j]
                     if mode == COLLECT:
                         if n < cap:
                             buf_t[n] = t
                             buf_tri[n] = tri
-                            buf_u[n] = tuv[4 + j]
-                            buf_v[n] = tuv[8 + j]
+                            buf_u[n] = answers[4 + j]
+                            buf_v[n] = answers[8 + j]
                         n += 1
                     elif closer(t, tri, best_t, best_tri):
-                        best_t, best_tri, best_u, best_v = t, tri, tuv[4 + j], tuv[8 + j]
+                        best_t, best_tri, best_u, best_v = t, tri, answers[4 + j], answers[8 + j]
                         n = 1
                         if mode == ANY:
                             return n, best_t, best_tri, best_u, best_v
                         t_hi = t  # CLOSEST: nothing beyond this hit matters any more
         else:
-            hit, entry = slab1x8(box, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi)
+            hit = slab1x8(box, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi, entries)
             if hit != 0:
                 if hit & (hit - 1) == 0:  # one child hit: straight there, no stack traffic
                     s = trailing_zeros(hit)
@@ -123,28 +131,28 @@ def walk(box, child, size, lane_tri, blocks, ox, oy, oz, dx, dy, dz, t_lo, t_hi,
                 while hit != 0:
                     s = trailing_zeros(hit)
                     hit &= hit - 1
-                    tn = entry[s]
+                    tn = entries[s]
                     j = top
-                    while mode == CLOSEST and j > base and stack_t[j - 1] < tn:
-                        stack[j, 0] = stack[j - 1, 0]
-                        stack[j, 1] = stack[j - 1, 1]
-                        stack_t[j] = stack_t[j - 1]
-                        j -= 1
+                    while mode == CLOSEST and j > base and stack_t[j - one] < tn:
+                        stack[j, 0] = stack[j - one, 0]
+                        stack[j, 1] = stack[j - one, 1]
+                        stack_t[j] = stack_t[j - one]
+                        j -= one
                     stack[j, 0] = child[node, s]
                     stack[j, 1] = size[node, s]
                     stack_t[j] = tn
-                    top += 1
-                top -= 1
+                    top += one
+                top -= one
                 node = stack[top, 0]
                 leaf = stack[top, 1]
                 continue
         # A leaf done or a node missed: the nearest entry left that is not beyond the segment
         # (CLOSEST shrinks it).
-        while top > 0 and stack_t[top - 1] > t_hi:
-            top -= 1
+        while top > 0 and stack_t[top - one] > t_hi:
+            top -= one
         if top == 0:
             return n, best_t, best_tri, best_u, best_v
-        top -= 1
+        top -= one
         node = stack[top, 0]
         leaf = stack[top, 1]
 
