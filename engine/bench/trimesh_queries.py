@@ -10,7 +10,8 @@ timed and checked against each other.
     rays = 200000                   # rays per first / any query
     all_rays = 50000                # rays per all-hits query (trimesh re-casts from every hit)
     points = 50000                  # points per contains query
-    render_path = true              # also time the render path's primary packets (coherent ray sets)
+    render_path = true              # also time the render path's primary packets on the camera rays,
+                                    # interleaved with the first-hit query on them
 
     [[mesh]]                        # catalog scenes, as in the other matrices
     scene = "bunny"
@@ -134,9 +135,30 @@ def agreement(query: str, mesh, ours, theirs, origins=None, directions=None) -> 
     return int((np.asarray(ours) == np.asarray(theirs)).sum())
 
 
-def render_path_rate(scene, width: int, repeat: int) -> float:
-    """Mrays/s of the render path's primary query (camera rays in n x n packets, Ranged + pinhole
-    frusta, as the paper's renders trace them) on a width x width image of the scene."""
+def _paired_median_seconds(first, second, repeat: int):
+    """(seconds of first, answer of first, seconds of second): medians of ``repeat`` calls of
+    each, alternating which goes first, after each one's warm-up. For two packetrt calls whose
+    ratio is quoted: timed one after the other, this host's drift between the two stretches of
+    calls (10-30%) moved the ratio more than any change measured (bunny camera rays, API against
+    the render path: 1.63-2.06x in three matrix runs, 1.49-1.53x interleaved)."""
+    _median_seconds(first, 1)
+    _median_seconds(second, 1)
+    times_first, times_second = [], []
+    answer = None
+    for k in range(repeat):
+        for call, times in ((first, times_first), (second, times_second))[::1 if k % 2 == 0 else -1]:
+            start = time.perf_counter()
+            result = call()
+            times.append(time.perf_counter() - start)
+            if call is first:
+                answer = result
+    return float(np.median(times_first)), answer, float(np.median(times_second))
+
+
+def render_path_trace(scene, width: int):
+    """(call, rays): a call that traces the render path's primary query once (camera rays in
+    8 x 8 packets, Ranged + pinhole frusta, as the paper's renders trace them) on a width x width
+    image of the scene, and its number of rays."""
     from engine.core.bvh import build_bvh, scene_bounds
     from engine.packet.layout import make_batch
     from engine.render.camera import camera_rays
@@ -151,8 +173,7 @@ def render_path_rate(scene, width: int, repeat: int) -> float:
     count = width * width
     rays, packets = make_batch("primary", org, d, np.zeros(count), np.full(count, np.inf),
                                np.arange(count, dtype=np.int32), np.ones((count, 3)), width, width, 8)
-    seconds, _ = _median_seconds(lambda: tracer.trace("primary", "intersect", rays, packets), repeat)
-    return count / seconds / 1e6
+    return (lambda: tracer.trace("primary", "intersect", rays, packets)), count
 
 
 def run(spec: dict, out: Path, progress=print) -> list:
@@ -175,7 +196,7 @@ def run(spec: dict, out: Path, progress=print) -> list:
         cam_o, cam_d = camera_rays(scene, side, side)
         ray_sets = {"incoherent": incoherent_rays(mesh, spec["rays"]),
                     "primary": (cam_o.astype(np.float64), cam_d.astype(np.float64))}
-        render_rate = render_path_rate(scene, side, spec["repeat"]) if spec["render_path"] else None
+        render_call, render_rays = render_path_trace(scene, side) if spec["render_path"] else (None, 0)
         rng = np.random.default_rng(1)
         points = rng.uniform(*mesh.bounds, size=(spec["points"], 3))
         for set_name, (origins, directions) in ray_sets.items():
@@ -192,7 +213,14 @@ def run(spec: dict, out: Path, progress=print) -> list:
                 else:
                     args, call = (points,), "contains_points"
                 t_theirs, a_theirs = _median_seconds(lambda: getattr(theirs, call)(*args), spec["repeat"])
-                t_ours, a_ours = _median_seconds(lambda: getattr(ours, call)(*args), spec["repeat"])
+                render_rate = None
+                if render_call is not None and set_name == "primary" and query == "first":
+                    # The render path's primary trace on the same camera, interleaved with this query.
+                    t_ours, a_ours, t_render = _paired_median_seconds(lambda: getattr(ours, call)(*args),
+                                                                      render_call, spec["repeat"])
+                    render_rate = render_rays / t_render / 1e6
+                else:
+                    t_ours, a_ours = _median_seconds(lambda: getattr(ours, call)(*args), spec["repeat"])
                 n = len(args[0])
                 agree = agreement(query, mesh, a_ours, a_theirs, *args) if query != "contains" else \
                     agreement(query, mesh, a_ours, a_theirs)
@@ -201,7 +229,7 @@ def run(spec: dict, out: Path, progress=print) -> list:
                           "trimesh_seconds": t_theirs, "packetrt_seconds": t_ours,
                           "trimesh_mrays": n / t_theirs / 1e6, "packetrt_mrays": n / t_ours / 1e6,
                           "speedup": t_theirs / t_ours, "agree": agree,
-                          "render_path_mrays": render_rate if set_name == "primary" and query == "first" else None}
+                          "render_path_mrays": render_rate}
                 records.append(record)
                 progress(f"{label:>14} {record['rays']:>10} {query:>8}: trimesh {record['trimesh_mrays']:6.2f}  "
                          f"packetrt {record['packetrt_mrays']:6.2f} Mrays/s  x{record['speedup']:.2f}  "
