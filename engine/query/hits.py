@@ -8,6 +8,14 @@ blocks) and the leaves' triangles in blocks of four (block_tri i32[G*4], blocks 
 moved into the local frame as it is walked (``frame.local_ray``), so no float32 copy of the
 batch is made; a bad ray is a miss with ok[ray] False. Threads take contiguous chunks of rows.
 
+The parallel kernels move the next ray into the local frame before walking the current one.
+That step is a square root and divisions in double, about 40 cycles of latency, and a walk
+cannot start before it ends; computed a ray ahead it runs while the current ray's first nodes
+load (the out-of-order core does not look that far ahead across a walk's loop by itself).
+Incoherent first hits, 200k rays, one thread, medians of 15 in one process: kitchen 27.0 -> 24.9
+ms, bunny 65-73 -> 62-69 ms; the same answers. A float32 local copy of the rays made beforehand
+walked in 23.5 ms on the kitchen, but costs a pass of its own.
+
 - ``first_hit_kernel``: closest (or any) hit per ray.
 - ``collect_hits_kernel``: every hit per ray in one walk, into per-thread scratch, sorted by
   distance, merged where one crossing reported two triangles, cut to ``max_hits`` and kept in a
@@ -42,12 +50,16 @@ def first_hit_kernel(box, child, size, block_tri, blocks, origins, directions, c
     mode = ANY if any_hit else CLOSEST
     for c in prange((n + CHUNK - 1) // CHUNK):
         stack, stack_t, entries, answers = new_stack()
-        for k in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
+        end = min(n, (c + 1) * CHUNK)
+        ahead = local_ray(origins, directions, rows[c * CHUNK], center, scale)
+        for k in range(c * CHUNK, end):
             r = rows[k]
             out_tri[r] = -1
             out_u[r] = 0
             out_v[r] = 0
-            good, ox, oy, oz, dx, dy, dz = local_ray(origins, directions, r, center, scale)
+            good, ox, oy, oz, dx, dy, dz = ahead
+            if k + 1 < end:  # the next ray, a step ahead (see the module doc)
+                ahead = local_ray(origins, directions, rows[k + 1], center, scale)
             ok[r] = good
             if not good:
                 continue
@@ -71,10 +83,14 @@ def collect_hits_kernel(box, child, size, block_tri, blocks, origins, directions
     for c in prange((n + CHUNK - 1) // CHUNK):
         stack, stack_t, entries, answers = new_stack()
         st, stri, su, sv = new_hit_buffers(SCRATCH)
-        for k in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
+        end = min(n, (c + 1) * CHUNK)
+        ahead = local_ray(origins, directions, rows[c * CHUNK], center, scale)
+        for k in range(c * CHUNK, end):
             kept[k] = 0
             r = rows[k]
-            good, ox, oy, oz, dx, dy, dz = local_ray(origins, directions, r, center, scale)
+            good, ox, oy, oz, dx, dy, dz = ahead
+            if k + 1 < end:  # the next ray, a step ahead (see the module doc)
+                ahead = local_ray(origins, directions, rows[k + 1], center, scale)
             ok[r] = good
             if not good:
                 continue
