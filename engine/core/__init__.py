@@ -1,1 +1,1 @@
-"""Infrastructure every layer stands on: the data contracts, errors, scene model, BVH, the watertight triangle test, ray offsets, the plugin registry, the Embree scene wrapper and the JIT-cache guard. Imports nothing above it."""
+"""Infrastructure every layer stands on: the data contracts, errors, scene model, BVH, the watertight triangle test, ray offsets, the plugin registry, the Embree scene wrapper, the JIT-cache guard and the codegen helpers of numba intrinsics (eight-lane vectors, prefetch). Imports nothing above it."""

@@ -21,12 +21,15 @@ watertight test's operations: numba leaves such small loops scalar. Both tests s
 answers in the walk's scratch (``new_stack``) and return a mask of the lanes hit, which the walk
 visits bit by bit: a tuple indexed by a run-time lane compiles to a jump table, and its indirect
 branches were the walk's costliest mispredictions. The stack is indexed by an unsigned counter,
-so numba adds no negative-index wraparound to its loads and stores.
+so numba adds no negative-index wraparound to its loads and stores. A child pushed on the stack
+has its row (node boxes or leaf block) prefetched as it is pushed: on the bunny's incoherent
+rays the walk's time went mostly to cache misses on those rows.
 """
 import numpy as np
 from numba import njit
 from numba.cpython.unsafe.numbers import trailing_zeros
 
+from engine.core.prefetch import prefetch_row
 from engine.core.triangle import F32_INF, F32_ONE, HUGE_INV, closer, ray_shear
 from engine.packet.simd4 import slab1x8
 from engine.packet.simd4_triangle import triangles_block
@@ -138,8 +141,16 @@ def walk(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz, t_lo, t_hi
                         stack[j, 1] = stack[j - one, 1]
                         stack_t[j] = stack_t[j - one]
                         j -= one
-                    stack[j, 0] = child[node, s]
-                    stack[j, 1] = size[node, s]
+                    pushed = child[node, s]
+                    pushed_size = size[node, s]
+                    # Its row is fetched now, while the nearer subtrees are walked
+                    # (``engine.core.prefetch``).
+                    if pushed_size > 0:
+                        prefetch_row(blocks, pushed)
+                    else:
+                        prefetch_row(box, pushed)
+                    stack[j, 0] = pushed
+                    stack[j, 1] = pushed_size
                     stack_t[j] = tn
                     top += one
                 top -= one
