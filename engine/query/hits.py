@@ -1,8 +1,8 @@
 """Parallel query kernels over rays.
 
 Every kernel takes the 8-wide tree's arrays (``engine.query.wide``, leaf slots pointing at
-blocks) and the leaves' triangles in blocks of four (block_tri i32[G*4], blocks f32[G,9,4]:
-``engine.query.leaf_blocks``), the world rays origins, directions
+blocks) and the leaves' triangles in blocks of four (blocks f32[G,10,4] and block_tri, their
+int32 view: ``engine.query.leaf_blocks``), the world rays origins, directions
 (f64[n,3], any direction length) with the mesh frame's center (f64[3]) and scale, and
 ``rows`` (i64[n]): row k walks input ray rows[k] (``order.ray_order``, or 0..n-1). Each ray is
 moved into the local frame as it is walked (``frame.local_ray``), so no float32 copy of the
