@@ -13,9 +13,9 @@ most of the 32 got. Small batches go whole because splitting them measured slowe
 scenes at 256x256 a batch walked by two strategies in two passes lost to the better single
 strategy by up to 18%, where a packet's whole walk costs about a microsecond, while the
 kitchen's 1024x1024 reflection batch (1,710 16x16 packets) walked 17% faster chosen packet by
-packet than whole by the sample's majority (Ranged) (see the README). The packets are walked by the chosen strategy's own copy of the
-one packet walk (``engine.packet.walk``), so their hits are the other traversals' hits, bit for
-bit.
+packet than whole by the sample's majority (Ranged) (see the README). The packets are walked by
+the chosen strategy's own copy of the one packet walk (``engine.packet.walk``), so their hits are
+the other traversals' hits, bit for bit.
 
 Options (``[options.auto]``), each defaulting to the fitted value in
 ``engine/packet/auto_thresholds.json`` (``tools/fit_auto.py``):

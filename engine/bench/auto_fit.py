@@ -22,9 +22,9 @@ small resolution. Per (scene, packet size):
    search over every combination (``fit_limits``).
 5. **Measure.** Every batch of the frame replayed through the renderer's ``Tracer`` (frustum
    build + query, as a render times it) with ``ranged``, ``partition``, ``auto`` (the fitted
-   thresholds) and ``auto`` with every split batch chosen packet by packet, interleaved, ``measure_repeat`` times on
-   ``threads`` threads (0: all); median trace time per frame and kind. Both autos' answers are
-   checked equal to Partition's.
+   thresholds) and ``auto`` with every split batch chosen packet by packet, interleaved,
+   ``measure_repeat`` times on ``threads`` threads (0: all); median trace time per frame and
+   kind. Both autos' answers are checked equal to Partition's.
 
 Writes the thresholds file (``engine/packet/auto_thresholds.json`` by default), a markdown
 report and, beside it, a figure of the measurement (``figure``: the report's name with .png),
@@ -240,8 +240,8 @@ def collect(scenes, packets, size, repeat, log, threads=0):
 def measure(frames, limits, repeat, log):
     """{(scene, packet, kind): {traversal: median seconds per frame}} of replaying each frame's
     batches with ranged, partition, auto (``limits``) and "auto/packet" (the same limits, every
-    batch whose sample is split chosen packet by packet: ``split_min_packets = 0``), interleaved; and {(scene, packet, kind): auto's
-    packets per strategy}. Both autos' answers must equal Partition's."""
+    batch whose sample is split chosen packet by packet: ``split_min_packets = 0``), interleaved;
+    and {(scene, packet, kind): auto's packets per strategy}. Both autos' answers must equal Partition's."""
     names = ("ranged", "partition", "auto", "auto/packet")
     options = {"auto": limits, "auto/packet": {**limits, "split_min_packets": 0}}
     out, counts = {}, {}

@@ -322,14 +322,14 @@ def triangles_block(typingctx, blocks, g, n, okx, oky, okz, kx, ky, kz, sx, sy, 
     (f32[G,R,4], C order, R >= 9: ``engine.query.leaf_blocks``). Returns the int64 mask of the
     lanes hit and stores each lane's ``engine.core.triangle.intersect_triangle`` answer, bit for
     bit, in answers (f32, C order): t in [0:4], u in [4:8], v in [8:12] (t = inf, u = v = 0 for a
-    miss and for the lanes past n). A lane is in the mask when its t is finite. The ray comes as ``intersect_triangle`` takes it: its
-    permuted origin okx, oky, okz, axes kx, ky, kz and shear sx, sy, sz, segment [tmin, tmax].
-    The lanes are triangles here, so the per-ray mesh queries test four in one go; each corner
-    component is one <4 x float> load from the block's row 3 * corner + axis, at an offset
-    computed from the ray's permutation (the rows of (x, y, z) corners it replaced needed 36
-    scalar loads and inserts). The answers go to memory, not back as a tuple, so that a walk
-    visits the hit lanes by the mask instead of indexing a tuple by a run-time lane (a jump
-    table)."""
+    miss and for the lanes past n). A lane is in the mask when its t is finite. The ray comes as
+    ``intersect_triangle`` takes it: its permuted origin okx, oky, okz, axes kx, ky, kz and shear
+    sx, sy, sz, segment [tmin, tmax]. The lanes are triangles here, so the per-ray mesh queries
+    test four in one go; each corner component is one <4 x float> load from the block's row
+    3 * corner + axis, at an offset computed from the ray's permutation (the rows of (x, y, z)
+    corners it replaced needed 36 scalar loads and inserts). The answers go to memory, not back
+    as a tuple, so that a walk visits the hit lanes by the mask instead of indexing a tuple by a
+    run-time lane (a jump table)."""
     _check(blocks, types.float32, 3, "blocks")
     _check(answers, types.float32, 1, "answers")
     for x in (g, n, kx, ky, kz):

@@ -14,8 +14,8 @@ intersector's order (the caller's, or ``order="morton"``) into packets of ``PACK
 given frusta and walked by Ranged. A packet whose rays share one origin gets the pinhole frustum
 the render path gives camera rays, any other the general one (``PINHOLE_OR_GENERAL``): on 447 x
 447 camera rays of the bunny (two threads) the pinhole frusta are cheaper to build and cull
-more, and a query took 9.7 ms against 10.5-11.2 with general frusta. The answers are the per-ray walk's, bit for bit: the
-same float32 rays, triangles, watertight test and tie rule.
+more, and a query took 9.7 ms against 10.5-11.2 with general frusta. The answers are the per-ray
+walk's, bit for bit: the same float32 rays, triangles, watertight test and tie rule.
 
 Camera rays given row by row are walked in 8 x 8 tiles, as the render path walks them: a tile
 of 64 rays has a quarter of the perimeter of a 64-ray strip of a row, and its packet visits
