@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from engine.bench.trimesh_queries import _paired_median_seconds, parse, run
+from engine.bench.trimesh_queries import _alternating_seconds, _paired_times, parse, run
 from engine.core.errors import ConfigError
 from engine.render.config import read_toml
 
@@ -42,14 +42,35 @@ def test_paired_timing_alternates_which_call_goes_first():
     order = []
     first = lambda: order.append("a") or "answer"
     second = lambda: order.append("b")
-    seconds_a, answer, seconds_b = _paired_median_seconds(first, second, 4)
+    seconds_a, answer, seconds_b = _paired_times(first, second, 4)
     timed = order[-8:]
     assert timed == ["a", "b", "b", "a", "a", "b", "b", "a"]
-    assert order.index("b") > 0 and answer == "answer" and seconds_a >= 0 and seconds_b >= 0
+    assert order.index("b") > 0 and answer == "answer" and len(seconds_a) == len(seconds_b) == 4
+
+
+def test_the_backends_are_timed_in_alternating_rounds():
+    """trimesh's and packetrt's timed calls come in blocks that alternate, the side going first
+    changing from round to round, every repeat made once; each side's median and last answer
+    come back."""
+    blocks = []
+
+    def side(name):
+        def timed(k):
+            blocks.append((name, k))
+            return [0.001 * (len(blocks))] * k, name
+        return timed
+
+    (t_a, answer_a), (t_b, answer_b) = _alternating_seconds([side("a"), side("b")], 11, 3)
+    assert blocks == [("a", 4), ("b", 4), ("b", 4), ("a", 4), ("a", 3), ("b", 3)]
+    assert (answer_a, answer_b) == ("a", "b") and t_a == pytest.approx(0.004) and t_b == pytest.approx(0.003)
+    blocks.clear()
+    _alternating_seconds([side("a"), side("b")], 2, 5)  # more rounds than repeats: a call a round
+    assert blocks == [("a", 1), ("b", 1), ("b", 1), ("a", 1)]
 
 
 @pytest.mark.parametrize("data,words", [
     ({"mesh": [{"scene": "bunny"}], "rays": 0}, "rays"),
+    ({"mesh": [{"scene": "bunny"}], "rounds": 0}, "rounds"),
     ({"mesh": [{"scene": "bunny"}], "queries": ["closest"]}, "closest"),
     ({"mesh": []}, "[[mesh]]"),
     ({"mesh": [{"scene": "bunny"}], "colour": 1}, "colour"),

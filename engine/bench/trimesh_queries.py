@@ -5,6 +5,8 @@ timed and checked against each other.
     kind = "trimesh"
     name = "trimesh"
     repeat = 5                      # timed repeats per query and backend (medians reported)
+    rounds = 3                      # the repeats split into this many blocks per backend, the two
+                                    # backends' blocks alternating (see ``_alternating_seconds``)
     threads = 0                     # numba threads for packetrt (0 = all); trimesh's embreex is one thread
     queries = ["first", "any", "all", "contains"]
     rays = 200000                   # rays per first / any query
@@ -41,7 +43,7 @@ from engine.core.atomic import output_folder, plain_json, write_text
 from engine.core.errors import ConfigError
 
 QUERIES = ("first", "any", "all", "contains")
-KEYS = ("kind", "name", "description", "repeat", "threads", "queries", "rays", "all_rays", "points",
+KEYS = ("kind", "name", "description", "repeat", "rounds", "threads", "queries", "rays", "all_rays", "points",
         "render_path", "mesh")
 
 
@@ -51,11 +53,12 @@ def parse(data: dict, source: str, repeat: int | None = None) -> dict:
     if unknown:
         raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)}; allowed: {', '.join(KEYS)}")
     spec = {"name": data.get("name", Path(source).stem), "description": data.get("description", ""),
-            "repeat": repeat or data.get("repeat", 5), "threads": data.get("threads", 0),
+            "repeat": repeat or data.get("repeat", 5), "rounds": data.get("rounds", 3),
+            "threads": data.get("threads", 0),
             "queries": data.get("queries", list(QUERIES)), "rays": data.get("rays", 200000),
             "all_rays": data.get("all_rays", 50000), "points": data.get("points", 50000),
             "render_path": data.get("render_path", True), "mesh": data.get("mesh", [])}
-    for key in ("repeat", "threads", "rays", "all_rays", "points"):
+    for key in ("repeat", "rounds", "threads", "rays", "all_rays", "points"):
         value = spec[key]
         if isinstance(value, bool) or not isinstance(value, int) or value < (0 if key == "threads" else 1):
             raise ConfigError(f"{source}: {key} must be a positive integer, got {value!r}")
@@ -98,17 +101,42 @@ WARM_UP_SECONDS = 0.3
 WARM_UP_CALLS = 10
 
 
-def _median_seconds(call, repeat: int):
+def _warm_up(call) -> None:
     start, calls = time.perf_counter(), 0
     while calls == 0 or (time.perf_counter() - start < WARM_UP_SECONDS and calls < WARM_UP_CALLS):
         call()  # JIT compilation, caches, threads and clocks up to speed
         calls += 1
+
+
+def _timed_calls(call, repeat: int):
+    """(seconds of each of ``repeat`` calls, the last answer), after the warm-up."""
+    _warm_up(call)
     times = []
+    answer = None
     for _ in range(repeat):
         start = time.perf_counter()
         answer = call()
         times.append(time.perf_counter() - start)
-    return float(np.median(times)), answer
+    return times, answer
+
+
+def _alternating_seconds(sides, repeat: int, rounds: int):
+    """[(median seconds, answer)] of each side, ``sides`` being callables ``timed(k) -> (list of
+    seconds, answer)`` that make k timed calls after their own warm-up. The ``repeat`` calls of
+    each side are made in ``rounds`` blocks, the sides' blocks alternating and the side that goes
+    first changing from round to round, so that a drift of this host over the seconds a query
+    takes lands on every side alike. Timed as one stretch per side, trimesh's then packetrt's,
+    the same matrix read the bunny's incoherent first hits at 1.57-2.00x in six runs (session 22)."""
+    rounds = max(1, min(rounds, repeat))
+    times = [[] for _ in sides]
+    answers = [None] * len(sides)
+    for r in range(rounds):
+        calls = repeat // rounds + (1 if r < repeat % rounds else 0)
+        order = range(len(sides)) if r % 2 == 0 else reversed(range(len(sides)))
+        for k in order:
+            seconds, answers[k] = sides[k](calls)
+            times[k] += seconds
+    return [(float(np.median(t)), a) for t, a in zip(times, answers)]
 
 
 def _plane_t(mesh, origins, directions, ray, tri):
@@ -135,14 +163,15 @@ def agreement(query: str, mesh, ours, theirs, origins=None, directions=None) -> 
     return int((np.asarray(ours) == np.asarray(theirs)).sum())
 
 
-def _paired_median_seconds(first, second, repeat: int):
-    """(seconds of first, answer of first, seconds of second): medians of ``repeat`` calls of
-    each, alternating which goes first, after each one's warm-up. For two packetrt calls whose
-    ratio is quoted: timed one after the other, this host's drift between the two stretches of
-    calls (10-30%) moved the ratio more than any change measured (bunny camera rays, API against
-    the render path: 1.63-2.06x in three matrix runs, 1.49-1.53x interleaved)."""
-    _median_seconds(first, 1)
-    _median_seconds(second, 1)
+def _paired_times(first, second, repeat: int):
+    """(seconds of each call of first, answer of first, seconds of each call of second):
+    ``repeat`` calls of each, alternating which goes first, after each one's warm-up. For two
+    packetrt calls whose ratio is quoted: timed one after the other, this host's drift between
+    the two stretches of calls (10-30%) moved the ratio more than any change measured (bunny
+    camera rays, API against the render path: 1.63-2.06x in three matrix runs, 1.49-1.53x
+    interleaved)."""
+    _warm_up(first)
+    _warm_up(second)
     times_first, times_second = [], []
     answer = None
     for k in range(repeat):
@@ -152,7 +181,7 @@ def _paired_median_seconds(first, second, repeat: int):
             times.append(time.perf_counter() - start)
             if call is first:
                 answer = result
-    return float(np.median(times_first)), answer, float(np.median(times_second))
+    return times_first, answer, times_second
 
 
 def render_path_trace(scene, width: int):
@@ -212,20 +241,27 @@ def run(spec: dict, out: Path, progress=print) -> list:
                     args, call = (origins[:n], directions[:n]), "intersects_id"
                 else:
                     args, call = (points,), "contains_points"
-                t_theirs, a_theirs = _median_seconds(lambda: getattr(theirs, call)(*args), spec["repeat"])
-                render_rate = None
+                ask_theirs = lambda: getattr(theirs, call)(*args)  # noqa: E731
+                ask_ours = lambda: getattr(ours, call)(*args)  # noqa: E731
+                render_times = []
                 if render_call is not None and set_name == "primary" and query == "first":
                     # The render path's primary trace on the same camera, interleaved with this query.
-                    t_ours, a_ours, t_render = _paired_median_seconds(lambda: getattr(ours, call)(*args),
-                                                                      render_call, spec["repeat"])
-                    render_rate = render_rays / t_render / 1e6
+                    def ours_side(k):
+                        times, answer, render = _paired_times(ask_ours, render_call, k)
+                        render_times.extend(render)
+                        return times, answer
                 else:
-                    t_ours, a_ours = _median_seconds(lambda: getattr(ours, call)(*args), spec["repeat"])
+                    def ours_side(k):
+                        return _timed_calls(ask_ours, k)
+                (t_theirs, a_theirs), (t_ours, a_ours) = _alternating_seconds(
+                    [lambda k: _timed_calls(ask_theirs, k), ours_side], spec["repeat"], spec["rounds"])
+                render_rate = render_rays / float(np.median(render_times)) / 1e6 if render_times else None
                 n = len(args[0])
                 agree = agreement(query, mesh, a_ours, a_theirs, *args) if query != "contains" else \
                     agreement(query, mesh, a_ours, a_theirs)
                 record = {"mesh": label, "triangles": len(mesh.faces), "rays": set_name if query != "contains" else
-                          "points", "query": query, "n": n, "repeat": spec["repeat"], "threads": threads,
+                          "points", "query": query, "n": n, "repeat": spec["repeat"], "rounds": spec["rounds"],
+                          "threads": threads,
                           "trimesh_seconds": t_theirs, "packetrt_seconds": t_ours,
                           "trimesh_mrays": n / t_theirs / 1e6, "packetrt_mrays": n / t_ours / 1e6,
                           "speedup": t_theirs / t_ours, "agree": agree,
@@ -240,8 +276,10 @@ def run(spec: dict, out: Path, progress=print) -> list:
 
 
 def markdown_table(records: list, trimesh_version: str) -> str:
+    first = records[0] if records else {}
     lines = [f"trimesh {trimesh_version} default backend (embreex, 1 thread) vs packetrt RayMeshIntersector "
-             f"({records[0]['threads'] if records else '?'} numba threads); medians of {records[0]['repeat'] if records else '?'}",
+             f"({first.get('threads', '?')} numba threads); medians of {first.get('repeat', '?')} in "
+             f"{first.get('rounds', 1)} alternating rounds per backend",
              "", "| mesh | rays | query | n | trimesh Mrays/s | packetrt Mrays/s | speed-up | agree | render path Mrays/s |",
              "|---|---|---|---:|---:|---:|---:|---:|---:|"]
     for r in records:
