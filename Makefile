@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml .ci/system-deps
 	bash .ci/system-deps
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,gpu,cluster]'
+	$(PY) -m pip install --quiet -e '.[test,gpu,cluster,proximity]'
 	touch $(STAMP)
 
 render: $(STAMP)

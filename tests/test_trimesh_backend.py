@@ -308,6 +308,54 @@ def test_trimesh_features_use_it_as_mesh_ray(sphere):
     assert np.array_equal(cells, np.unique(theirs.encoding.sparse_indices, axis=0)) and len(cells) > 100
 
 
+class CountingIntersector(RayMeshIntersector):
+    """RayMeshIntersector that counts the rays each of its queries is asked about."""
+
+    def __init__(self, mesh):
+        super().__init__(mesh)
+        self.asked = {}
+
+    def _count(self, name, n):
+        self.asked[name] = self.asked.get(name, 0) + n
+
+    def intersects_id(self, ray_origins, ray_directions, *args, **kwargs):
+        self._count("intersects_id", len(ray_origins))
+        return super().intersects_id(ray_origins, ray_directions, *args, **kwargs)
+
+    def contains_points(self, points):
+        self._count("contains_points", len(points))
+        return super().contains_points(points)
+
+
+def test_trimesh_proximity_thickness_and_signed_distance_use_it(sphere):
+    """trimesh.proximity's ray thickness (every hit along rays from surface points) and signed
+    distance (inside or outside by ray parity, where a point projects off its nearest triangle)
+    ask mesh.ray and agree with trimesh's default backend. They need scipy and rtree (the
+    ``proximity`` extra, which ``make test`` installs)."""
+    pytest.importorskip("scipy")
+    pytest.importorskip("rtree")
+    from trimesh.proximity import signed_distance, thickness
+
+    ours = sphere.copy()
+    ours.ray = CountingIntersector(ours)
+    theirs = sphere.copy()
+    theirs.ray = EmbreeIntersector(theirs)
+    surface = sphere.sample(300, seed=3)
+    expected = thickness(theirs, surface, method="ray")
+    got = thickness(ours, surface, method="ray")
+    assert ours.ray.asked.get("intersects_id", 0) >= len(surface)
+    assert np.allclose(got, expected, rtol=0, atol=1e-9 * sphere.scale) and np.all(np.isfinite(got))
+    # Along the face normal, through (nearly) the centre: a diameter of the radius-2 polyhedron,
+    # whose faces lie within 1.5% of the sphere.
+    assert np.all((got > 3.94) & (got <= 4.0))
+    points = np.random.default_rng(8).uniform(-3, 3, size=(400, 3))
+    points[:40] = surface[:40] * 0.999  # just inside, where the sign decides most
+    expected = signed_distance(theirs, points)
+    got = signed_distance(ours, points)
+    assert ours.ray.asked.get("contains_points", 0) > 0
+    assert np.array_equal(np.sign(got), np.sign(expected)) and np.allclose(got, expected, atol=1e-12)
+
+
 # -- precision -------------------------------------------------------------------------------
 @pytest.mark.parametrize("offset", [1e6, -3e6])
 def test_locations_far_from_the_origin_are_float64_accurate(sphere, offset):
