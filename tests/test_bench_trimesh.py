@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from engine.bench.trimesh_queries import _alternating_seconds, _paired_times, parse, run
+from engine.bench.trimesh_queries import _alternating_seconds, _paired_times, on_one_thread, parse, run
 from engine.core.errors import ConfigError
 from engine.render.config import read_toml
 
@@ -27,6 +27,7 @@ def test_a_tiny_matrix_runs_and_counts_agreement(tmp_path):
         ("primary", "first"), ("primary", "any"), ("primary", "all")]
     for r in records:
         assert r["trimesh_mrays"] > 0 and r["packetrt_mrays"] > 0
+        assert r["speedup_1thread"] > 0 and r["same_on_1thread"] is True, r
         if r["query"] in ("first", "any", "all"):
             assert r["agree"] >= 0.99 * r["n"], r
     assert records[4]["render_path_mrays"] > 0
@@ -34,6 +35,16 @@ def test_a_tiny_matrix_runs_and_counts_agreement(tmp_path):
     lines = (tmp_path / "results.jsonl").read_text().splitlines()
     assert [json.loads(line)["query"] for line in lines] == [r["query"] for r in records]
     assert "| whitted | primary | first |" in (tmp_path / "results.md").read_text()
+    assert "speed-up, 1 thread each" in (tmp_path / "results.md").read_text()
+
+
+def test_one_thread_side_runs_on_one_numba_thread_and_restores_the_count():
+    import numba
+
+    seen = []
+    call = on_one_thread(lambda: seen.append(numba.get_num_threads()) or "answer")
+    before = numba.get_num_threads()
+    assert call() == "answer" and seen == [1] and numba.get_num_threads() == before
 
 
 def test_paired_timing_alternates_which_call_goes_first():
@@ -71,6 +82,7 @@ def test_the_backends_are_timed_in_alternating_rounds():
 @pytest.mark.parametrize("data,words", [
     ({"mesh": [{"scene": "bunny"}], "rays": 0}, "rays"),
     ({"mesh": [{"scene": "bunny"}], "rounds": 0}, "rounds"),
+    ({"mesh": [{"scene": "bunny"}], "one_thread": "yes"}, "one_thread"),
     ({"mesh": [{"scene": "bunny"}], "queries": ["closest"]}, "closest"),
     ({"mesh": []}, "[[mesh]]"),
     ({"mesh": [{"scene": "bunny"}], "colour": 1}, "colour"),

@@ -14,6 +14,8 @@ timed and checked against each other.
     points = 50000                  # points per contains query
     render_path = true              # also time the render path's primary packets on the camera rays,
                                     # interleaved with the first-hit query on them
+    one_thread = true               # also time packetrt on one numba thread, as a third side of the
+                                    # rounds: the speed-up at the same thread count as embreex's
 
     [[mesh]]                        # catalog scenes, as in the other matrices
     scene = "bunny"
@@ -44,7 +46,7 @@ from engine.core.errors import ConfigError
 
 QUERIES = ("first", "any", "all", "contains")
 KEYS = ("kind", "name", "description", "repeat", "rounds", "threads", "queries", "rays", "all_rays", "points",
-        "render_path", "mesh")
+        "render_path", "one_thread", "mesh")
 
 
 def parse(data: dict, source: str, repeat: int | None = None) -> dict:
@@ -57,11 +59,15 @@ def parse(data: dict, source: str, repeat: int | None = None) -> dict:
             "threads": data.get("threads", 0),
             "queries": data.get("queries", list(QUERIES)), "rays": data.get("rays", 200000),
             "all_rays": data.get("all_rays", 50000), "points": data.get("points", 50000),
-            "render_path": data.get("render_path", True), "mesh": data.get("mesh", [])}
+            "render_path": data.get("render_path", True), "one_thread": data.get("one_thread", True),
+            "mesh": data.get("mesh", [])}
     for key in ("repeat", "rounds", "threads", "rays", "all_rays", "points"):
         value = spec[key]
         if isinstance(value, bool) or not isinstance(value, int) or value < (0 if key == "threads" else 1):
             raise ConfigError(f"{source}: {key} must be a positive integer, got {value!r}")
+    for key in ("render_path", "one_thread"):
+        if not isinstance(spec[key], bool):
+            raise ConfigError(f"{source}: {key} must be true or false, got {spec[key]!r}")
     bad = [q for q in spec["queries"] if q not in QUERIES]
     if bad or not spec["queries"]:
         raise ConfigError(f"{source}: queries {bad} unknown; allowed: {', '.join(QUERIES)}")
@@ -163,6 +169,28 @@ def agreement(query: str, mesh, ours, theirs, origins=None, directions=None) -> 
     return int((np.asarray(ours) == np.asarray(theirs)).sum())
 
 
+def _same_answers(a, b) -> bool:
+    """Whether two answers of one query (an array, or a tuple of arrays) are equal."""
+    if isinstance(a, tuple):
+        return isinstance(b, tuple) and len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b))
+    return np.array_equal(a, b)
+
+
+def on_one_thread(call):
+    """``call`` made with numba's thread count at 1 (restored after): packetrt at the thread
+    count of trimesh's embreex backend."""
+    import numba
+
+    def one():
+        before = numba.get_num_threads()
+        numba.set_num_threads(1)
+        try:
+            return call()
+        finally:
+            numba.set_num_threads(before)
+    return one
+
+
 def _paired_times(first, second, repeat: int):
     """(seconds of each call of first, answer of first, seconds of each call of second):
     ``repeat`` calls of each, alternating which goes first, after each one's warm-up. For two
@@ -253,8 +281,13 @@ def run(spec: dict, out: Path, progress=print) -> list:
                 else:
                     def ours_side(k):
                         return _timed_calls(ask_ours, k)
-                (t_theirs, a_theirs), (t_ours, a_ours) = _alternating_seconds(
-                    [lambda k: _timed_calls(ask_theirs, k), ours_side], spec["repeat"], spec["rounds"])
+                sides = [lambda k: _timed_calls(ask_theirs, k), ours_side]
+                if spec["one_thread"]:
+                    ask_ours_1 = on_one_thread(ask_ours)
+                    sides.append(lambda k: _timed_calls(ask_ours_1, k))
+                timed = _alternating_seconds(sides, spec["repeat"], spec["rounds"])
+                (t_theirs, a_theirs), (t_ours, a_ours) = timed[:2]
+                t_one, a_one = timed[2] if spec["one_thread"] else (None, None)
                 render_rate = render_rays / float(np.median(render_times)) / 1e6 if render_times else None
                 n = len(args[0])
                 agree = agreement(query, mesh, a_ours, a_theirs, *args) if query != "contains" else \
@@ -265,10 +298,14 @@ def run(spec: dict, out: Path, progress=print) -> list:
                           "trimesh_seconds": t_theirs, "packetrt_seconds": t_ours,
                           "trimesh_mrays": n / t_theirs / 1e6, "packetrt_mrays": n / t_ours / 1e6,
                           "speedup": t_theirs / t_ours, "agree": agree,
+                          "packetrt_1thread_seconds": t_one,
+                          "same_on_1thread": _same_answers(a_ours, a_one) if t_one else None,
+                          "speedup_1thread": t_theirs / t_one if t_one else None,
                           "render_path_mrays": render_rate}
                 records.append(record)
+                one = f" (1 thread x{record['speedup_1thread']:.2f})" if t_one else ""
                 progress(f"{label:>14} {record['rays']:>10} {query:>8}: trimesh {record['trimesh_mrays']:6.2f}  "
-                         f"packetrt {record['packetrt_mrays']:6.2f} Mrays/s  x{record['speedup']:.2f}  "
+                         f"packetrt {record['packetrt_mrays']:6.2f} Mrays/s  x{record['speedup']:.2f}{one}  "
                          f"agree {agree}/{n}")
     write_text(out / "results.jsonl", "".join(json_line(record) for record in records))
     write_text(out / "results.md", markdown_table(records, trimesh.__version__))
@@ -280,12 +317,15 @@ def markdown_table(records: list, trimesh_version: str) -> str:
     lines = [f"trimesh {trimesh_version} default backend (embreex, 1 thread) vs packetrt RayMeshIntersector "
              f"({first.get('threads', '?')} numba threads); medians of {first.get('repeat', '?')} in "
              f"{first.get('rounds', 1)} alternating rounds per backend",
-             "", "| mesh | rays | query | n | trimesh Mrays/s | packetrt Mrays/s | speed-up | agree | render path Mrays/s |",
-             "|---|---|---|---:|---:|---:|---:|---:|---:|"]
+             "", "| mesh | rays | query | n | trimesh Mrays/s | packetrt Mrays/s | speed-up | "
+             "speed-up, 1 thread each | agree | render path Mrays/s |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in records:
         render = f"{r['render_path_mrays']:.2f}" if r["render_path_mrays"] else ""
+        one = f"{r['speedup_1thread']:.2f}" if r.get("speedup_1thread") else ""
         lines.append(f"| {r['mesh']} | {r['rays']} | {r['query']} | {r['n']:,} | {r['trimesh_mrays']:.2f} | "
-                     f"{r['packetrt_mrays']:.2f} | {r['speedup']:.2f} | {r['agree']:,}/{r['n']:,} | {render} |")
+                     f"{r['packetrt_mrays']:.2f} | {r['speedup']:.2f} | {one} | {r['agree']:,}/{r['n']:,} | "
+                     f"{render} |")
     return "\n".join(lines) + "\n"
 
 
