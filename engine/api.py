@@ -39,11 +39,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numba
 import numpy as np
 from numba import njit, prange
 
 from engine.core.errors import ConfigError
+from engine.core.threads import numba_threads
 from engine.core.triangle import safe_inverse
 from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch, Triangles, empty_hits
 from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
@@ -353,7 +353,8 @@ class RayTracer:
                    "none", or any registered name (a builder that does not fit marks packets
                    unculled).
     packet         n of the n x n packets (2, 4, 8, 16, 32).
-    threads        numba threads for the queries (0 = all cores).
+    threads        numba threads for each query (0 = all cores), set for that call only: the
+                   caller's own count (``numba.set_num_threads``) is back when it returns.
     leaf_size, bins  BVH build settings, as in a config's [render] table.
     device         "cpu" (default) or "cuda": queries on the GPU (``engine.gpu.queries``), by the
                    device's ``bvh`` traversal (any BVH traversal name selects it). Rays given as
@@ -429,10 +430,6 @@ class RayTracer:
         lane[gather[live]] = np.flatnonzero(live)
         return rays, packets, lane
 
-    def _set_threads(self):
-        numba.set_num_threads(min(self.threads or numba.config.NUMBA_NUM_THREADS,
-                                  numba.config.NUMBA_NUM_THREADS))
-
     def intersect(self, origins, directions, tmin=None, tmax=None) -> Hits:
         """Closest hit of every ray.
 
@@ -443,12 +440,12 @@ class RayTracer:
         """
         if self.device_queries is not None:
             return self.device_queries.intersect(origins, directions, tmin, tmax, check_rays)
-        batch = self._batch("reflection", origins, directions, tmin, tmax)
-        if batch is None:
-            return empty_hits(0)
-        rays, packets, lane = batch
-        self._set_threads()
-        hits = self.tracer.trace("reflection", "intersect", rays, packets)
+        with numba_threads(self.threads):  # for this call only (``engine.core.threads``)
+            batch = self._batch("reflection", origins, directions, tmin, tmax)
+            if batch is None:
+                return empty_hits(0)
+            rays, packets, lane = batch
+            hits = self.tracer.trace("reflection", "intersect", rays, packets)
         return Hits(*(np.ascontiguousarray(a[lane]) for a in hits))
 
     def occluded(self, origins, directions, tmin=None, tmax=None) -> np.ndarray:
@@ -456,12 +453,12 @@ class RayTracer:
         With ``device="cuda"``, device-array rays get a u8 (n,) device array (1 = occluded)."""
         if self.device_queries is not None:
             return self.device_queries.occluded(origins, directions, tmin, tmax, check_rays)
-        batch = self._batch("shadow", origins, directions, tmin, tmax)
-        if batch is None:
-            return np.zeros(0, np.bool_)
-        rays, packets, lane = batch
-        self._set_threads()
-        return self.tracer.trace("shadow", "occluded", rays, packets)[lane]
+        with numba_threads(self.threads):
+            batch = self._batch("shadow", origins, directions, tmin, tmax)
+            if batch is None:
+                return np.zeros(0, np.bool_)
+            rays, packets, lane = batch
+            return self.tracer.trace("shadow", "occluded", rays, packets)[lane]
 
     # -- trimesh's names ---------------------------------------------------------------
     def intersects_first(self, ray_origins, ray_directions, **segment) -> np.ndarray:
@@ -521,10 +518,11 @@ class RayTracer:
         if self.device == "cuda" and cfg.render.device != "cuda":
             cfg = replace(cfg, render=replace(cfg.render, device="cuda"))
         scene = override_materials(self.scene, cfg.override)
-        renderer = new_renderer(scene, cfg)
-        result = renderer.render()
-        if counters:
-            renderer.with_counters(result)
+        with numba_threads(cfg.render.threads):  # the renderer sets the count; the caller's comes back
+            renderer = new_renderer(scene, cfg)
+            result = renderer.render()
+            if counters:
+                renderer.with_counters(result)
         stats = stats_dict(scene, cfg, result)
         stats["config"]["scene"] = {"name": scene.name, "from": "RayTracer"}
         return result.image, stats

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from engine.bench.trimesh_queries import _alternating_seconds, _paired_times, on_one_thread, parse, run
+from engine.bench.trimesh_queries import _alternating_seconds, _paired_times, parse, run
 from engine.core.errors import ConfigError
 from engine.render.config import read_toml
 
@@ -37,14 +37,6 @@ def test_a_tiny_matrix_runs_and_counts_agreement(tmp_path):
     assert "| whitted | primary | first |" in (tmp_path / "results.md").read_text()
     assert "speed-up, 1 thread each" in (tmp_path / "results.md").read_text()
 
-
-def test_one_thread_side_runs_on_one_numba_thread_and_restores_the_count():
-    import numba
-
-    seen = []
-    call = on_one_thread(lambda: seen.append(numba.get_num_threads()) or "answer")
-    before = numba.get_num_threads()
-    assert call() == "answer" and seen == [1] and numba.get_num_threads() == before
 
 
 def test_paired_timing_alternates_which_call_goes_first():

@@ -176,21 +176,6 @@ def _same_answers(a, b) -> bool:
     return np.array_equal(a, b)
 
 
-def on_one_thread(call):
-    """``call`` made with numba's thread count at 1 (restored after): packetrt at the thread
-    count of trimesh's embreex backend."""
-    import numba
-
-    def one():
-        before = numba.get_num_threads()
-        numba.set_num_threads(1)
-        try:
-            return call()
-        finally:
-            numba.set_num_threads(before)
-    return one
-
-
 def _paired_times(first, second, repeat: int):
     """(seconds of each call of first, answer of first, seconds of each call of second):
     ``repeat`` calls of each, alternating which goes first, after each one's warm-up. For two
@@ -239,74 +224,76 @@ def run(spec: dict, out: Path, progress=print) -> list:
     import trimesh
     from trimesh.ray.ray_pyembree import RayMeshIntersector as TrimeshDefault
 
+    from engine.core.threads import numba_threads
     from engine.query.intersector import RayMeshIntersector
     from engine.render.camera import camera_rays
 
     threads = spec["threads"] or numba.config.NUMBA_NUM_THREADS
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     output_folder(out, "--out")
     records = []
-    for entry in spec["mesh"]:
-        mesh, scene, label = load_mesh(entry)
-        ours, theirs = RayMeshIntersector(mesh), TrimeshDefault(mesh)
-        side = int(np.sqrt(spec["rays"]))
-        cam_o, cam_d = camera_rays(scene, side, side)
-        ray_sets = {"incoherent": incoherent_rays(mesh, spec["rays"]),
-                    "primary": (cam_o.astype(np.float64), cam_d.astype(np.float64))}
-        render_call, render_rays = render_path_trace(scene, side) if spec["render_path"] else (None, 0)
-        rng = np.random.default_rng(1)
-        points = rng.uniform(*mesh.bounds, size=(spec["points"], 3))
-        for set_name, (origins, directions) in ray_sets.items():
-            for query in spec["queries"]:
-                if query == "contains" and set_name != "incoherent":
-                    continue  # contains takes points, not rays: once per mesh
-                if query == "first":
-                    args, call = (origins, directions), "intersects_first"
-                elif query == "any":
-                    args, call = (origins, directions), "intersects_any"
-                elif query == "all":
-                    n = spec["all_rays"]
-                    args, call = (origins[:n], directions[:n]), "intersects_id"
-                else:
-                    args, call = (points,), "contains_points"
-                ask_theirs = lambda: getattr(theirs, call)(*args)  # noqa: E731
-                ask_ours = lambda: getattr(ours, call)(*args)  # noqa: E731
-                render_times = []
-                if render_call is not None and set_name == "primary" and query == "first":
-                    # The render path's primary trace on the same camera, interleaved with this query.
-                    def ours_side(k):
-                        times, answer, render = _paired_times(ask_ours, render_call, k)
-                        render_times.extend(render)
-                        return times, answer
-                else:
-                    def ours_side(k):
-                        return _timed_calls(ask_ours, k)
-                sides = [lambda k: _timed_calls(ask_theirs, k), ours_side]
-                if spec["one_thread"]:
-                    ask_ours_1 = on_one_thread(ask_ours)
-                    sides.append(lambda k: _timed_calls(ask_ours_1, k))
-                timed = _alternating_seconds(sides, spec["repeat"], spec["rounds"])
-                (t_theirs, a_theirs), (t_ours, a_ours) = timed[:2]
-                t_one, a_one = timed[2] if spec["one_thread"] else (None, None)
-                render_rate = render_rays / float(np.median(render_times)) / 1e6 if render_times else None
-                n = len(args[0])
-                agree = agreement(query, mesh, a_ours, a_theirs, *args) if query != "contains" else \
-                    agreement(query, mesh, a_ours, a_theirs)
-                record = {"mesh": label, "triangles": len(mesh.faces), "rays": set_name if query != "contains" else
-                          "points", "query": query, "n": n, "repeat": spec["repeat"], "rounds": spec["rounds"],
-                          "threads": threads,
-                          "trimesh_seconds": t_theirs, "packetrt_seconds": t_ours,
-                          "trimesh_mrays": n / t_theirs / 1e6, "packetrt_mrays": n / t_ours / 1e6,
-                          "speedup": t_theirs / t_ours, "agree": agree,
-                          "packetrt_1thread_seconds": t_one,
-                          "same_on_1thread": _same_answers(a_ours, a_one) if t_one else None,
-                          "speedup_1thread": t_theirs / t_one if t_one else None,
-                          "render_path_mrays": render_rate}
-                records.append(record)
-                one = f" (1 thread x{record['speedup_1thread']:.2f})" if t_one else ""
-                progress(f"{label:>14} {record['rays']:>10} {query:>8}: trimesh {record['trimesh_mrays']:6.2f}  "
-                         f"packetrt {record['packetrt_mrays']:6.2f} Mrays/s  x{record['speedup']:.2f}{one}  "
-                         f"agree {agree}/{n}")
+    with numba_threads(threads):  # the render path's trace too; the caller's count comes back
+        for entry in spec["mesh"]:
+            mesh, scene, label = load_mesh(entry)
+            ours, theirs = RayMeshIntersector(mesh, threads=threads), TrimeshDefault(mesh)
+            ours_1 = RayMeshIntersector(mesh, threads=1)
+            side = int(np.sqrt(spec["rays"]))
+            cam_o, cam_d = camera_rays(scene, side, side)
+            ray_sets = {"incoherent": incoherent_rays(mesh, spec["rays"]),
+                        "primary": (cam_o.astype(np.float64), cam_d.astype(np.float64))}
+            render_call, render_rays = render_path_trace(scene, side) if spec["render_path"] else (None, 0)
+            rng = np.random.default_rng(1)
+            points = rng.uniform(*mesh.bounds, size=(spec["points"], 3))
+            for set_name, (origins, directions) in ray_sets.items():
+                for query in spec["queries"]:
+                    if query == "contains" and set_name != "incoherent":
+                        continue  # contains takes points, not rays: once per mesh
+                    if query == "first":
+                        args, call = (origins, directions), "intersects_first"
+                    elif query == "any":
+                        args, call = (origins, directions), "intersects_any"
+                    elif query == "all":
+                        n = spec["all_rays"]
+                        args, call = (origins[:n], directions[:n]), "intersects_id"
+                    else:
+                        args, call = (points,), "contains_points"
+                    ask_theirs = lambda: getattr(theirs, call)(*args)  # noqa: E731
+                    ask_ours = lambda: getattr(ours, call)(*args)  # noqa: E731
+                    render_times = []
+                    if render_call is not None and set_name == "primary" and query == "first":
+                        # The render path's primary trace on the same camera, interleaved with this query.
+                        def ours_side(k):
+                            times, answer, render = _paired_times(ask_ours, render_call, k)
+                            render_times.extend(render)
+                            return times, answer
+                    else:
+                        def ours_side(k):
+                            return _timed_calls(ask_ours, k)
+                    sides = [lambda k: _timed_calls(ask_theirs, k), ours_side]
+                    if spec["one_thread"]:  # packetrt at the thread count of trimesh's embreex backend
+                        ask_ours_1 = lambda: getattr(ours_1, call)(*args)  # noqa: E731
+                        sides.append(lambda k: _timed_calls(ask_ours_1, k))
+                    timed = _alternating_seconds(sides, spec["repeat"], spec["rounds"])
+                    (t_theirs, a_theirs), (t_ours, a_ours) = timed[:2]
+                    t_one, a_one = timed[2] if spec["one_thread"] else (None, None)
+                    render_rate = render_rays / float(np.median(render_times)) / 1e6 if render_times else None
+                    n = len(args[0])
+                    agree = agreement(query, mesh, a_ours, a_theirs, *args) if query != "contains" else \
+                        agreement(query, mesh, a_ours, a_theirs)
+                    record = {"mesh": label, "triangles": len(mesh.faces), "rays": set_name if query != "contains" else
+                              "points", "query": query, "n": n, "repeat": spec["repeat"], "rounds": spec["rounds"],
+                              "threads": threads,
+                              "trimesh_seconds": t_theirs, "packetrt_seconds": t_ours,
+                              "trimesh_mrays": n / t_theirs / 1e6, "packetrt_mrays": n / t_ours / 1e6,
+                              "speedup": t_theirs / t_ours, "agree": agree,
+                              "packetrt_1thread_seconds": t_one,
+                              "same_on_1thread": _same_answers(a_ours, a_one) if t_one else None,
+                              "speedup_1thread": t_theirs / t_one if t_one else None,
+                              "render_path_mrays": render_rate}
+                    records.append(record)
+                    one = f" (1 thread x{record['speedup_1thread']:.2f})" if t_one else ""
+                    progress(f"{label:>14} {record['rays']:>10} {query:>8}: trimesh {record['trimesh_mrays']:6.2f}  "
+                             f"packetrt {record['packetrt_mrays']:6.2f} Mrays/s  x{record['speedup']:.2f}{one}  "
+                             f"agree {agree}/{n}")
     write_text(out / "results.jsonl", "".join(json_line(record) for record in records))
     write_text(out / "results.md", markdown_table(records, trimesh.__version__))
     return records

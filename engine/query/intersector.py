@@ -48,6 +48,7 @@ from engine.core.bvh import build_bvh
 from engine.core.bvh_refit import refit_bvh
 from engine.core.scratch import Scratch
 from engine.core.scene import make_triangles
+from engine.core.threads import numba_threads
 from engine.core.types import BVH, Triangles
 from engine.packet.compact import new_array
 from engine.packet.kernels import child_order_keys
@@ -155,13 +156,20 @@ class RayMeshIntersector:
                parallel). The per-ray walk does not need packets, and on the bunny and the kitchen
                sorting cost more than it saved (see README, "Using packetrt from trimesh"); it
                is there for huge batches of shuffled, locally coherent rays.
+    threads    numba threads for each query (0, the default: all cores), set for that call only:
+               the caller's own count (``numba.set_num_threads``) is back when it returns.
     """
 
-    def __init__(self, mesh, *, leaf_size: int = 4, bins: int = 16, order: str = "input"):
+    def __init__(self, mesh, *, leaf_size: int = 4, bins: int = 16, order: str = "input", threads: int = 0):
         _mesh_arrays(mesh)
         if order not in ORDERS:
             raise QueryInputError(f"order must be one of {', '.join(ORDERS)}, got {order!r}")
+        if isinstance(threads, (bool, np.bool_)) or not isinstance(threads, (int, np.integer)):
+            raise QueryTypeError(f"threads must be an integer >= 0 (0 = all cores), got {threads!r}")
+        if threads < 0:
+            raise QueryInputError(f"threads must be >= 0 (0 = all cores), got {threads}")
         self.mesh = mesh
+        self.threads = int(threads)
         self._leaf_size, self._bins, self._order = leaf_size, bins, order
         self._structure_cache = None
         self._new_buffers()
@@ -220,11 +228,13 @@ class RayMeshIntersector:
         return state
 
     def __setstate__(self, state):
+        state.setdefault("threads", 0)  # pickled before the option existed
         self.__dict__.update(state)
         self._new_buffers()
 
     def __copy__(self):
-        return RayMeshIntersector(self.mesh, leaf_size=self._leaf_size, bins=self._bins, order=self._order)
+        return RayMeshIntersector(self.mesh, leaf_size=self._leaf_size, bins=self._bins, order=self._order,
+                                  threads=self.threads)
 
     def __deepcopy__(self, memo):
         return self.__copy__()
@@ -327,19 +337,20 @@ class RayMeshIntersector:
         by distance along the ray.
         """
         limit = _max_hits(max_hits)
-        s = self._structure()
-        rays = self._rays(s, ray_origins, ray_directions)
-        with self._buffers() as allocate:
-            if multiple_hits:
-                index_ray, index_tri, u, v = self._all(s, rays, limit, allocate)
-            else:  # gathered into new arrays before the scratch is let go
-                tri, u, v = self._first(s, rays, False, allocate)
-                index_ray = np.flatnonzero(tri >= 0).astype(np.int64)
-                index_tri, u, v = tri[index_ray], u[index_ray], v[index_ray]
-        if not return_locations:
-            return index_tri, index_ray
-        locations = np.empty((len(index_ray), 3), np.float64)
-        locations_kernel(s.frame.corners, rays.origins, rays.directions, index_ray, index_tri, u, v, locations)
+        with numba_threads(self.threads):  # for this call only (``engine.core.threads``)
+            s = self._structure()
+            rays = self._rays(s, ray_origins, ray_directions)
+            with self._buffers() as allocate:
+                if multiple_hits:
+                    index_ray, index_tri, u, v = self._all(s, rays, limit, allocate)
+                else:  # gathered into new arrays before the scratch is let go
+                    tri, u, v = self._first(s, rays, False, allocate)
+                    index_ray = np.flatnonzero(tri >= 0).astype(np.int64)
+                    index_tri, u, v = tri[index_ray], u[index_ray], v[index_ray]
+            if not return_locations:
+                return index_tri, index_ray
+            locations = np.empty((len(index_ray), 3), np.float64)
+            locations_kernel(s.frame.corners, rays.origins, rays.directions, index_ray, index_tri, u, v, locations)
         return index_tri, index_ray, locations
 
     def intersects_location(self, ray_origins, ray_directions, multiple_hits: bool = True,
@@ -353,25 +364,28 @@ class RayMeshIntersector:
 
     def intersects_first(self, ray_origins, ray_directions):
         """int32 (n,): the first triangle each ray hits, -1 for a miss (or a bad ray)."""
-        s = self._structure()
-        rays = self._rays(s, ray_origins, ray_directions)
-        with self._buffers() as allocate:
-            return self._first(s, rays, False, allocate)[0].astype(np.int32)
+        with numba_threads(self.threads):
+            s = self._structure()
+            rays = self._rays(s, ray_origins, ray_directions)
+            with self._buffers() as allocate:
+                return self._first(s, rays, False, allocate)[0].astype(np.int32)
 
     def intersects_any(self, ray_origins, ray_directions):
         """bool (n,): whether each ray hits the surface (any hit, early exit)."""
-        s = self._structure()
-        rays = self._rays(s, ray_origins, ray_directions)
-        with self._buffers() as allocate:
-            return self._first(s, rays, True, allocate)[0] >= 0
+        with numba_threads(self.threads):
+            s = self._structure()
+            rays = self._rays(s, ray_origins, ray_directions)
+            with self._buffers() as allocate:
+                return self._first(s, rays, True, allocate)[0] >= 0
 
     def contains_points(self, points):
         """bool (n,): whether each point (n, 3) is inside the mesh, by the parity of the surface
         crossings along rays from it (see ``engine.query.contains``). Meaningful for watertight
         meshes; a point on the surface may go either way (as in trimesh). A NaN point is outside."""
         pts = _points("points", points)
-        s = self._structure()
-        out = np.empty(len(pts), np.bool_)
-        contains_kernel(*self._tree(s), pts, s.frame.center, float(s.frame.scale), s.frame.lo, s.frame.hi,
-                        DIRECTIONS.astype(np.float32), np.float32(MERGE_GAP), out)
+        with numba_threads(self.threads):
+            s = self._structure()
+            out = np.empty(len(pts), np.bool_)
+            contains_kernel(*self._tree(s), pts, s.frame.center, float(s.frame.scale), s.frame.lo, s.frame.hi,
+                            DIRECTIONS.astype(np.float32), np.float32(MERGE_GAP), out)
         return out

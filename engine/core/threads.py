@@ -1,0 +1,26 @@
+"""numba's thread count for one piece of work, given back afterwards.
+
+numba keeps one thread count per calling thread (``numba.set_num_threads``), and it outlives the
+call that sets it. A query that set it and left it would run every later numba kernel of the
+caller at its count: after ``RayTracer(mesh, threads=1)`` answered once, a
+``RayMeshIntersector`` query ran on one core. The Python API therefore sets the count for the
+duration of each call only, through ``numba_threads``.
+"""
+from __future__ import annotations
+
+from contextlib import contextmanager
+
+import numba
+
+
+@contextmanager
+def numba_threads(threads: int):
+    """Run the block with numba's parallel kernels on ``threads`` threads (0, or more than numba
+    started with: all of ``NUMBA_NUM_THREADS``), then restore the caller's count."""
+    available = numba.config.NUMBA_NUM_THREADS
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(threads or available, available))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
