@@ -218,6 +218,33 @@ def render_path_trace(scene, width: int):
     return (lambda: tracer.trace("primary", "intersect", rays, packets)), count
 
 
+def _time_query(theirs, ours, ours_1, call, args, render_call, repeat: int, rounds: int):
+    """((seconds, answer) of trimesh's backend, of packetrt, of packetrt on one thread or (None,
+    None) without ``ours_1``; the render path's seconds per call, [] without ``render_call``):
+    method ``call`` of each intersector on ``args``, medians of ``repeat`` calls made in
+    ``rounds`` alternating blocks (``_alternating_seconds``). ``render_call``, the render path's
+    primary trace on the same camera, is timed interleaved with packetrt's calls."""
+    render_times = []
+
+    def ask(intersector):
+        return lambda: getattr(intersector, call)(*args)
+
+    def timed(intersector):
+        return lambda k: _timed_calls(ask(intersector), k)
+
+    def ours_with_render(k):
+        times, answer, render = _paired_times(ask(ours), render_call, k)
+        render_times.extend(render)
+        return times, answer
+
+    sides = [timed(theirs), ours_with_render if render_call is not None else timed(ours)]
+    if ours_1 is not None:  # packetrt at the thread count of trimesh's embreex backend
+        sides.append(timed(ours_1))
+    medians = _alternating_seconds(sides, repeat, rounds)
+    one = medians[2] if ours_1 is not None else (None, None)
+    return medians[0], medians[1], one, render_times
+
+
 def run(spec: dict, out: Path, progress=print) -> list:
     """Every (mesh, ray set, query) record; written to out/results.jsonl and out/results.md."""
     import numba
@@ -235,7 +262,7 @@ def run(spec: dict, out: Path, progress=print) -> list:
         for entry in spec["mesh"]:
             mesh, scene, label = load_mesh(entry)
             ours, theirs = RayMeshIntersector(mesh, threads=threads), TrimeshDefault(mesh)
-            ours_1 = RayMeshIntersector(mesh, threads=1)
+            ours_1 = RayMeshIntersector(mesh, threads=1) if spec["one_thread"] else None
             side = int(np.sqrt(spec["rays"]))
             cam_o, cam_d = camera_rays(scene, side, side)
             ray_sets = {"incoherent": incoherent_rays(mesh, spec["rays"]),
@@ -256,25 +283,9 @@ def run(spec: dict, out: Path, progress=print) -> list:
                         args, call = (origins[:n], directions[:n]), "intersects_id"
                     else:
                         args, call = (points,), "contains_points"
-                    ask_theirs = lambda: getattr(theirs, call)(*args)  # noqa: E731
-                    ask_ours = lambda: getattr(ours, call)(*args)  # noqa: E731
-                    render_times = []
-                    if render_call is not None and set_name == "primary" and query == "first":
-                        # The render path's primary trace on the same camera, interleaved with this query.
-                        def ours_side(k):
-                            times, answer, render = _paired_times(ask_ours, render_call, k)
-                            render_times.extend(render)
-                            return times, answer
-                    else:
-                        def ours_side(k):
-                            return _timed_calls(ask_ours, k)
-                    sides = [lambda k: _timed_calls(ask_theirs, k), ours_side]
-                    if spec["one_thread"]:  # packetrt at the thread count of trimesh's embreex backend
-                        ask_ours_1 = lambda: getattr(ours_1, call)(*args)  # noqa: E731
-                        sides.append(lambda k: _timed_calls(ask_ours_1, k))
-                    timed = _alternating_seconds(sides, spec["repeat"], spec["rounds"])
-                    (t_theirs, a_theirs), (t_ours, a_ours) = timed[:2]
-                    t_one, a_one = timed[2] if spec["one_thread"] else (None, None)
+                    render = render_call if set_name == "primary" and query == "first" else None
+                    (t_theirs, a_theirs), (t_ours, a_ours), (t_one, a_one), render_times = _time_query(
+                        theirs, ours, ours_1, call, args, render, spec["repeat"], spec["rounds"])
                     render_rate = render_rays / float(np.median(render_times)) / 1e6 if render_times else None
                     n = len(args[0])
                     agree = agreement(query, mesh, a_ours, a_theirs, *args) if query != "contains" else \
