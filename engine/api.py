@@ -518,7 +518,7 @@ class RayTracer:
         if self.device == "cuda" and cfg.render.device != "cuda":
             cfg = replace(cfg, render=replace(cfg.render, device="cuda"))
         scene = override_materials(self.scene, cfg.override)
-        with numba_threads(cfg.render.threads):  # the renderer sets the count; the caller's comes back
+        with numba_threads(cfg.render.threads):  # host work too (the GPU renderer's); the caller's count comes back
             renderer = new_renderer(scene, cfg)
             result = renderer.render()
             if counters:

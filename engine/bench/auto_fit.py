@@ -44,6 +44,7 @@ from engine.bench.machine import machine_info
 from engine.bench.matrix import Cell, PluginSpec, SceneSpec
 from engine.bench.runner import BatchRecorder, SceneCache, cell_scene
 from engine.core.atomic import write_json, write_text
+from engine.core.threads import numba_threads
 from engine.core.types import RAY_KINDS, Frusta, Packets, RayBatch, empty_hits
 from engine.packet.choose import LIMIT_NAMES, measure_packets
 from engine.packet.plugin import walk_batch
@@ -207,9 +208,7 @@ def collect(scenes, packets, size, repeat, log, threads=0):
     all_f = np.concatenate([b[5][b[4] > 0] for parts in groups.values() for b in parts])
     f_edges = np.unique(np.quantile(all_f, np.linspace(0, 1, FOOTPRINT_BINS + 1)[1:-1]))
     table = {"group": [], "fb": [], "lb": [], "valid": [], "packets": [], "seconds": []}
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)  # a cell's time is the sum of its packets' walks
-    try:
+    with numba_threads(1):  # a cell's time is the sum of its packets' walks
         for (name, n, kind), parts in groups.items():
             start = time.perf_counter()
             renderer = frames[(name, n)][0]
@@ -231,8 +230,6 @@ def collect(scenes, packets, size, repeat, log, threads=0):
                 table["packets"].append(n_packets)
                 table["seconds"].append(seconds)
             log(f"  {name} {n}x{n} {kind}: {len(keys)} cells timed in {time.perf_counter() - start:.1f} s")
-    finally:
-        numba.set_num_threads(threads)
     cells = {k: (np.array(v) if k != "group" else v) for k, v in table.items()}
     return frames, f_edges, cells
 
@@ -395,9 +392,13 @@ def run(scenes=SCENES, packets=PACKETS, size=SIZE, repeat=5, measure_repeat=5, t
         report_out=None, command="", log=print, threads=0) -> dict:
     """Collect, fit, write the thresholds, measure (on ``threads`` threads, 0: all), write the
     report. Returns the limits."""
+    with numba_threads(threads):  # for this run only; the caller's count comes back
+        return _run(scenes, packets, size, repeat, measure_repeat, thresholds_out, report_out, command, log,
+                    threads)
+
+
+def _run(scenes, packets, size, repeat, measure_repeat, thresholds_out, report_out, command, log, threads):
     start = time.perf_counter()
-    if threads:
-        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     frames, f_edges, cells = collect(scenes, packets, size, repeat, log, threads)
     limits, total, _ = fit_limits(cells, f_edges)
     log(f"fitted {limits} (summed cell time {1e3 * total:.1f} ms)")

@@ -53,6 +53,7 @@ from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require
 from engine.bench.yardstick import replay_once
 from engine.core.atomic import output_folder
 from engine.core.errors import ConfigError
+from engine.core.threads import numba_threads
 from engine.core.types import RAY_KINDS, copied_batch
 from engine.render.config import read_toml
 from engine.render.plugins import make_traversal
@@ -267,7 +268,13 @@ def cell_scene(base, cell: Cell):
 def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: EmbreeYardstick, machine: dict,
              matrix_name: str, references: ReferenceAnswers | None = None,
              open3d: Open3DYardstick | None = None) -> dict:
-    """Measure one cell (see the module doc); returns its results.jsonl record."""
+    """Measure one cell (see the module doc); returns its results.jsonl record. Its frames, replays
+    and yardsticks all run at the cell's thread count; the caller's count is back afterwards."""
+    with numba_threads(cell.config().render.threads):
+        return _measure_cell(cell, repeat, scene_cache, yardstick, machine, matrix_name, references, open3d)
+
+
+def _measure_cell(cell, repeat, scene_cache, yardstick, machine, matrix_name, references, open3d) -> dict:
     from engine.render.whitted import WhittedRenderer
 
     references = references or ReferenceAnswers()

@@ -3,11 +3,13 @@
 numba keeps one thread count per calling thread (``numba.set_num_threads``), and it outlives the
 call that sets it. A query that set it and left it would run every later numba kernel of the
 caller at its count: after ``RayTracer(mesh, threads=1)`` answered once, a
-``RayMeshIntersector`` query ran on one core. The Python API therefore sets the count for the
-duration of each call only, through ``numba_threads``.
+``RayMeshIntersector`` query ran on one core. Everything that runs kernels at a configured count
+(the Python API, the Whitted and animation renderers, the benchmark runner) therefore sets it for
+the duration of each call only, through ``numba_threads`` or the ``at_own_threads`` decorator.
 """
 from __future__ import annotations
 
+import functools
 from contextlib import contextmanager
 
 import numba
@@ -24,3 +26,15 @@ def numba_threads(threads: int):
         yield
     finally:
         numba.set_num_threads(before)
+
+
+def at_own_threads(method):
+    """Decorates a method of an object with a ``threads`` attribute (0 = all): the method runs
+    inside ``numba_threads(self.threads)``, so the caller's count is back when it returns."""
+
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        with numba_threads(self.threads):
+            return method(self, *args, **kwargs)
+
+    return run

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 from engine.core.errors import ConfigError
 from engine.core.bvh import build_bvh
+from engine.core.threads import at_own_threads
 from engine.render.accel import BVHKeeper
 from engine.render.plugins import uses_bvh
 from engine.render.whitted import RenderResult, WhittedRenderer
@@ -88,6 +89,7 @@ class AnimationRenderer:
         """``make_renderer(scene, config, bvh=...)``: the frame renderer (the front end passes
         ``engine.gpu.choose.new_renderer``, which gives the GPU's for ``device = "cuda"``)."""
         self.path, self.config, self.observer_for = path, config, observer_for
+        self.threads = config.render.threads  # numba's count inside each method below only
         self.make_renderer = make_renderer
         self.keeper = self._new_keeper()
         self.renderer = None
@@ -99,6 +101,7 @@ class AnimationRenderer:
         return BVHKeeper(a.update, leaf_size=r.leaf_size, bins=r.bins, degrade=a.degrade, budget=a.budget,
                          needs_tree=uses_bvh(self.config))
 
+    @at_own_threads
     def warm_up(self, time_: float) -> float:
         """Compile or load every kernel a frame uses (scene placement, the build, a refit, the
         SAH cost, the frame) on the scene at ``time_``, with throwaway state; returns seconds."""
@@ -114,6 +117,7 @@ class AnimationRenderer:
         self.renderer.warm_up()
         return time.perf_counter() - start
 
+    @at_own_threads
     def frame(self, index: int, time_: float) -> Frame:
         """Render the frame at ``time_`` (``index``: its place on the path, for the record)."""
         started = time.perf_counter()
@@ -140,6 +144,7 @@ class AnimationRenderer:
                   "rays": dict(result.rays)}
         return Frame(index, time_, result, record)
 
+    @at_own_threads
     def render_with_fresh_tree(self, observer_for=None) -> RenderResult:
         """The frame just rendered, again, over a tree freshly built for it (``observer_for(scene,
         bvh)`` makes the observer of that render, or None); the kept tree is put back."""
@@ -156,6 +161,7 @@ class AnimationRenderer:
             self.renderer.set_scene(scene, kept)
             self.renderer.observer = observer
 
+    @at_own_threads
     def compare_with_fresh_tree(self, frame: Frame, repeat: int = 2) -> dict:
         """Trace the frame just rendered again, with the kept tree and with one freshly built for
         it, interleaved, ``repeat`` times each; the fastest of each compared (the same moment,

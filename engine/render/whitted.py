@@ -50,6 +50,7 @@ from engine.render.materials import MaterialTable
 from engine.render.plugins import configured
 from engine.render.shadow_order import ShadowOrder
 from engine.core.scratch import Scratch
+from engine.core.threads import at_own_threads
 from engine.render.spawn import gather_and_spawn, new_children
 from engine.render.surface import new_surface, shade_surface
 from engine.render.tracer import Tally, Tracer
@@ -114,8 +115,9 @@ class WhittedRenderer:
         self.config = config
         self.observer = observer
         self.count = count
-        self.threads = config.render.threads or numba.config.NUMBA_NUM_THREADS
-        numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+        # Kernels run on this many threads inside set_scene, warm_up and render only
+        # (``at_own_threads``): the caller's own numba count is back when each returns.
+        self.threads = min(config.render.threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)
         self.traversal, self.frustum = configured(config)
         # Which end each light's shadow rays are walked from, learnt from frame to frame.
         self.shadow_order = ShadowOrder(config.render.shadow_order)
@@ -125,6 +127,7 @@ class WhittedRenderer:
         self.scene = None
         self.set_scene(scene, bvh)
 
+    @at_own_threads
     def set_scene(self, scene: Scene, bvh=None) -> None:
         """Render ``scene`` from now on (an animation's next frame: moved triangles, camera and
         lights) over ``bvh`` (None: build one), keeping the plugins and the scratch arrays.
@@ -175,6 +178,7 @@ class WhittedRenderer:
         return occluded
 
     # -- the loop ------------------------------------------------------------------------
+    @at_own_threads
     def warm_up(self) -> float:
         """Compile (or load from numba's disk cache) the kernels this config uses, by small
         renders (WARM_UP_SIZE square, at least four packets a side, so that a shadow batch has
@@ -197,6 +201,7 @@ class WhittedRenderer:
             self.shadow_order = ShadowOrder(self.config.render.shadow_order)
         return time.perf_counter() - start
 
+    @at_own_threads
     def render(self, size: tuple | None = None) -> RenderResult:
         """One frame; ``size`` (width, height) overrides the config's image size."""
         cfg = self.config.render
@@ -231,6 +236,7 @@ class WhittedRenderer:
         return RenderResult(image.reshape(height, width, 3), seconds, tally.rays, counters, by_depth, extra,
                             self.shadow_order.chosen())
 
+    @at_own_threads
     def with_counters(self, result: RenderResult) -> RenderResult:
         """``result`` with counters and plugin statistics from a second, counting render (so the
         timed render does not pay for counting)."""
