@@ -146,6 +146,13 @@ def _load_scene(config, strict: bool = False):
     return scene
 
 
+def _check_outputs(*named) -> None:
+    """(option, path or None) pairs: each given file can be written, checked before the work."""
+    for option, path in named:
+        if path:
+            atomic.output_file(path, option)
+
+
 def _write_json(path: str, data: dict) -> None:
     atomic.write_json(path, data)
 
@@ -155,6 +162,7 @@ def cmd_render(args) -> int:
     from engine.render.image import save_png
 
     config = _config_from(args)
+    _check_outputs(("-o", args.output), ("--stats", args.stats))
     scene = _load_scene(config, args.strict)
     if args.audit:
         return _run_audit(scene, config, args.output, None, None, args.stats)
@@ -207,6 +215,7 @@ def cmd_show(args) -> int:
     if not (64 <= size[0] <= 4096 and 64 <= size[1] <= 4096):
         raise ConfigError(f"--picture must be between 64x64 and 4096x4096, got {size[0]}x{size[1]}")
     config = _cpu_only(_config_from(args), "show")
+    _check_outputs(("-o", args.output))
     scene = _load_scene(config, args.strict)
     summary = write_show(scene, config, args.kind, args.packet_index, args.output, size)
     detail = ", ".join(f"{k} {v}" for k, v in summary.items() if k not in ("packet", "packets"))
@@ -276,6 +285,9 @@ def _run_audit(scene, config, image_path, json_path, report_dir, stats_path, ora
 
 def cmd_audit(args) -> int:
     config = _config_from(args)
+    _check_outputs(("--json", args.json))
+    if args.report:
+        atomic.output_folder(args.report, "--report")
     scene = _load_scene(config, args.strict)
     tiled = None
     if args.scheduler is not None:  # bands of rows as Dask tasks, merged into one report

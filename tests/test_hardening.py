@@ -288,3 +288,23 @@ def test_user_mistakes_are_value_or_type_errors():
                                              (["render", "--packet", "x"], ["--packet"])])
 def test_a_mistyped_command_line_is_one_line(argv, fragments, capsys):
     one_error(argv, capsys, *fragments)
+
+
+@pytest.mark.parametrize("command", ["render", "render-audit", "show", "audit"])
+def test_an_output_that_cannot_be_written_stops_the_command_before_its_work(tmp_path, capsys, monkeypatch, command):
+    """A render used to run whole, write its image and only then fail on --stats; every output
+    path is now checked first (``engine.core.atomic.output_file``)."""
+    import engine.cli as cli
+
+    monkeypatch.setattr(cli, "_load_scene", lambda *a: pytest.fail("the scene was loaded before the check"))
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    image = tmp_path / "image.png"
+    bad = blocker / "out.json"
+    argv = {"render": ["render", *TINY, "-o", image, "--stats", bad],
+            "render-audit": ["render", *TINY, "--audit", "-o", image, "--stats", tmp_path],
+            "show": ["show", *TINY, "-o", tmp_path],
+            "audit": ["audit", *TINY, "--json", bad]}[command]
+    option = {"render": "--stats", "render-audit": "--stats", "show": "-o", "audit": "--json"}[command]
+    one_error(argv, capsys, option)
+    assert not image.exists()

@@ -109,3 +109,24 @@ def output_folder(path, what: str) -> Path:
     if not os.access(folder, os.W_OK | os.X_OK):
         raise PacketrtError(f"{what} folder {str(folder)!r} is not writable")
     return folder
+
+
+def output_file(path, what: str) -> Path:
+    """Checks, before any work, that the file ``path`` can be written later: not a folder, in a
+    folder that exists or can be made, and is writable (the folder is made now). Otherwise one
+    PacketrtError naming ``what`` (e.g. "--stats") and the path, so a long render never ends in
+    an output it cannot write."""
+    target = Path(path)
+    if target.is_dir():
+        raise PacketrtError(f"{what} {str(target)!r} is a folder; give a file")
+    folder = output_folder(target.parent, what)
+    # A real file made and removed: permission bits do not tell for root, or on /proc and
+    # read-only mounts.
+    probe = folder / f".{target.stem}.{os.getpid()}.probe"
+    try:
+        probe.touch(exist_ok=False)
+        probe.unlink()
+    except OSError as exc:
+        raise PacketrtError(f"cannot write {what} {str(target)!r}: {exc.strerror or exc}") from None
+    return target
+
