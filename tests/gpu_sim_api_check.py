@@ -26,6 +26,18 @@ def main() -> dict:
     want = cpu.intersect(org, d, tmax=tmax)
     host = gpu.intersect(org, d, tmax=tmax)
     device = gpu.intersect(cuda.to_device(org), cuda.to_device(d), tmax=cuda.to_device(tmax))
+    # Scalar bounds of device rays are filled on the device and kept per (count, value): the
+    # same answers on the first and a repeated query, for several sizes, the keep bounded.
+    dev_org, dev_d = cuda.to_device(org), cuda.to_device(d)
+    scalar_equal = []
+    for count, bound in ((60, 3.0), (60, 3.0), (30, 3.0), (60, np.inf), (45, 2.5), (20, 3.0), (60, 3.0)):
+        got = gpu.intersect(dev_org[:count], dev_d[:count], tmax=bound)
+        expected = cpu.intersect(org[:count], d[:count], tmax=bound)
+        scalar_equal.append(all(np.array_equal(a.copy_to_host(), b) for a, b in zip(got, expected)))
+        scalar_equal.append(bool(np.array_equal(gpu.occluded(dev_org[:count], dev_d[:count], tmin=0.5,
+                                                             tmax=bound).copy_to_host() != 0,
+                                                cpu.occluded(org[:count], d[:count], tmin=0.5, tmax=bound))))
+    kept = len(gpu.device_queries._filled)
     errors = []
     for bad in (lambda: gpu.intersect(cuda.to_device(org.astype(np.float64)), cuda.to_device(d)),
                 lambda: gpu.intersect(cuda.to_device(org), d),
@@ -43,6 +55,7 @@ def main() -> dict:
             "device_equal": all(np.array_equal(a.copy_to_host(), b) for a, b in zip(device, want)),
             "device_stays_on_device": not isinstance(device.t, np.ndarray),
             "occluded_equal": bool(np.array_equal(gpu.occluded(org, d, tmax=tmax), cpu.occluded(org, d, tmax=tmax))),
+            "scalar_bounds_equal": scalar_equal, "bounds_kept": kept,
             "errors": errors, "render_difference": float(np.abs(image_gpu - image_cpu).max()),
             "render_device": stats["config"]["render"]["device"]}
 

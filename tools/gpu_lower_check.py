@@ -75,6 +75,9 @@ def _workloads() -> None:
     d = np.tile(np.array([[0.1, -0.2, -1.0]], np.float32), (8, 1))
     tracer.intersect(org, d)
     tracer.occluded(org, d)
+    from numba import cuda
+
+    tracer.intersect(cuda.to_device(org), cuda.to_device(d))  # device rays: bounds filled there
     tris = scene.triangles
     bvh = build_bvh(tris)
     device_tris = DeviceTriangles.from_host(tris, triangle_magnitudes(tris))

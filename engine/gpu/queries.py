@@ -4,7 +4,8 @@ Rays given as device arrays (numba, torch, CuPy: anything with ``__cuda_array_in
 are traced where they are, without a host round trip, and the answers come back as device
 arrays (numba ``DeviceNDArray``, which torch and CuPy take without a copy through the same
 interface). Rays given as numpy arrays are checked as the CPU path checks them, copied to the
-device once, and the answers come back as numpy arrays.
+device once, and the answers come back as numpy arrays. The answers to torch or CuPy rays
+live in memory from that library's own allocator (``answer_arrays``).
 
 Device rays must be float32 (n, 3), C-contiguous; they are not scanned for NaN or infinity (a
 pass over them would cost as much as the query), and a NaN ray simply misses.
@@ -17,10 +18,45 @@ from engine.core.errors import PacketrtError
 from engine.core.offset import triangle_magnitudes
 from engine.core.types import Hits
 from engine.gpu.bvh_trace import DeviceBVHTraversal
-from engine.gpu.device import on_device, require_cuda
+from engine.gpu.device import BLOCK, blocks, on_device, require_cuda
 from engine.gpu.scene_upload import DeviceBVH, DeviceTriangles, upload
 
 cuda = require_cuda()
+
+
+@cuda.jit
+def _fill_f32(values, n, value):
+    """values[0 .. n-1] = value (f32)."""
+    i = cuda.grid(1)
+    if i < n:
+        values[i] = value
+
+
+def answer_arrays(rays):
+    """``new(n, dtype)``: a device array of max(n, 1) elements for a query's answers, from the
+    allocator of the library the rays came from -- torch's caching allocator for torch tensors,
+    CuPy's memory pool for CuPy arrays -- seen as a numba device array (which keeps the tensor
+    alive). Elsewhere numba's own ``device_array``, a cudaMalloc per array (see the README's
+    "The API on the GPU" for what each costs)."""
+    library = type(rays).__module__.split(".")[0]
+    if library == "torch":
+        import torch
+
+        dtypes = {np.dtype(np.float32): torch.float32, np.dtype(np.int32): torch.int32,
+                  np.dtype(np.uint8): torch.uint8}
+
+        def new(n, dtype):
+            fresh = torch.empty(max(n, 1), dtype=dtypes[np.dtype(dtype)], device=rays.device)
+            return cuda.as_cuda_array(fresh, sync=False)  # fresh memory: no stream work to wait for
+        return new
+    if library == "cupy":
+        import cupy
+
+        def new(n, dtype):
+            with rays.device:
+                return cuda.as_cuda_array(cupy.empty(max(n, 1), dtype), sync=False)
+        return new
+    return lambda n, dtype: cuda.device_array(max(n, 1), dtype)
 
 
 class DeviceQueryError(PacketrtError):
@@ -30,10 +66,15 @@ class DeviceQueryError(PacketrtError):
 class DeviceQueries:
     """Closest-hit and any-hit queries over one uploaded mesh and BVH (``bvh`` traversal)."""
 
+    #: Scalar segment bounds kept filled on the device, per (ray count, value): a query's
+    #: default tmin and tmax are not made again for the next query of the same size.
+    KEPT_BOUNDS = 4
+
     def __init__(self, triangles, bvh):
         self.tris = DeviceTriangles.from_host(triangles, triangle_magnitudes(triangles))
         self.bvh = DeviceBVH.from_host(bvh, triangles)
         self.traversal = DeviceBVHTraversal(self.bvh, self.tris)
+        self._filled = {}  # (n, f32 bits) -> device f32[n]; read only by the kernels
 
     def _rays(self, origins, directions, tmin, tmax, check):
         """(org, dirs, tmin, tmax device arrays, n, on_gpu) of the query's rays."""
@@ -52,8 +93,7 @@ class DeviceQueries:
             raise DeviceQueryError(f"directions has {dirs.shape[0]} rows, origins {n}")
         return org, dirs, self._bound("tmin", tmin, n, 0.0), self._bound("tmax", tmax, n, np.inf), n, True
 
-    @staticmethod
-    def _bound(name, value, n, default):
+    def _bound(self, name, value, n, default):
         """A device f32[n] segment bound from a scalar, a host array or a device array."""
         if value is None:
             value = default
@@ -65,7 +105,18 @@ class DeviceQueries:
             return held
         array = np.asarray(value, np.float32)
         if array.ndim == 0:
-            array = np.full(n, array, np.float32)
+            # Filled on the device, once per size and value (at most KEPT_BOUNDS kept, 4 bytes
+            # a ray each): a host array of n copies and its upload, or a fresh device array
+            # each query, cost more than the walk (measured: the README's GPU section, "The API").
+            key = (n, array.tobytes())
+            filled = self._filled.get(key)
+            if filled is None:
+                filled = cuda.device_array(max(n, 1), np.float32)
+                _fill_f32[blocks(n), BLOCK](filled, n, array[()])
+                if len(self._filled) >= self.KEPT_BOUNDS:
+                    self._filled.pop(next(iter(self._filled)))
+                self._filled[key] = filled
+            return filled
         if array.shape != (n,):
             raise DeviceQueryError(f"{name} must be a scalar or ({n},), got shape {array.shape}")
         return upload(array)
@@ -73,8 +124,8 @@ class DeviceQueries:
     def intersect(self, origins, directions, tmin, tmax, check) -> Hits:
         """Closest hits, on the device the rays came from (``check``: the host rays' checker)."""
         org, dirs, lo, hi, n, on_gpu = self._rays(origins, directions, tmin, tmax, check)
-        out = (cuda.device_array(max(n, 1), np.float32), cuda.device_array(max(n, 1), np.int32),
-               cuda.device_array(max(n, 1), np.float32), cuda.device_array(max(n, 1), np.float32))
+        new = answer_arrays(origins)
+        out = (new(n, np.float32), new(n, np.int32), new(n, np.float32), new(n, np.float32))
         if n:
             self.traversal.closest(org, dirs, lo, hi, None, n, 0, 0, *out)
         if on_gpu:
@@ -84,7 +135,7 @@ class DeviceQueries:
     def occluded(self, origins, directions, tmin, tmax, check):
         """Any-hit flags: bool[n] on the host for host rays, u8[n] device array for device rays."""
         org, dirs, lo, hi, n, on_gpu = self._rays(origins, directions, tmin, tmax, check)
-        flags = cuda.device_array(max(n, 1), np.uint8)
+        flags = answer_arrays(origins)(n, np.uint8)
         if n:
             self.traversal.occluded(org, dirs, lo, hi, None, n, 0, 0, flags)
         return flags[:n] if on_gpu else flags[:n].copy_to_host().astype(bool)
