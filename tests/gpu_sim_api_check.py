@@ -26,7 +26,7 @@ def main() -> dict:
     want = cpu.intersect(org, d, tmax=tmax)
     host = gpu.intersect(org, d, tmax=tmax)
     device = gpu.intersect(cuda.to_device(org), cuda.to_device(d), tmax=cuda.to_device(tmax))
-    # Scalar bounds of device rays are filled on the device and kept per (count, value): the
+    # Scalar bounds of device (and host) rays are filled on the device and kept per (count, value): the
     # same answers on the first and a repeated query, for several sizes, the keep bounded.
     dev_org, dev_d = cuda.to_device(org), cuda.to_device(d)
     scalar_equal = []
@@ -34,6 +34,8 @@ def main() -> dict:
         got = gpu.intersect(dev_org[:count], dev_d[:count], tmax=bound)
         expected = cpu.intersect(org[:count], d[:count], tmax=bound)
         scalar_equal.append(all(np.array_equal(a.copy_to_host(), b) for a, b in zip(got, expected)))
+        on_host = gpu.intersect(org[:count], d[:count], tmax=bound)  # host rays: the same filled bounds
+        scalar_equal.append(all(np.array_equal(a, b) for a, b in zip(on_host, expected)))
         scalar_equal.append(bool(np.array_equal(gpu.occluded(dev_org[:count], dev_d[:count], tmin=0.5,
                                                              tmax=bound).copy_to_host() != 0,
                                                 cpu.occluded(org[:count], d[:count], tmin=0.5, tmax=bound))))

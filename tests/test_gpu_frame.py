@@ -117,7 +117,7 @@ def test_ray_tracer_on_the_device_answers_as_the_cpu_does():
     assert result["host_equal"] and result["host_types"] == ["ndarray"] * 4
     assert result["device_equal"] and result["device_stays_on_device"]
     assert result["occluded_equal"]
-    assert result["scalar_bounds_equal"] == [True] * 14
+    assert result["scalar_bounds_equal"] == [True] * 21
     assert 1 <= result["bounds_kept"] <= 4  # DeviceQueries.KEPT_BOUNDS
     assert result["errors"] == ["DeviceQueryError", "DeviceQueryError", "ApiArgumentError"]
     assert result["render_device"] == "cuda" and result["render_difference"] <= 1e-5

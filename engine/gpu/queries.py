@@ -81,7 +81,11 @@ class DeviceQueries:
         org, dirs = on_device(origins), on_device(directions)
         if org is None and dirs is None:
             o, d, lo, hi = check(origins, directions, tmin, tmax)
-            return upload(o), upload(d), upload(lo), upload(hi), o.shape[0], False
+            n = o.shape[0]
+            # Checked: a scalar bound is filled on the device like a device ray's, not uploaded.
+            lo = self._bound("tmin", tmin, n, 0.0) if np.ndim(tmin) == 0 else upload(lo)
+            hi = self._bound("tmax", tmax, n, np.inf) if np.ndim(tmax) == 0 else upload(hi)
+            return upload(o), upload(d), lo, hi, n, False
         if org is None or dirs is None:
             raise DeviceQueryError("origins and directions must both be device arrays or both host arrays")
         for name, array in (("origins", org), ("directions", dirs)):
