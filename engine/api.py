@@ -44,7 +44,7 @@ from numba import njit, prange
 
 from engine.core.errors import ConfigError
 from engine.core.threads import numba_threads
-from engine.core.triangle import safe_inverse
+from engine.packet.compact import inverse_component
 from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch, Triangles, empty_hits
 from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
 from engine.query.intersector import RayMeshIntersector
@@ -290,46 +290,98 @@ def incoherent_packets_kernel(order, sorted_keys, block, octant_shift):
 
 
 @njit(cache=True, parallel=True)
-def gather_rays_kernel(gather, org, dirs, tmin, tmax, out_org, out_dir, out_tmin, out_tmax):
-    """Lane l takes input ray gather[l]; a padding lane (-1) becomes dead: direction (0, 0, 1),
-    tmin 1 > tmax 0."""
+def gather_rays_kernel(gather, org, dirs, tmin, tmax, out_org, out_dir, out_inv, out_tmin, out_tmax, out_weight,
+                       lane_of):
+    """Lane l takes input ray gather[l], with its inverse direction (``inverse_component``, the
+    numbers of ``safe_inverse``) and weight 1, and lane_of[gather[l]] = l; a padding lane (-1)
+    becomes dead: direction (0, 0, 1), tmin 1 > tmax 0, weight 0."""
     for lane in prange(gather.shape[0]):
         g = gather[lane]
         if g >= 0:
             for a in range(3):
                 out_org[lane, a] = org[g, a]
                 out_dir[lane, a] = dirs[g, a]
+                out_inv[lane, a] = inverse_component(dirs[g, a])
+                out_weight[lane, a] = 1
             out_tmin[lane] = tmin[g]
             out_tmax[lane] = tmax[g]
+            lane_of[g] = lane
         else:
             for a in range(3):
                 out_org[lane, a] = 0
                 out_dir[lane, a] = 0
+                out_weight[lane, a] = 0
             out_dir[lane, 2] = 1
+            for a in range(3):
+                out_inv[lane, a] = inverse_component(out_dir[lane, a])
             out_tmin[lane] = 1
             out_tmax[lane] = 0
 
 
+@njit(cache=True, parallel=True)
+def origin_box(org):
+    """(lo f64[3], hi f64[3]): the smallest and largest origin coordinate per axis (org f32[M,3],
+    M >= 1), the values of ``org.min(axis=0)`` and ``org.max(axis=0)`` in one parallel pass."""
+    parts = min(org.shape[0], 64)
+    lo = np.empty((parts, 3), np.float32)
+    hi = np.empty((parts, 3), np.float32)
+    for p in prange(parts):
+        start = p * org.shape[0] // parts
+        stop = (p + 1) * org.shape[0] // parts
+        for a in range(3):
+            lo[p, a] = org[start, a]
+            hi[p, a] = org[start, a]
+        for i in range(start + 1, stop):
+            for a in range(3):
+                lo[p, a] = min(lo[p, a], org[i, a])
+                hi[p, a] = max(hi[p, a], org[i, a])
+    box_lo = np.empty(3, np.float64)
+    box_hi = np.empty(3, np.float64)
+    for a in range(3):
+        box_lo[a] = lo[:, a].min()
+        box_hi[a] = hi[:, a].max()
+    return box_lo, box_hi
+
+
+@njit(cache=True, parallel=True)
+def answers_in_input_order(lane_of, t, prim, u, v):
+    """The lanes' hits (f32/i32/f32/f32[R]) of input rays 0 .. n-1 (lane_of i64[n]): one
+    parallel gather for the four arrays."""
+    n = lane_of.shape[0]
+    out_t = np.empty(n, np.float32)
+    out_prim = np.empty(n, np.int32)
+    out_u = np.empty(n, np.float32)
+    out_v = np.empty(n, np.float32)
+    for i in prange(n):
+        lane = lane_of[i]
+        out_t[i] = t[lane]
+        out_prim[i] = prim[lane]
+        out_u[i] = u[lane]
+        out_v[i] = v[lane]
+    return out_t, out_prim, out_u, out_v
+
+
 def incoherent_batch(kind: str, org, dirs, tmin, tmax, n: int):
-    """(RayBatch, Packets, gather i64[R]) for arbitrary rays (f32[M,3], f32[M,3], f32[M], f32[M]):
-    packets of at most n x n rays grouped by direction octant and a Morton code over origin and
-    direction; ``gather[l]`` is the input ray in lane l (-1 for a dead padding lane)."""
+    """(RayBatch, Packets, lane_of i64[M]) for arbitrary rays (f32[M,3], f32[M,3], f32[M], f32[M],
+    M >= 1): packets of at most n x n rays grouped by direction octant and a Morton code over
+    origin and direction; ``lane_of[i]`` is input ray i's lane."""
     count = org.shape[0]
     keys = np.empty(count, np.uint64)
-    morton_keys_kernel(org, dirs, org.min(axis=0).astype(np.float64), org.max(axis=0).astype(np.float64), keys)
+    morton_keys_kernel(org, dirs, *origin_box(org), keys)
     order = np.argsort(keys)
     gather, offsets, pixel, side = incoherent_packets_kernel(order, keys[order], n * n,
                                                              np.uint64(6 * MORTON_BITS))
     lanes = gather.shape[0]
     out_org = np.empty((lanes, 3), np.float32)
     out_dir = np.empty((lanes, 3), np.float32)
+    out_inv = np.empty((lanes, 3), np.float32)
     out_tmin = np.empty(lanes, np.float32)
     out_tmax = np.empty(lanes, np.float32)
-    gather_rays_kernel(gather, org, dirs, tmin, tmax, out_org, out_dir, out_tmin, out_tmax)
-    weight = np.zeros((lanes, 3), np.float32)
-    weight[gather >= 0] = 1
-    rays = RayBatch(out_org, out_dir, safe_inverse(out_dir), out_tmin, out_tmax, pixel, weight, kind)
-    return rays, Packets(offsets, n, int(side), int(side)), gather
+    weight = np.empty((lanes, 3), np.float32)
+    lane_of = np.empty(count, np.int64)
+    gather_rays_kernel(gather, org, dirs, tmin, tmax, out_org, out_dir, out_inv, out_tmin, out_tmax, weight, lane_of)
+    rays = RayBatch(out_org, out_dir, out_inv, out_tmin, out_tmax, pixel, weight, kind)
+    return rays, Packets(offsets, n, int(side), int(side)), lane_of
 
 
 # -- the tracer ------------------------------------------------------------------------------
@@ -464,11 +516,7 @@ class RayTracer:
         count = org.shape[0]
         if count == 0:
             return None
-        rays, packets, gather = incoherent_batch(kind, org, dirs, lo, hi, self.packet)
-        lane = np.empty(count, np.int64)
-        live = gather >= 0
-        lane[gather[live]] = np.flatnonzero(live)
-        return rays, packets, lane
+        return incoherent_batch(kind, org, dirs, lo, hi, self.packet)
 
     def intersect(self, origins, directions, tmin=None, tmax=None) -> Hits:
         """Closest hit of every ray.
@@ -486,7 +534,7 @@ class RayTracer:
                 return empty_hits(0)
             rays, packets, lane = batch
             hits = self.tracer.trace("reflection", "intersect", rays, packets)
-        return Hits(*(np.ascontiguousarray(a[lane]) for a in hits))
+            return Hits(*answers_in_input_order(lane, *hits))
 
     def occluded(self, origins, directions, tmin=None, tmax=None) -> np.ndarray:
         """bool (n,): does ray i hit anything with tmin <= t <= tmax (any hit, early exit).

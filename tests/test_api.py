@@ -10,7 +10,8 @@ import pytest
 import trimesh
 
 from engine import RayTracer
-from engine.api import RayInputError, incoherent_batch
+from engine.api import RayInputError, incoherent_batch, origin_box
+from engine.core.triangle import safe_inverse
 from engine.core.errors import ConfigError, PacketrtError
 from engine.core.triangle import safe_inverse
 from engine.core.types import RayBatch
@@ -228,8 +229,11 @@ def test_incoherent_packets_follow_the_packet_contract():
     origins, directions = random_rays(np.array([[0, 0, 0], [1, 1, 1]]), 3001, seed=8)
     org, dirs = origins.astype(np.float32), directions.astype(np.float32)
     n = 8
-    rays, packets, gather = incoherent_batch("reflection", org, dirs, np.zeros(3001, np.float32),
-                                             np.full(3001, np.inf, np.float32), n)
+    rays, packets, lane_of = incoherent_batch("reflection", org, dirs, np.zeros(3001, np.float32),
+                                              np.full(3001, np.inf, np.float32), n)
+    gather = np.full(rays.org.shape[0], -1)
+    gather[lane_of] = np.arange(3001)
+    assert len(np.unique(lane_of)) == 3001  # a lane of its own for every ray
     offsets = packets.offsets
     assert offsets[0] == 0 and offsets[-1] == rays.org.shape[0] == len(gather)
     sizes = np.diff(offsets)
@@ -238,6 +242,8 @@ def test_incoherent_packets_follow_the_packet_contract():
     assert np.array_equal(np.sort(gather[live]), np.arange(3001))  # every ray exactly once
     assert np.all(rays.tmax[~live] < rays.tmin[~live]) and np.all(rays.pixel[~live] == -1)
     assert np.array_equal(rays.org[live], org[gather[live]]) and np.array_equal(rays.dir[live], dirs[gather[live]])
+    assert np.array_equal(rays.inv_dir, safe_inverse(rays.dir))  # computed in the gather, the same numbers
+    assert np.all(rays.weight[live] == 1) and np.all(rays.weight[~live] == 0)
     pixels = rays.pixel[live]
     assert len(np.unique(pixels)) == len(pixels) and pixels.max() < packets.width * packets.height
     # A packet's live rays share a direction octant (so a frustum can be built for it).
@@ -249,6 +255,15 @@ def test_incoherent_packets_follow_the_packet_contract():
     for k in range(len(sizes)):
         lanes = live[offsets[k]:offsets[k + 1]]
         assert not np.any(np.diff(lanes.astype(int)) > 0)
+
+
+def test_origin_box_is_numpys_min_and_max():
+    rng = np.random.default_rng(2)
+    for count in (1, 2, 63, 64, 65, 1000):
+        org = rng.normal(size=(count, 3)).astype(np.float32) * 1e3
+        lo, hi = origin_box(org)
+        assert np.array_equal(lo, org.min(axis=0).astype(np.float64))
+        assert np.array_equal(hi, org.max(axis=0).astype(np.float64))
 
 
 # -- errors ----------------------------------------------------------------------------------
