@@ -48,7 +48,6 @@ from engine.packet.compact import inverse_component
 from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch, Triangles, empty_hits
 from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
 from engine.query.intersector import RayMeshIntersector
-from engine.query.order import spread_bits
 
 __all__ = ["RayTracer", "RayMeshIntersector", "RayInputError", "RayInputTypeError", "ApiArgumentError",
            "QueryInputError", "QueryTypeError", "BadRayWarning"]
@@ -58,6 +57,10 @@ MIN_DIRECTION_LENGTH, MAX_DIRECTION_LENGTH = 1e-18, 1e18
 
 #: Bits per coordinate of the 6-D (origin, direction) Morton code; 6 * 9 = 54 bits.
 MORTON_BITS = 9
+#: q (0 .. 2^MORTON_BITS - 1) with bit b moved to bit 6 b: one coordinate of the 6-D Morton code,
+#: looked up (``spread_bits`` loops over the bits; a table read is one load a coordinate).
+SPREAD_BY_6 = np.array([sum(((q >> b) & 1) << (6 * b) for b in range(MORTON_BITS)) for q in range(1 << MORTON_BITS)],
+                       np.uint64)
 
 
 class RayInputError(QueryInputError):
@@ -217,22 +220,31 @@ def morton_keys_kernel(org, dirs, lo, hi, keys):
             qo = min(max(int(np.floor(x * top + 0.5)), 0), top)
             y = (np.float64(dirs[i, a]) / norm + 1.0) * 0.5
             qd = min(max(int(np.floor(y * top + 0.5)), 0), top)
-            code |= spread_bits(np.uint64(qo), MORTON_BITS, 6) << np.uint64(5 - a)
-            code |= spread_bits(np.uint64(qd), MORTON_BITS, 6) << np.uint64(2 - a)
+            code |= SPREAD_BY_6[qo] << np.uint64(5 - a)
+            code |= SPREAD_BY_6[qd] << np.uint64(2 - a)
             if np.signbit(dirs[i, a]):
                 octant |= np.uint64(1) << np.uint64(2 - a)
         keys[i] = code | (octant << np.uint64(6 * MORTON_BITS))
 
 
+@njit(cache=True, inline="always")
+def even_bits(value):
+    """Bits 0, 2, 4, ... of ``value`` (u64) packed into bits 0, 1, 2, ...: five mask-and-shift
+    steps instead of a loop over 32 bits."""
+    x = value & np.uint64(0x5555555555555555)
+    x = (x | (x >> np.uint64(1))) & np.uint64(0x3333333333333333)
+    x = (x | (x >> np.uint64(2))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    x = (x | (x >> np.uint64(4))) & np.uint64(0x00FF00FF00FF00FF)
+    x = (x | (x >> np.uint64(8))) & np.uint64(0x0000FFFF0000FFFF)
+    return (x | (x >> np.uint64(16))) & np.uint64(0x00000000FFFFFFFF)
+
+
 @njit(cache=True)
 def _z_order(rank, side):
-    """Pixel y * side + x of position ``rank`` along a Z-order curve (even bits x, odd bits y)."""
-    x = 0
-    y = 0
-    for bit in range(31):
-        x |= ((rank >> (2 * bit)) & 1) << bit
-        y |= ((rank >> (2 * bit + 1)) & 1) << bit
-    return y * side + x
+    """Pixel y * side + x of position ``rank`` (< 2^62) along a Z-order curve (even bits x, odd
+    bits y)."""
+    code = np.uint64(rank)
+    return np.int64(even_bits(code >> np.uint64(1))) * side + np.int64(even_bits(code))
 
 
 @njit(cache=True)

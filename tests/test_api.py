@@ -10,7 +10,8 @@ import pytest
 import trimesh
 
 from engine import RayTracer
-from engine.api import RayInputError, incoherent_batch, origin_box
+from engine.api import MORTON_BITS, SPREAD_BY_6, RayInputError, _z_order, incoherent_batch, origin_box
+from engine.query.order import spread_bits
 from engine.core.triangle import safe_inverse
 from engine.core.errors import ConfigError, PacketrtError
 from engine.core.triangle import safe_inverse
@@ -255,6 +256,16 @@ def test_incoherent_packets_follow_the_packet_contract():
     for k in range(len(sizes)):
         lanes = live[offsets[k]:offsets[k + 1]]
         assert not np.any(np.diff(lanes.astype(int)) > 0)
+
+
+def test_morton_table_and_z_order_equal_their_bit_loops():
+    assert all(int(SPREAD_BY_6[q]) == int(spread_bits(np.uint64(q), MORTON_BITS, 6)) for q in range(1 << MORTON_BITS))
+    rng = np.random.default_rng(9)
+    for rank in [0, 1, 2, 3, 2**31 - 1, 2**40 + 12345, *rng.integers(0, 2**62, 200)]:
+        rank = int(rank)
+        x = sum(((rank >> (2 * b)) & 1) << b for b in range(31))
+        y = sum(((rank >> (2 * b + 1)) & 1) << b for b in range(31))
+        assert _z_order(rank, 4096) == y * 4096 + x
 
 
 def test_origin_box_is_numpys_min_and_max():
