@@ -44,8 +44,8 @@ from numba import njit, prange
 
 from engine.core.errors import ConfigError
 from engine.core.threads import numba_threads
-from engine.packet.compact import inverse_component
 from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch, Triangles, empty_hits
+from engine.packet.compact import inverse_component
 from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
 from engine.query.intersector import RayMeshIntersector
 
