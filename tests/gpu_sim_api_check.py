@@ -40,6 +40,22 @@ def main() -> dict:
                                                              tmax=bound).copy_to_host() != 0,
                                                 cpu.occluded(org[:count], d[:count], tmin=0.5, tmax=bound))))
     kept = len(gpu.device_queries._filled)
+
+    class HostTensor:
+        """Host rays from a library named torch (a CPU tensor): answered as numpy rays are."""
+
+        __module__ = "torch.fake"
+
+        def __init__(self, array):
+            self.array = array
+
+        def __array__(self, dtype=None, copy=None):
+            return self.array if dtype is None else self.array.astype(dtype)
+
+    from_host_tensor = gpu.intersect(HostTensor(org), HostTensor(d), tmax=tmax)
+    host_tensor_equal = all(np.array_equal(a, b) for a, b in zip(from_host_tensor, want)) and \
+        bool(np.array_equal(gpu.occluded(HostTensor(org), HostTensor(d), tmax=tmax),
+                            cpu.occluded(org, d, tmax=tmax)))
     errors = []
     for bad in (lambda: gpu.intersect(cuda.to_device(org.astype(np.float64)), cuda.to_device(d)),
                 lambda: gpu.intersect(cuda.to_device(org), d),
@@ -57,7 +73,7 @@ def main() -> dict:
             "device_equal": all(np.array_equal(a.copy_to_host(), b) for a, b in zip(device, want)),
             "device_stays_on_device": not isinstance(device.t, np.ndarray),
             "occluded_equal": bool(np.array_equal(gpu.occluded(org, d, tmax=tmax), cpu.occluded(org, d, tmax=tmax))),
-            "scalar_bounds_equal": scalar_equal, "bounds_kept": kept,
+            "scalar_bounds_equal": scalar_equal, "bounds_kept": kept, "host_tensor_equal": host_tensor_equal,
             "errors": errors, "render_difference": float(np.abs(image_gpu - image_cpu).max()),
             "render_device": stats["config"]["render"]["device"]}
 

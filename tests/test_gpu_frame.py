@@ -119,6 +119,7 @@ def test_ray_tracer_on_the_device_answers_as_the_cpu_does():
     assert result["occluded_equal"]
     assert result["scalar_bounds_equal"] == [True] * 21
     assert 1 <= result["bounds_kept"] <= 4  # DeviceQueries.KEPT_BOUNDS
+    assert result["host_tensor_equal"]  # a CPU tensor's answers are not allocated on its library's device
     assert result["errors"] == ["DeviceQueryError", "DeviceQueryError", "ApiArgumentError"]
     assert result["render_device"] == "cuda" and result["render_difference"] <= 1e-5
 

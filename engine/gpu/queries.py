@@ -34,7 +34,8 @@ def _fill_f32(values, n, value):
 
 def answer_arrays(rays):
     """``new(n, dtype)``: a device array of max(n, 1) elements for a query's answers, from the
-    allocator of the library the rays came from -- torch's caching allocator for torch tensors,
+    allocator of the library the device rays came from (``rays``: the caller's origins, None
+    for host rays) -- torch's caching allocator for torch tensors,
     CuPy's memory pool for CuPy arrays -- seen as a numba device array (which keeps the tensor
     alive). Elsewhere numba's own ``device_array``, a cudaMalloc per array (see the README's
     "The API on the GPU" for what each costs)."""
@@ -128,7 +129,7 @@ class DeviceQueries:
     def intersect(self, origins, directions, tmin, tmax, check) -> Hits:
         """Closest hits, on the device the rays came from (``check``: the host rays' checker)."""
         org, dirs, lo, hi, n, on_gpu = self._rays(origins, directions, tmin, tmax, check)
-        new = answer_arrays(origins)
+        new = answer_arrays(origins if on_gpu else None)  # host rays (torch CPU tensors too): numba's
         out = (new(n, np.float32), new(n, np.int32), new(n, np.float32), new(n, np.float32))
         if n:
             self.traversal.closest(org, dirs, lo, hi, None, n, 0, 0, *out)
@@ -139,7 +140,7 @@ class DeviceQueries:
     def occluded(self, origins, directions, tmin, tmax, check):
         """Any-hit flags: bool[n] on the host for host rays, u8[n] device array for device rays."""
         org, dirs, lo, hi, n, on_gpu = self._rays(origins, directions, tmin, tmax, check)
-        flags = answer_arrays(origins)(n, np.uint8)
+        flags = answer_arrays(origins if on_gpu else None)(n, np.uint8)
         if n:
             self.traversal.occluded(org, dirs, lo, hi, None, n, 0, 0, flags)
         return flags[:n] if on_gpu else flags[:n].copy_to_host().astype(bool)
