@@ -15,13 +15,19 @@ from contextlib import contextmanager
 import numba
 
 
+def thread_count(threads: int) -> int:
+    """The count ``threads`` stands for: 0, or more than numba started with, is all of
+    ``NUMBA_NUM_THREADS``."""
+    available = numba.config.NUMBA_NUM_THREADS
+    return min(threads or available, available)
+
+
 @contextmanager
 def numba_threads(threads: int):
-    """Run the block with numba's parallel kernels on ``threads`` threads (0, or more than numba
-    started with: all of ``NUMBA_NUM_THREADS``), then restore the caller's count."""
-    available = numba.config.NUMBA_NUM_THREADS
+    """Run the block with numba's parallel kernels on ``thread_count(threads)`` threads, then
+    restore the caller's count."""
     before = numba.get_num_threads()
-    numba.set_num_threads(min(threads or available, available))
+    numba.set_num_threads(thread_count(threads))
     try:
         yield
     finally:

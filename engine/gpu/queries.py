@@ -19,17 +19,10 @@ from engine.core.offset import triangle_magnitudes
 from engine.core.types import Hits
 from engine.gpu.bvh_trace import DeviceBVHTraversal
 from engine.gpu.device import BLOCK, blocks, on_device, require_cuda
+from engine.gpu.fill import fill_array
 from engine.gpu.scene_upload import DeviceBVH, DeviceTriangles, upload
 
 cuda = require_cuda()
-
-
-@cuda.jit
-def _fill_f32(values, n, value):
-    """values[0 .. n-1] = value (f32)."""
-    i = cuda.grid(1)
-    if i < n:
-        values[i] = value
 
 
 def answer_arrays(rays):
@@ -117,7 +110,7 @@ class DeviceQueries:
             filled = self._filled.get(key)
             if filled is None:
                 filled = cuda.device_array(max(n, 1), np.float32)
-                _fill_f32[blocks(n), BLOCK](filled, n, array[()])
+                fill_array[blocks(n), BLOCK](filled, n, array[()])
                 if len(self._filled) >= self.KEPT_BOUNDS:
                     self._filled.pop(next(iter(self._filled)))
                 self._filled[key] = filled

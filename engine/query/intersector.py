@@ -48,7 +48,7 @@ from engine.core.bvh import build_bvh
 from engine.core.bvh_refit import refit_bvh
 from engine.core.scratch import Scratch
 from engine.core.scene import make_triangles
-from engine.core.threads import numba_threads
+from engine.core.threads import at_own_threads
 from engine.core.types import BVH, Triangles
 from engine.packet.compact import new_array
 from engine.packet.kernels import child_order_keys
@@ -326,6 +326,7 @@ class RayMeshIntersector:
         return index_ray, index_tri, u, v
 
     # -- trimesh's interface -------------------------------------------------------------
+    @at_own_threads  # numba's count for this call only (``engine.core.threads``)
     def intersects_id(self, ray_origins, ray_directions, multiple_hits: bool = True,
                       max_hits: int | None = DEFAULT_MAX_HITS, return_locations: bool = False):
         """Triangles hit by rays.
@@ -337,20 +338,19 @@ class RayMeshIntersector:
         by distance along the ray.
         """
         limit = _max_hits(max_hits)
-        with numba_threads(self.threads):  # for this call only (``engine.core.threads``)
-            s = self._structure()
-            rays = self._rays(s, ray_origins, ray_directions)
-            with self._buffers() as allocate:
-                if multiple_hits:
-                    index_ray, index_tri, u, v = self._all(s, rays, limit, allocate)
-                else:  # gathered into new arrays before the scratch is let go
-                    tri, u, v = self._first(s, rays, False, allocate)
-                    index_ray = np.flatnonzero(tri >= 0).astype(np.int64)
-                    index_tri, u, v = tri[index_ray], u[index_ray], v[index_ray]
-            if not return_locations:
-                return index_tri, index_ray
-            locations = np.empty((len(index_ray), 3), np.float64)
-            locations_kernel(s.frame.corners, rays.origins, rays.directions, index_ray, index_tri, u, v, locations)
+        s = self._structure()
+        rays = self._rays(s, ray_origins, ray_directions)
+        with self._buffers() as allocate:
+            if multiple_hits:
+                index_ray, index_tri, u, v = self._all(s, rays, limit, allocate)
+            else:  # gathered into new arrays before the scratch is let go
+                tri, u, v = self._first(s, rays, False, allocate)
+                index_ray = np.flatnonzero(tri >= 0).astype(np.int64)
+                index_tri, u, v = tri[index_ray], u[index_ray], v[index_ray]
+        if not return_locations:
+            return index_tri, index_ray
+        locations = np.empty((len(index_ray), 3), np.float64)
+        locations_kernel(s.frame.corners, rays.origins, rays.directions, index_ray, index_tri, u, v, locations)
         return index_tri, index_ray, locations
 
     def intersects_location(self, ray_origins, ray_directions, multiple_hits: bool = True,
@@ -362,30 +362,30 @@ class RayMeshIntersector:
                                                              max_hits, True)
         return locations, index_ray, index_tri
 
+    @at_own_threads
     def intersects_first(self, ray_origins, ray_directions):
         """int32 (n,): the first triangle each ray hits, -1 for a miss (or a bad ray)."""
-        with numba_threads(self.threads):
-            s = self._structure()
-            rays = self._rays(s, ray_origins, ray_directions)
-            with self._buffers() as allocate:
-                return self._first(s, rays, False, allocate)[0].astype(np.int32)
+        s = self._structure()
+        rays = self._rays(s, ray_origins, ray_directions)
+        with self._buffers() as allocate:
+            return self._first(s, rays, False, allocate)[0].astype(np.int32)
 
+    @at_own_threads
     def intersects_any(self, ray_origins, ray_directions):
         """bool (n,): whether each ray hits the surface (any hit, early exit)."""
-        with numba_threads(self.threads):
-            s = self._structure()
-            rays = self._rays(s, ray_origins, ray_directions)
-            with self._buffers() as allocate:
-                return self._first(s, rays, True, allocate)[0] >= 0
+        s = self._structure()
+        rays = self._rays(s, ray_origins, ray_directions)
+        with self._buffers() as allocate:
+            return self._first(s, rays, True, allocate)[0] >= 0
 
+    @at_own_threads
     def contains_points(self, points):
         """bool (n,): whether each point (n, 3) is inside the mesh, by the parity of the surface
         crossings along rays from it (see ``engine.query.contains``). Meaningful for watertight
         meshes; a point on the surface may go either way (as in trimesh). A NaN point is outside."""
         pts = _points("points", points)
-        with numba_threads(self.threads):
-            s = self._structure()
-            out = np.empty(len(pts), np.bool_)
-            contains_kernel(*self._tree(s), pts, s.frame.center, float(s.frame.scale), s.frame.lo, s.frame.hi,
-                            DIRECTIONS.astype(np.float32), np.float32(MERGE_GAP), out)
+        s = self._structure()
+        out = np.empty(len(pts), np.bool_)
+        contains_kernel(*self._tree(s), pts, s.frame.center, float(s.frame.scale), s.frame.lo, s.frame.hi,
+                        DIRECTIONS.astype(np.float32), np.float32(MERGE_GAP), out)
         return out

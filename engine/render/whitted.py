@@ -35,7 +35,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
 from engine.core.bvh import build_bvh, scene_bounds
@@ -50,7 +49,7 @@ from engine.render.materials import MaterialTable
 from engine.render.plugins import configured
 from engine.render.shadow_order import ShadowOrder
 from engine.core.scratch import Scratch
-from engine.core.threads import at_own_threads
+from engine.core.threads import at_own_threads, thread_count
 from engine.render.spawn import gather_and_spawn, new_children
 from engine.render.surface import new_surface, shade_surface
 from engine.render.tracer import Tally, Tracer
@@ -117,7 +116,7 @@ class WhittedRenderer:
         self.count = count
         # Kernels run on this many threads inside set_scene, warm_up and render only
         # (``at_own_threads``): the caller's own numba count is back when each returns.
-        self.threads = min(config.render.threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)
+        self.threads = thread_count(config.render.threads)
         self.traversal, self.frustum = configured(config)
         # Which end each light's shadow rays are walked from, learnt from frame to frame.
         self.shadow_order = ShadowOrder(config.render.shadow_order)

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from engine.gpu.device import BLOCK, blocks, require_cuda
+from engine.gpu.fill import fill_array
 from engine.gpu.rayspace.scratch import Scratch
 from engine.gpu.scan import Scanner
 from engine.gpu.twin import device_twin
@@ -94,13 +95,6 @@ class DeviceHierarchy:
 def _block_of(p, width, block_width):
     """The 2x2 pixel block of pixel p on a screen ``width`` wide."""
     return (p // width // 2) * block_width + (p % width) // 2
-
-
-@cuda.jit
-def _fill_i32(values, n, value):
-    i = cuda.grid(1)
-    if i < n:
-        values[i] = value
 
 
 @cuda.jit
@@ -211,9 +205,9 @@ def build(scratch: Scratch, scanner: Scanner, tris, org, dirs, tmin, tmax, pixel
     block_count = scratch.get("block_count", n_blocks, np.int32)
     fill = scratch.get("block_fill", n_blocks, np.int32)
     bad = scratch.get("bad_pixel", 1, np.int32)
-    _fill_i32[blocks(n_blocks), BLOCK](block_count, n_blocks, 0)
-    _fill_i32[blocks(n_blocks), BLOCK](fill, n_blocks, 0)
-    _fill_i32[1, BLOCK](bad, 1, -1)
+    fill_array[blocks(n_blocks), BLOCK](block_count, n_blocks, 0)
+    fill_array[blocks(n_blocks), BLOCK](fill, n_blocks, 0)
+    fill_array[1, BLOCK](bad, 1, -1)
     _count_blocks[blocks(n), BLOCK](pixel, tmin, tmax, n, width, width * height, int(widths[1]), block_count, bad)
     block_start = scratch.get("block_start", n_blocks + 1, np.int32)
     n_slots = scanner.exclusive_scan(block_count, n_blocks, block_start)
