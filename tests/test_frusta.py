@@ -283,11 +283,11 @@ def _row_views(rays):
     return rays._replace(org=view(rays.org), dir=view(rays.dir))
 
 
-@pytest.mark.parametrize("kind", ["pinhole", "pointlight"])
+@pytest.mark.parametrize("kind", ["pinhole", "pointlight", "general"])
 @pytest.mark.parametrize("seed", range(12))
-def test_apex_frusta_eight_rays_at_a_time_are_the_ray_by_ray_frusta(kind, seed):
-    """The apex builders' eight-ray passes (``engine.packet.frustum8``) against the ray-by-ray
-    passes on the same packets of 64 rays (packets with a foreign origin, a far end point or a NaN
+def test_frusta_eight_rays_at_a_time_are_the_ray_by_ray_frusta(kind, seed):
+    """The builders' eight-ray passes (``engine.packet.frustum8``) against the ray-by-ray passes
+    on the same packets of 64 rays (packets with a foreign origin, a far end point or a NaN
     segment among them): the same validity and the same planes."""
     rng = np.random.default_rng(seed)
     rays, packets, _ = random_packet(kind, rng)
@@ -306,7 +306,7 @@ def test_apex_frusta_eight_rays_at_a_time_are_the_ray_by_ray_frusta(kind, seed):
     one_by_one = make_frustum(kind).build(_row_views(rays), packets, BOUNDS)
     assert eight.valid.tolist() == one_by_one.valid.tolist()
     assert np.array_equal(eight.planes, one_by_one.planes)
-    if seed % 4 == 1:
+    if seed % 4 == 1 and kind != "general":  # a general packet has no common point to miss
         assert eight.valid.tolist() == [False]
     elif seed % 4 in (0, 2):
         assert eight.valid.tolist() == [True]

@@ -215,6 +215,22 @@ class Lanes:
     def to_f32_from_int(self, v: V) -> V:
         return V(self, self.builder.sitofp(v.value, self.vector_type(F32)))
 
+    def accumulate(self, start, n_blocks, initial: list, step) -> list:
+        """Vectors carried through a loop over ``n_blocks`` (i64) blocks of WIDTH lanes from lane
+        ``start`` (i64): ``step(first, values)`` gets each block's first lane (i64) and the
+        current values (list of V) and returns the next ones; gives the values after the last
+        block (``initial`` when there is none). The values stay vectors across blocks, so a
+        caller that wants scalars reduces once at the end, not once a block (a horizontal
+        reduction is several shuffles). They live in stack slots that LLVM promotes to registers."""
+        b = self.builder
+        slots = [cgutils.alloca_once_value(b, v.value) for v in initial]
+        with cgutils.for_range(b, n_blocks) as loop:
+            first = b.add(start, b.mul(loop.index, ir.Constant(I64, self.width)))
+            values = step(first, [V(self, b.load(slot)) for slot in slots])
+            for slot, value in zip(slots, values):
+                b.store(value.value, slot)
+        return [V(self, b.load(slot)) for slot in slots]
+
     def bitmask(self, mask: V):
         """An i64 with bit k set when lane k of ``mask`` is set."""
         return self.builder.zext(self.builder.bitcast(mask.value, ir.IntType(self.width)), I64)

@@ -153,6 +153,17 @@ def apex_planes(apex, axis, sign, lo_u, hi_u, lo_v, hi_v, scale, reach, extra, o
                 FRUSTUM_SLACK * (scale + reach) + extra, out)
 
 
+@njit(cache=True, inline="always")
+def slab_far(axis, sign, wn, w_start_far, scale, bounds):
+    """The far plane w' = wf of a slab frustum: beyond the scene box (f32[2,3]) and the farthest
+    start w_start_far; wn: the nearest start, scale: the largest coordinate magnitude."""
+    wf = max(max(sign * bounds[0, axis], sign * bounds[1, axis]), w_start_far)
+    if not wf > wn:
+        # Every start lies on one plane with the whole scene behind it: any positive span will do.
+        wf = wn + 1.0 + scale
+    return wf
+
+
 @njit(cache=True)
 def slab_frustum(p0, g, m, extent, bounds, out):
     """Frustum around m rays with scattered starts p0[:m] and directions g[:m] (f64[>=m,3], of
@@ -172,10 +183,7 @@ def slab_frustum(p0, g, m, extent, bounds, out):
         wn = min(wn, w)
         w_start_far = max(w_start_far, w)
         scale = max(scale, abs_max3(p0[i, 0], p0[i, 1], p0[i, 2]))
-    wf = max(max(sign * bounds[0, axis], sign * bounds[1, axis]), w_start_far)
-    if not wf > wn:
-        # Every start lies on one plane with the whole scene behind it: any positive span will do.
-        wf = wn + 1.0 + scale
+    wf = slab_far(axis, sign, wn, w_start_far, scale, bounds)
     un0 = vn0 = uf0 = vf0 = np.inf
     un1 = vn1 = uf1 = vf1 = -np.inf
     reach2 = 0.0

@@ -28,11 +28,12 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from engine.core.lanes8 import bit_count8, rows_of_three
+from engine.core.lanes8 import rows_of_three
 from engine.packet import frustum8
-from engine.packet.frustum_build import (EMPTY_EXTENT, abs_max3, apex_frustum, apex_planes, bounds_scale,
-                                         dominant_axis, farthest_corner, grow_extent, slab_frustum)
-from engine.packet.frustum8 import gather8, slopes8
+from engine.packet.frustum_build import (EMPTY_EXTENT, FRUSTUM_SLACK, abs_max3, apex_frustum, apex_planes,
+                                         bounds_scale, dominant_axis, farthest_corner, grow_extent, side_planes,
+                                         slab_far, slab_frustum)
+from engine.packet.frustum8 import gather_blocks8, slab_gather_blocks8, slab_rects_blocks8, slopes_blocks8
 from engine.packet.kernels import longest_packet
 
 PINHOLE, POINTLIGHT, GENERAL, PINHOLE_OR_GENERAL = range(4)
@@ -78,28 +79,15 @@ def apex_vector(mode, org, dirs, tmin, r, ax, ay, az):
 @njit(cache=True, inline="always")
 def gather_apex(mode, org, dirs, tmin, tmax, lo, hi, ax, ay, az):
     """The first pass of an apex frustum over rays lo .. hi-1, eight at a time
-    (``engine.packet.frustum8.gather8``) and the rest one by one: (live rays, whether a live ray
-    misses the apex (PINHOLE), the extent of their vectors g as nine scalars, and for POINTLIGHT
-    the largest squared end-point spread, the shortest and longest squared g, the largest origin
-    coordinate)."""
-    m = 0
-    foreign = False
-    e0, e1, e2, e3, e4, e5, e6, e7, e8 = EMPTY_EXTENT
-    spread2 = 0.0
-    shortest2 = np.inf
-    reach2 = 0.0
-    scale = 0.0
-    r = lo
-    while r + 8 <= hi:
-        b = gather8(mode, org, dirs, tmin, tmax, r, ax, ay, az)
-        m += bit_count8(b[0])
-        foreign = foreign or b[1] != 0
-        e0, e1, e2 = min(e0, b[2]), min(e1, b[3]), min(e2, b[4])
-        e3, e4, e5 = max(e3, b[5]), max(e4, b[6]), max(e5, b[7])
-        e6, e7, e8 = e6 + b[8], e7 + b[9], e8 + b[10]
-        spread2, shortest2, reach2, scale = max(spread2, b[11]), min(shortest2, b[12]), max(reach2, b[13]), \
-            max(scale, b[14])
-        r += 8
+    (``engine.packet.frustum8.gather_blocks8``) and the rest one by one: (live rays, whether a
+    live ray misses the apex (PINHOLE), the extent of their vectors g as nine scalars, and for
+    POINTLIGHT the largest squared end-point spread, the shortest and longest squared g, the
+    largest origin coordinate)."""
+    blocks = (hi - lo) // 8
+    m, away, e0, e1, e2, e3, e4, e5, e6, e7, e8, spread2, shortest2, reach2, scale = gather_blocks8(
+        mode, org, dirs, tmin, tmax, lo, blocks, ax, ay, az)
+    foreign = away != 0
+    r = lo + 8 * blocks
     while r < hi:
         if tmin[r] <= tmax[r]:
             gx, gy, gz = apex_vector(mode, org, dirs, tmin, r, ax, ay, az)
@@ -125,18 +113,12 @@ def gather_apex(mode, org, dirs, tmin, tmax, lo, hi, ax, ay, az):
 def apex_slopes(mode, org, dirs, tmin, tmax, lo, hi, ax, ay, az, axis, sign):
     """The second pass of an apex frustum: (lo u, hi u, lo v, hi v), the bounds of the live rays'
     slopes along ``axis`` (``apex_frustum``'s loop), eight rays at a time
-    (``engine.packet.frustum8.slopes8``) and the rest one by one."""
+    (``engine.packet.frustum8.slopes_blocks8``) and the rest one by one."""
     u = (axis + 1) % 3
     v = (axis + 2) % 3
-    lo_u = np.inf
-    hi_u = -np.inf
-    lo_v = np.inf
-    hi_v = -np.inf
-    r = lo
-    while r + 8 <= hi:
-        b = slopes8(mode, org, dirs, tmin, tmax, r, ax, ay, az, axis, sign)
-        lo_u, hi_u, lo_v, hi_v = min(lo_u, b[0]), max(hi_u, b[1]), min(lo_v, b[2]), max(hi_v, b[3])
-        r += 8
+    blocks = (hi - lo) // 8
+    lo_u, hi_u, lo_v, hi_v = slopes_blocks8(mode, org, dirs, tmin, tmax, lo, blocks, ax, ay, az, axis, sign)
+    r = lo + 8 * blocks
     while r < hi:
         if tmin[r] <= tmax[r]:
             g = apex_vector(mode, org, dirs, tmin, r, ax, ay, az)
@@ -265,10 +247,71 @@ def pointlight_frustum(org, dirs, tmin, tmax, lo, hi, scene_scale, g, light, pla
                         math.sqrt(spread2), plane)
 
 
+@njit(cache=True)
+def general_frustum8(org, dirs, tmin, tmax, lo, hi, bounds, plane):
+    """``general_frustum`` in two passes eight rays at a time (``engine.packet.frustum8``),
+    without the gathered vectors: the first takes the directions' extent and the starts' bounds
+    (from which the near plane, the far plane and the coordinate scale follow), the second the
+    rectangles where the rays cross the two planes. Called, not inlined, as ``pinhole_frustum8``."""
+    blocks = (hi - lo) // 8
+    m, e0, e1, e2, e3, e4, e5, e6, e7, e8, p_lo_x, p_lo_y, p_lo_z, p_hi_x, p_hi_y, p_hi_z, largest = \
+        slab_gather_blocks8(org, dirs, tmin, tmax, lo, blocks)
+    for r in range(lo + 8 * blocks, hi):
+        if not tmin[r] <= tmax[r]:
+            continue
+        gx, gy, gz = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
+        t = np.float64(tmin[r])
+        px, py, pz = org[r, 0] + t * gx, org[r, 1] + t * gy, org[r, 2] + t * gz
+        e0, e1, e2, e3, e4, e5, e6, e7, e8 = grow_extent(e0, e1, e2, e3, e4, e5, e6, e7, e8, gx, gy, gz)
+        p_lo_x, p_lo_y, p_lo_z = min(p_lo_x, px), min(p_lo_y, py), min(p_lo_z, pz)
+        p_hi_x, p_hi_y, p_hi_z = max(p_hi_x, px), max(p_hi_y, py), max(p_hi_z, pz)
+        largest = max(largest, abs_max3(px, py, pz))
+        m += 1
+    if m == 0:
+        return False
+    axis, sign = dominant_axis((e0, e1, e2, e3, e4, e5, e6, e7, e8))
+    if axis < 0:
+        return False
+    # The starts' nearest and farthest w' = sign * p[axis]: sign -1 turns their minimum into
+    # minus the maximum, exactly.
+    p_lo = p_lo_x if axis == 0 else (p_lo_y if axis == 1 else p_lo_z)
+    p_hi = p_hi_x if axis == 0 else (p_hi_y if axis == 1 else p_hi_z)
+    wn, w_start_far = (p_lo, p_hi) if sign > 0 else (-p_hi, -p_lo)
+    scale = max(bounds_scale(bounds), largest)
+    wf = slab_far(axis, sign, wn, w_start_far, scale, bounds)
+    un0, un1, vn0, vn1, uf0, uf1, vf0, vf1, reach2 = slab_rects_blocks8(org, dirs, tmin, tmax, lo, blocks, axis,
+                                                                        sign, wn, wf)
+    u = (axis + 1) % 3
+    v = (axis + 2) % 3
+    for r in range(lo + 8 * blocks, hi):
+        if not tmin[r] <= tmax[r]:
+            continue
+        t = np.float64(tmin[r])
+        g0, g1, g2 = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
+        p0 = (org[r, 0] + t * g0, org[r, 1] + t * g1, org[r, 2] + t * g2)
+        g = (g0, g1, g2)
+        w0 = sign * p0[axis]
+        inv_w = sign / g[axis]
+        tn = (wn - w0) * inv_w
+        tf = (wf - w0) * inv_w
+        un = p0[u] + tn * g[u]
+        vn = p0[v] + tn * g[v]
+        uf = p0[u] + tf * g[u]
+        vf = p0[v] + tf * g[v]
+        un0, un1, vn0, vn1 = min(un0, un), max(un1, un), min(vn0, vn), max(vn1, vn)
+        uf0, uf1, vf0, vf1 = min(uf0, uf), max(uf1, uf), min(vf0, vf), max(vf1, vf)
+        reach2 = max(reach2, (tf - tn) * (tf - tn) * (g0 * g0 + g1 * g1 + g2 * g2))
+    side_planes(axis, sign, wn, wf, (un0, un1, vn0, vn1), (uf0, uf1, vf0, vf1),
+                FRUSTUM_SLACK * (scale + math.sqrt(reach2)), plane)
+    return True
+
+
 @njit(cache=True, inline="always")
 def general_frustum(org, dirs, tmin, tmax, lo, hi, bounds, g, p0, plane):
     """Slab frustum of rays lo .. hi-1 into plane (f32[4,4]); False when there is none.
     Scratch: g, p0 f64[>= hi-lo, 3] the live directions and segment starts."""
+    if eight_at_a_time(org, dirs, lo, hi):
+        return general_frustum8(org, dirs, tmin, tmax, lo, hi, bounds, plane)
     m = 0
     e0, e1, e2, e3, e4, e5, e6, e7, e8 = EMPTY_EXTENT
     for r in range(lo, hi):
