@@ -12,6 +12,7 @@ import pytest
 import engine.bench.runner as bench
 from engine.bench.matrix import RECURSION, load_matrix, parse_matrix
 from engine.bench.packets_report import COST_TERMS, packet_cells
+from engine.bench.results import host_slowdown
 from engine.cli import main
 from engine.core.types import RAY_KINDS
 
@@ -20,7 +21,8 @@ SMOKE = ROOT / "benchmarks" / "smoke.toml"
 
 RECORD_KEYS = {"schema", "id", "matrix", "tags", "labels", "cell", "config", "scene", "repeat", "threads",
                "seconds", "rays", "batches", "packets", "mrays_per_s", "embree_mrays_per_s", "ratio_to_embree", "fps",
-               "open3d_mrays_per_s", "ratio_to_open3d", "checks", "counters", "counters_by_depth", "extra", "machine", "started", "wall_seconds", "load"}
+               "open3d_mrays_per_s", "ratio_to_open3d", "checks", "counters", "counters_by_depth", "extra", "machine", "started", "wall_seconds", "load",
+               "host"}
 SUMMARY_KEYS = {"median", "min", "max", "q1", "q3", "runs"}
 
 
@@ -74,6 +76,10 @@ def test_smoke_writes_jsonl_csv_and_plots(smoke_dir):
         assert {"cpu", "cores", "numba_threads", "python", "numpy", "numba", "embreex", "embree", "open3d", "git"} <= set(m)
         assert len(m["git"]["commit"]) == 40 or m["git"]["commit"] == "unknown"
         assert r["config"]["render"]["width"] == 64 and r["cell"]["packet"] == 8
+        # The host's speed, probed just before and after the cell on the cell's threads.
+        for when in ("before", "after"):
+            probe = r["host"][when]
+            assert probe["compute_ms"] > 0 and probe["memory_ns"] > 0 and probe["threads"] == r["threads"]
     by_preset = {}
     for r in records:
         by_preset.setdefault(r["labels"]["recursion"], []).append(r)
@@ -90,12 +96,23 @@ def test_smoke_writes_jsonl_csv_and_plots(smoke_dir):
     assert {"id", "scene", "traversal", "frustum", "packet", "recursion", "frame_s", "mrays_all", "ratio_all",
             "rays_primary", "trace_s_shadow", "ratio_reflection", "ray_aabb_primary", "commit", "fps_open3d_trace",
             "open3d_mrays_all", "ratio_open3d_all", "open3d_s_shadow", "open3d_mrays_primary", "ratio_open3d_reflection",
-            "open3d_mismatches_primary"} <= set(rows[0])
+            "open3d_mismatches_primary", "host_compute_ms_before", "host_memory_ns_after"} <= set(rows[0])
     assert all(float(row["open3d_mrays_all"]) > 0 for row in rows)
     pngs = list(smoke_dir.glob("*.png"))
     assert pngs and all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
     summary = (smoke_dir / "summary.md").read_text()
     assert "| whitted |" in summary and "| Open3D Mrays/s | ours / Open3D |" in summary
+    assert "| CPU share | host slow-down |" in summary
+    slowdowns = [float(line.rsplit("|", 2)[1]) for line in summary.splitlines() if line.startswith("| whitted |")]
+    assert len(slowdowns) == len(records) and min(slowdowns) == 1.0 and all(x >= 1.0 for x in slowdowns)
+
+
+def test_host_slowdown_is_each_cell_over_the_fastest():
+    def record(before, after):
+        return {"host": {"before": {"compute_ms": before}, "after": {"compute_ms": after}}}
+    rows = [record(6.0, 6.0), record(5.0, 7.0), record(4.0, 4.0), {"labels": {}}]
+    assert host_slowdown(rows) == [1.5, 1.5, 1.0, None]
+    assert host_slowdown([{"labels": {}}]) == [None]
 
 
 def test_resume_does_no_work(smoke_dir, tmp_path, monkeypatch):

@@ -30,6 +30,7 @@ from pathlib import Path
 
 from engine.bench import packets_report
 from engine.bench.open3d_yardstick import OPEN3D_MISMATCH_TOLERANCE
+from engine.bench.results import host_slowdown
 from engine.bench.figures import fmt, machine_line, ordered, pyplot, save, trace_seconds
 from engine.core.atomic import write_text
 from engine.core.types import RAY_KINDS
@@ -83,13 +84,16 @@ def summary(records: list, out: Path) -> list:
                       f"{OPEN3D_MISMATCH_TOLERANCE:.1%} of a kind's rays; the counts are in results.jsonl, "
                       f"checks.open3d).", ""]
         lines += ["CPU share = our CPU time / (wall time x threads) while replaying: near 1 on an idle machine, "
-                  "lower when other work competed for the cores (treat such rows with care).", "",
+                  "lower when other work competed for the cores (treat such rows with care). Host slow-down = "
+                  "the time of a fixed computation just before and after the cell over the run's fastest "
+                  "(engine.bench.host_speed): 1.00 at the run's fastest moment; a row well above 1 was measured "
+                  "while the cores ran slower, which the CPU share does not show.", "",
                   "| scene | recursion | size | traversal | frustum | packet | rays | frame ms | trace ms | Mrays/s "
                   "| Embree Mrays/s | ours / Embree |" + (" Open3D Mrays/s | ours / Open3D |" if open3d else "")
-                  + " CPU share |",
+                  + " CPU share | host slow-down |",
                   "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|" + ("---:|---:|" if open3d else "")
-                  + "---:|"]
-        for r in records:
+                  + "---:|---:|"]
+        for r, slow in zip(records, host_slowdown(records)):
             lab = r["labels"]
             ratio = (r["ratio_to_embree"] or {}).get("all")
             versus = (f" {_open3d_rate(r)} | {fmt((r.get('ratio_to_open3d') or {}).get('all'))} |"
@@ -98,7 +102,7 @@ def summary(records: list, out: Path) -> list:
                          f"{lab['frustum']} | {lab['packet']} | {r['rays']['all']:,} | "
                          f"{r['seconds']['frame']['median'] * 1e3:,.1f} | {trace_seconds(r) * 1e3:,.1f} | "
                          f"{fmt(r['mrays_per_s']['all'])} | {fmt((r['embree_mrays_per_s'] or {}).get('all'))} | "
-                         f"{fmt(ratio)} |{versus} {fmt(r.get('load', {}).get('cpu_share_replay'))} |")
+                         f"{fmt(ratio)} |{versus} {fmt(r.get('load', {}).get('cpu_share_replay'))} | {fmt(slow)} |")
     path = out / "summary.md"
     write_text(path, "\n".join(lines) + "\n")
     return [path]

@@ -29,7 +29,9 @@ One line (schema 1; ``K`` = a ray kind, summaries = {median, min, max, q1, q3, r
      "counters": {name: {K: n}}, "counters_by_depth": {name: {K: [n per BVH depth]}},
      "extra": {K: plugin statistics}, "machine": {...}, "started", "wall_seconds",
      "load": {"loadavg_at_start": [1, 5, 15 min], "cpu_share_replay": our CPU seconds / (wall x
-              threads) while replaying: near 1 on an idle machine, low when others compete}}
+              threads) while replaying: near 1 on an idle machine, low when others compete},
+     "host": {"before" | "after": {"compute_ms", "memory_ns", "threads"}}}  # the host's speed just
+              # before and after the cell (engine.bench.host_speed); absent in older records
 """
 from __future__ import annotations
 
@@ -133,9 +135,26 @@ def csv_row(r: dict) -> dict:
         for name in ("ray_aabb", "ray_tri"):
             row[f"{name}_{k}"] = r["counters"].get(name, {}).get(k)
     row["cpu_share_replay"] = r.get("load", {}).get("cpu_share_replay")
+    host = r.get("host") or {}
+    for when in ("before", "after"):
+        row[f"host_compute_ms_{when}"] = (host.get(when) or {}).get("compute_ms")
+        row[f"host_memory_ns_{when}"] = (host.get(when) or {}).get("memory_ns")
     row["commit"] = r["machine"]["git"]["commit"]
     row["dirty"] = r["machine"]["git"]["dirty"]
     return row
+
+
+def host_slowdown(records: list) -> list:
+    """Per record: the host's compute time around its cell (``"host"``, before and after
+    averaged) over the fastest of these records, 1.0 at the run's fastest moment; None for a
+    record without it (older runs, other matrix kinds)."""
+    def compute(record):
+        host = record.get("host")
+        return (host["before"]["compute_ms"] + host["after"]["compute_ms"]) / 2 if host else None
+
+    times = [compute(r) for r in records]
+    fastest = min((t for t in times if t), default=None)
+    return [t / fastest if t and fastest else None for t in times]
 
 
 def write_atomic(path: Path, text: str) -> None:

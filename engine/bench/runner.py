@@ -45,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
+from engine.bench import host_speed
 from engine.bench import results as results_io
 from engine.bench.floor import floor_tracer, uses_packet_traversals
 from engine.bench.machine import machine_info
@@ -269,9 +270,13 @@ def run_cell(cell: Cell, repeat: int, scene_cache: SceneCache, yardstick: Embree
              matrix_name: str, references: ReferenceAnswers | None = None,
              open3d: Open3DYardstick | None = None) -> dict:
     """Measure one cell (see the module doc); returns its results.jsonl record. Its frames, replays
-    and yardsticks all run at the cell's thread count; the caller's count is back afterwards."""
+    and yardsticks all run at the cell's thread count; the caller's count is back afterwards. The
+    host's speed is probed just before and after (``engine.bench.host_speed``), into "host"."""
     with numba_threads(cell.config().render.threads):
-        return _measure_cell(cell, repeat, scene_cache, yardstick, machine, matrix_name, references, open3d)
+        before = host_speed.measure()
+        record = _measure_cell(cell, repeat, scene_cache, yardstick, machine, matrix_name, references, open3d)
+        record["host"] = {"before": before, "after": host_speed.measure()}
+        return record
 
 
 def _measure_cell(cell, repeat, scene_cache, yardstick, machine, matrix_name, references, open3d) -> dict:

@@ -1,0 +1,82 @@
+"""How fast this host runs at the moment: a few milliseconds of fixed work, timed before and
+after each benchmark cell, so that a cell measured while the host ran slow can be told apart.
+
+Why: on a shared 2-core host the same cell moved by up to 40% within an hour (session 25: the
+kitchen-paper frame 195 -> 300 ms, code unchanged), while the CPU share the runner records (our
+CPU seconds over wall time x threads) stayed near 1: nobody took the cores from us, they ran
+slower. Fixed work on every numba thread sees that directly:
+
+- compute: a chain of dependent float multiply-adds, ``COMPUTE_STEPS`` of them on each thread
+  (milliseconds; the clock speed the threads get);
+- memory: a chain of dependent loads through an 8 MiB table, past a core's L2, ``LOADS`` of them
+  on each thread (nanoseconds per load; the latency the BVH walks wait on).
+
+``measure()`` -> {"compute_ms", "memory_ns", "threads"}: medians of three runs of each, about
+30 ms in all. Compare values from one host only.
+"""
+from __future__ import annotations
+
+import statistics
+import time
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+COMPUTE_STEPS = 2_000_000
+LOADS = 100_000
+TABLE_ENTRIES = 1 << 21  # int32: 8 MiB
+RUNS = 3
+
+
+@njit(cache=True, parallel=True)
+def _compute_chain(steps, out):
+    """out[t] (f64[threads]) = the end of a chain of ``steps`` dependent multiply-adds, one chain
+    per thread."""
+    for t in prange(out.shape[0]):
+        x = 1.0 + t
+        for _ in range(steps):
+            x = x * 0.9999999 + 1e-7
+        out[t] = x
+
+
+@njit(cache=True)
+def _cycle(n):
+    """i32[n] (n a power of two): next[i] = (a i + c) mod n, with a = 1 (mod 4) and c odd, which
+    visits all n entries in one cycle (Hull and Dobell) in an order no prefetcher follows."""
+    following = np.empty(n, np.int32)
+    for i in range(n):
+        following[i] = (i * 1103515245 + 12345) & (n - 1)
+    return following
+
+
+@njit(cache=True, parallel=True)
+def _load_chain(following, loads, out):
+    """out[t] (i64[threads]) = where a chain of ``loads`` dependent loads through ``following``
+    ends, one chain per thread from its own start."""
+    for t in prange(out.shape[0]):
+        p = (t * 65537) & (following.shape[0] - 1)
+        for _ in range(loads):
+            p = following[p]
+        out[t] = p
+
+
+def measure() -> dict:
+    """{"compute_ms": ms for COMPUTE_STEPS steps, "memory_ns": ns per dependent load, "threads":
+    numba threads}: medians of RUNS runs on every numba thread (see the module doc)."""
+    threads = numba.get_num_threads()
+    floats, ends = np.empty(threads), np.empty(threads, np.int64)
+    following = _cycle(TABLE_ENTRIES)
+    _compute_chain(1, floats)  # compiled or loaded before the clock starts
+    _load_chain(following, 1, ends)
+    compute, memory = [], []
+    for _ in range(RUNS):
+        start = time.perf_counter()
+        _compute_chain(COMPUTE_STEPS, floats)
+        compute.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        _load_chain(following, LOADS, ends)
+        memory.append(time.perf_counter() - start)
+    return {"compute_ms": 1e3 * statistics.median(compute), "memory_ns": 1e9 * statistics.median(memory) / LOADS,
+            "threads": threads}
+
