@@ -409,6 +409,12 @@ def _add_bench_parser(sub) -> None:
                         "no address on a local cluster started here")
     p.add_argument("--workers", type=int, help="worker processes of the local cluster (default 1: one cell at a "
                                                "time, clean timings)")
+    p.add_argument("--steady", type=float, metavar="X",
+                   help="measure a cell again (up to --retries times) when the host ran more than X times slower "
+                        "around it than at the run's fastest moment, and keep the steadiest measurement "
+                        "(e.g. 1.1; default: measure once)")
+    p.add_argument("--retries", type=int, default=2, help="most extra measurements of a cell under --steady "
+                                                          "(default 2)")
     p.set_defaults(run=_delegate("engine.bench.runner", "cmd_bench"))
 
 

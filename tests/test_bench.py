@@ -500,3 +500,56 @@ def test_a_cell_keeps_no_frame_image_alive_while_it_times_the_next(monkeypatch):
     assert record["seconds"]["frame"]["median"] > 0
     # The warm-up render and then four timed renders: none starts with an earlier image alive.
     assert len(most) >= 5 and max(most[1:5]) == 0, most
+
+
+def _host_record(before, after, label=""):
+    return {"label": label, "host": {"before": {"compute_ms": before}, "after": {"compute_ms": after}}}
+
+
+def test_steadiest_measures_a_cell_again_while_the_host_ran_slow():
+    again = iter([_host_record(9.0, 9.5, "second"), _host_record(5.2, 5.3, "third"), _host_record(5.0, 5.0, "4th")])
+    record, fastest = bench.steadiest(lambda: next(again), _host_record(8.0, 8.0, "first"), 1.1, 2, 5.0)
+    # 8 > 1.1 x 5: measured again; 9.5 is worse (kept the first); 5.3 is within 1.1 x 5: kept, stop.
+    assert record["label"] == "third" and record["host"]["measured"] == 3 and fastest == 5.0
+    assert next(again)["label"] == "4th"  # no fourth measurement
+
+
+def test_steadiest_keeps_a_steady_cell_and_stops_after_its_retries():
+    calls = []
+    record, _ = bench.steadiest(lambda: calls.append(1), _host_record(5.4, 5.0, "only"), 1.1, 2, 5.0)
+    assert record["label"] == "only" and record["host"]["measured"] == 1 and not calls
+    slow = iter([_host_record(9.0, 9.0, "b"), _host_record(8.0, 8.5, "c")])
+    record, fastest = bench.steadiest(lambda: next(slow), _host_record(10.0, 10.0, "a"), 1.1, 2, 5.0)
+    assert record["label"] == "c" and record["host"]["measured"] == 3 and fastest == 5.0
+    # The run's fastest moment is learnt from the probes: a faster probe lowers the bar.
+    record, fastest = bench.steadiest(lambda: None, _host_record(4.0, 4.2, "quick"), 1.1, 2, 5.0)
+    assert record["label"] == "quick" and fastest == 4.0
+
+
+def test_run_matrix_under_steady_records_the_steadiest_measurement(tmp_path, monkeypatch):
+    """A fake cell measurement whose host is slow the first time: the matrix keeps the second."""
+    matrix = load_matrix(str(SMOKE))
+    probes = iter([10.0, 5.0])
+
+    def fake_run(cell, *args, **kwargs):
+        load = next(probes, 5.0)
+        return {"schema": 1, "id": cell.key, "labels": cell.labels(), "host": {"before": {"compute_ms": load},
+                                                                               "after": {"compute_ms": load}}}
+
+    monkeypatch.setattr(bench.host_speed, "measure", lambda: {"compute_ms": 5.0, "memory_ns": 100.0, "threads": 2})
+    monkeypatch.setattr(bench, "write_outputs", lambda out, matrix: [])
+    matrix.cells = matrix.cells[:2]
+    bench.run_matrix(matrix, tmp_path, progress=False, run=fake_run, steady=1.2, retries=3)
+    records = lines(tmp_path / "results.jsonl")
+    assert [r["host"]["measured"] for r in records] == [2, 1]
+    assert [r["host"]["before"]["compute_ms"] for r in records] == [5.0, 5.0]
+
+
+@pytest.mark.parametrize("flags, message", [(["--steady", "0.9"], "--steady must be a number >= 1"),
+                                            (["--steady", "nan"], "--steady must be a number >= 1"),
+                                            (["--steady", "1.1", "--retries", "-1"], "--retries must be"),
+                                            (["--steady", "1.1", "--scheduler"], "does not combine with --scheduler")])
+def test_bad_steady_flags_are_one_line(tmp_path, capsys, flags, message):
+    assert main(["bench", str(SMOKE), "--out", str(tmp_path / "x"), *flags]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
