@@ -9,10 +9,12 @@ slower. Fixed work on every numba thread sees that directly:
 - compute: a chain of dependent float multiply-adds, ``COMPUTE_STEPS`` of them on each thread
   (milliseconds; the clock speed the threads get);
 - memory: a chain of dependent loads through an 8 MiB table, past a core's L2, ``LOADS`` of them
-  on each thread (nanoseconds per load; the latency the BVH walks wait on).
+  on each thread (nanoseconds per load; the latency the BVH walks wait on);
+- stream: a read of a 64 MiB array split over the threads (GB/s; the bandwidth the shading
+  passes, which write and read back tens of bytes a lane, depend on).
 
-``measure()`` -> {"compute_ms", "memory_ns", "threads"}: medians of three runs of each, about
-30 ms in all. Compare values from one host only.
+``measure()`` -> {"compute_ms", "memory_ns", "stream_gbps", "threads"}: medians of three runs of
+each, about 50 ms in all. Compare values from one host only.
 """
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ from numba import njit, prange
 COMPUTE_STEPS = 2_000_000
 LOADS = 100_000
 TABLE_ENTRIES = 1 << 21  # int32: 8 MiB
+STREAM_FLOATS = 1 << 24  # float32: 64 MiB
 RUNS = 3
 
 
@@ -61,15 +64,29 @@ def _load_chain(following, loads, out):
         out[t] = p
 
 
+@njit(cache=True, parallel=True, fastmath=True)
+def _stream(values):
+    """The sum of ``values`` (f32[n]), read by every thread in parallel. fastmath lets LLVM add in
+    any order, so the loads, not a chain of adds, set the pace (nothing here needs the sum's
+    exact bits)."""
+    total = 0.0
+    for i in prange(values.shape[0]):
+        total += values[i]
+    return total
+
+
 def measure() -> dict:
-    """{"compute_ms": ms for COMPUTE_STEPS steps, "memory_ns": ns per dependent load, "threads":
-    numba threads}: medians of RUNS runs on every numba thread (see the module doc)."""
+    """{"compute_ms": ms for COMPUTE_STEPS steps, "memory_ns": ns per dependent load,
+    "stream_gbps": GB/s read, "threads": numba threads}: medians of RUNS runs on every numba
+    thread (see the module doc)."""
     threads = numba.get_num_threads()
     floats, ends = np.empty(threads), np.empty(threads, np.int64)
     following = _cycle(TABLE_ENTRIES)
+    values = np.ones(STREAM_FLOATS, np.float32)
     _compute_chain(1, floats)  # compiled or loaded before the clock starts
     _load_chain(following, 1, ends)
-    compute, memory = [], []
+    _stream(values)  # also brings the pages in
+    compute, memory, stream = [], [], []
     for _ in range(RUNS):
         start = time.perf_counter()
         _compute_chain(COMPUTE_STEPS, floats)
@@ -77,6 +94,9 @@ def measure() -> dict:
         start = time.perf_counter()
         _load_chain(following, LOADS, ends)
         memory.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        _stream(values)
+        stream.append(time.perf_counter() - start)
     return {"compute_ms": 1e3 * statistics.median(compute), "memory_ns": 1e9 * statistics.median(memory) / LOADS,
-            "threads": threads}
+            "stream_gbps": values.nbytes / statistics.median(stream) / 1e9, "threads": threads}
 

@@ -30,8 +30,10 @@ One line (schema 1; ``K`` = a ray kind, summaries = {median, min, max, q1, q3, r
      "extra": {K: plugin statistics}, "machine": {...}, "started", "wall_seconds",
      "load": {"loadavg_at_start": [1, 5, 15 min], "cpu_share_replay": our CPU seconds / (wall x
               threads) while replaying: near 1 on an idle machine, low when others compete},
-     "host": {"before" | "after": {"compute_ms", "memory_ns", "threads"}}}  # the host's speed just
-              # before and after the cell (engine.bench.host_speed); absent in older records
+     "host": {"before" | "after": {"compute_ms", "memory_ns", "stream_gbps", "threads"},
+              "measured": n}}  # the host's speed just before and after the cell
+              # (engine.bench.host_speed); "measured": how many times --steady measured the cell;
+              # absent in older records
 """
 from __future__ import annotations
 
@@ -137,24 +139,52 @@ def csv_row(r: dict) -> dict:
     row["cpu_share_replay"] = r.get("load", {}).get("cpu_share_replay")
     host = r.get("host") or {}
     for when in ("before", "after"):
-        row[f"host_compute_ms_{when}"] = (host.get(when) or {}).get("compute_ms")
-        row[f"host_memory_ns_{when}"] = (host.get(when) or {}).get("memory_ns")
+        for name in HOST_MEASURES:
+            row[f"host_{name}_{when}"] = (host.get(when) or {}).get(name)
     row["commit"] = r["machine"]["git"]["commit"]
     row["dirty"] = r["machine"]["git"]["dirty"]
     return row
 
 
-def host_slowdown(records: list) -> list:
-    """Per record: the host's compute time around its cell (``"host"``, before and after
-    averaged) over the fastest of these records, 1.0 at the run's fastest moment; None for a
-    record without it (older runs, other matrix kinds)."""
-    def compute(record):
-        host = record.get("host")
-        return (host["before"]["compute_ms"] + host["after"]["compute_ms"]) / 2 if host else None
+#: The host probe's measures (``engine.bench.host_speed``) and whether a larger value is slower.
+HOST_MEASURES = {"compute_ms": True, "memory_ns": True, "stream_gbps": False}
 
-    times = [compute(r) for r in records]
-    fastest = min((t for t in times if t), default=None)
-    return [t / fastest if t and fastest else None for t in times]
+
+def fastest_host(records: list, fastest: dict | None = None) -> dict:
+    """{measure: its fastest value} over the host probes (before and after) of ``records`` and
+    the values already in ``fastest``."""
+    best = dict(fastest or {})
+    for record in records:
+        for probe in ((record.get("host") or {}).get(when) for when in ("before", "after")):
+            for name, larger_is_slower in HOST_MEASURES.items():
+                value = (probe or {}).get(name)
+                if value:
+                    known = best.get(name)
+                    best[name] = value if known is None else (min if larger_is_slower else max)(known, value)
+    return best
+
+
+def host_slowness(record: dict, fastest: dict):
+    """How many times slower than ``fastest`` (``fastest_host``) the host ran around a record's
+    cell: the largest ratio over its two probes and the measures both have (compute, memory
+    latency, streaming bandwidth), 1.0 at the fastest; None without a probe."""
+    host = record.get("host")
+    if not host:
+        return None
+    ratios = []
+    for probe in (host.get("before") or {}, host.get("after") or {}):
+        for name, larger_is_slower in HOST_MEASURES.items():
+            value, best = probe.get(name), fastest.get(name)
+            if value and best:
+                ratios.append(value / best if larger_is_slower else best / value)
+    return max(ratios) if ratios else None
+
+
+def host_slowdown(records: list) -> list:
+    """Per record: ``host_slowness`` against the fastest probes of all of ``records`` (None for a
+    record without a probe: older runs, other matrix kinds)."""
+    fastest = fastest_host(records)
+    return [host_slowness(r, fastest) for r in records]
 
 
 def write_atomic(path: Path, text: str) -> None:

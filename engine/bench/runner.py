@@ -481,34 +481,24 @@ def free_backup_name(path: Path) -> Path:
     return candidate
 
 
-def host_load(record: dict):
-    """The slower of the host probes just before and after a cell (compute ms), or None."""
-    host = record.get("host")
-    return max(host["before"]["compute_ms"], host["after"]["compute_ms"]) if host else None
-
-
-def steadiest(measure, record: dict, limit: float, retries: int, fastest: float):
+def steadiest(measure, record: dict, limit: float, retries: int, fastest: dict):
     """(record, fastest): ``record``, or a measurement of the same cell again (``measure()``, at
     most ``retries`` more) when the host ran more than ``limit`` times slower around it than
-    ``fastest`` (the quickest host probe of the run so far, compute ms) -- the one whose host ran
-    fastest is kept, with host["measured"], how many times the cell was measured. ``fastest``
-    comes back lowered by every probe seen."""
+    ``fastest`` (the fastest host probes of the run so far, ``results.fastest_host``) -- the one
+    whose host ran fastest is kept, with host["measured"], how many times the cell was measured.
+    ``fastest`` comes back with every probe seen folded in."""
     best, measured = record, 1
-    while True:
-        load = host_load(best)
-        if load is None:
-            return best, fastest
-        fastest = min(fastest, best["host"]["before"]["compute_ms"], best["host"]["after"]["compute_ms"])
-        if load <= limit * fastest or measured > retries:
+    fastest = results_io.fastest_host([record], fastest)
+    while results_io.host_slowness(best, fastest) is not None:
+        if results_io.host_slowness(best, fastest) <= limit or measured > retries:
             break
         again = measure()
         measured += 1
-        fastest = min(fastest, again["host"]["before"]["compute_ms"], again["host"]["after"]["compute_ms"])
-        if host_load(again) < load:
+        fastest = results_io.fastest_host([again], fastest)
+        if results_io.host_slowness(again, fastest) < results_io.host_slowness(best, fastest):
             best = again
-        if host_load(best) <= limit * fastest:
-            break
-    best["host"]["measured"] = measured
+    if best.get("host"):
+        best["host"]["measured"] = measured
     return best, fastest
 
 
@@ -556,7 +546,8 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
             costs = [_cost(c, scenes[(c.scene.name, c.scene.params, c.scene.time)], matrix.repeat) for c in here]
             scene_cache, yardstick, references = SceneCache(), EmbreeYardstick(), ReferenceAnswers()
             open3d = Open3DYardstick()
-            fastest = host_speed.measure()["compute_ms"] if steady is not None else None
+            fastest = results_io.fastest_host([{"host": {"before": host_speed.measure()}}]) \
+                if steady is not None else {}
             bar = tqdm(total=sum(costs), disable=not progress or not here, file=sys.stderr, dynamic_ncols=True,
                        bar_format="{l_bar}{bar}| {postfix} [{elapsed}<{remaining}]")
             try:
