@@ -36,6 +36,13 @@ def test_a_tiny_matrix_runs_and_counts_agreement(tmp_path):
     assert [json.loads(line)["query"] for line in lines] == [r["query"] for r in records]
     assert "| whitted | primary | first |" in (tmp_path / "results.md").read_text()
     assert "speed-up, 1 thread each" in (tmp_path / "results.md").read_text()
+    # Each query's host probes, and the slow-down column they give.
+    for r in records:
+        assert all(r["host"][when]["compute_ms"] > 0 and r["host"][when]["stream_gbps"] > 0
+                   for when in ("before", "after"))
+    rows = [line for line in (tmp_path / "results.md").read_text().splitlines() if line.startswith("| whitted |")]
+    assert "| host slow-down |" in (tmp_path / "results.md").read_text()
+    assert len(rows) == len(records) and all(float(row.rsplit("|", 2)[1]) >= 1.0 for row in rows)
 
 
 

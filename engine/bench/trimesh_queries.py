@@ -30,7 +30,8 @@ about ``rays`` pixels: coherent). Points for ``contains``: uniform in the mesh's
 Agreement per query and ray: ``first``: the same triangle, or hits at the same distance (within
 1e-5 of the mesh's size: an edge shared by two triangles); ``any``: the same answer; ``all``: the
 same number of hits; ``contains``: the same answer. Results go to ``OUT/results.jsonl`` (one
-record per mesh, ray set and query) and ``OUT/results.md`` (the table).
+record per mesh, ray set and query, with the host's speed just before and after it: ``host``,
+``engine.bench.host_speed``) and ``OUT/results.md`` (the table, with a host slow-down column).
 """
 from __future__ import annotations
 
@@ -41,6 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
+from engine.bench import host_speed
+from engine.bench.results import host_slowdown
 from engine.core.atomic import output_folder, plain_json, write_text
 from engine.core.errors import ConfigError
 
@@ -284,8 +287,10 @@ def run(spec: dict, out: Path, progress=print) -> list:
                     else:
                         args, call = (points,), "contains_points"
                     render = render_call if set_name == "primary" and query == "first" else None
+                    before = host_speed.measure()
                     (t_theirs, a_theirs), (t_ours, a_ours), (t_one, a_one), render_times = _time_query(
                         theirs, ours, ours_1, call, args, render, spec["repeat"], spec["rounds"])
+                    host = {"before": before, "after": host_speed.measure()}
                     render_rate = render_rays / float(np.median(render_times)) / 1e6 if render_times else None
                     n = len(args[0])
                     agree = agreement(query, mesh, a_ours, a_theirs, *args) if query != "contains" else \
@@ -299,7 +304,7 @@ def run(spec: dict, out: Path, progress=print) -> list:
                               "packetrt_1thread_seconds": t_one,
                               "same_on_1thread": _same_answers(a_ours, a_one) if t_one else None,
                               "speedup_1thread": t_theirs / t_one if t_one else None,
-                              "render_path_mrays": render_rate}
+                              "render_path_mrays": render_rate, "host": host}
                     records.append(record)
                     one = f" (1 thread x{record['speedup_1thread']:.2f})" if t_one else ""
                     progress(f"{label:>14} {record['rays']:>10} {query:>8}: trimesh {record['trimesh_mrays']:6.2f}  "
@@ -315,15 +320,17 @@ def markdown_table(records: list, trimesh_version: str) -> str:
     lines = [f"trimesh {trimesh_version} default backend (embreex, 1 thread) vs packetrt RayMeshIntersector "
              f"({first.get('threads', '?')} numba threads); medians of {first.get('repeat', '?')} in "
              f"{first.get('rounds', 1)} alternating rounds per backend",
+             "", "Host slow-down: how many times slower than the run's fastest moment the host ran around the "
+             "query (engine.bench.host_speed); compare rows near 1.00.",
              "", "| mesh | rays | query | n | trimesh Mrays/s | packetrt Mrays/s | speed-up | "
-             "speed-up, 1 thread each | agree | render path Mrays/s |",
-             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in records:
+             "speed-up, 1 thread each | agree | render path Mrays/s | host slow-down |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r, slow in zip(records, host_slowdown(records)):
         render = f"{r['render_path_mrays']:.2f}" if r["render_path_mrays"] else ""
         one = f"{r['speedup_1thread']:.2f}" if r.get("speedup_1thread") else ""
         lines.append(f"| {r['mesh']} | {r['rays']} | {r['query']} | {r['n']:,} | {r['trimesh_mrays']:.2f} | "
                      f"{r['packetrt_mrays']:.2f} | {r['speedup']:.2f} | {one} | {r['agree']:,}/{r['n']:,} | "
-                     f"{render} |")
+                     f"{render} | {'' if slow is None else f'{slow:.2f}'} |")
     return "\n".join(lines) + "\n"
 
 
