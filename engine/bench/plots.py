@@ -85,9 +85,10 @@ def summary(records: list, out: Path) -> list:
                       f"checks.open3d).", ""]
         lines += ["CPU share = our CPU time / (wall time x threads) while replaying: near 1 on an idle machine, "
                   "lower when other work competed for the cores (treat such rows with care). Host slow-down = "
-                  "the time of a fixed computation just before and after the cell over the run's fastest "
-                  "(engine.bench.host_speed): 1.00 at the run's fastest moment; a row well above 1 was measured "
-                  "while the cores ran slower, which the CPU share does not show.", "",
+                  "how many times slower than the run's fastest probes the host ran just before or after the "
+                  "cell (compute, memory latency, bandwidth: engine.bench.host_speed), 1.00 at the run's "
+                  "fastest moment; a row well above 1 was measured while the cores ran slower, which the CPU "
+                  "share does not show.", "",
                   "| scene | recursion | size | traversal | frustum | packet | rays | frame ms | trace ms | Mrays/s "
                   "| Embree Mrays/s | ours / Embree |" + (" Open3D Mrays/s | ours / Open3D |" if open3d else "")
                   + " CPU share | host slow-down |",

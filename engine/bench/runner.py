@@ -489,14 +489,14 @@ def steadiest(measure, record: dict, limit: float, retries: int, fastest: dict):
     ``fastest`` comes back with every probe seen folded in."""
     best, measured = record, 1
     fastest = results_io.fastest_host([record], fastest)
-    while results_io.host_slowness(best, fastest) is not None:
-        if results_io.host_slowness(best, fastest) <= limit or measured > retries:
-            break
+    slowness = results_io.host_slowness(best, fastest)
+    while slowness is not None and slowness > limit and measured <= retries:
         again = measure()
         measured += 1
         fastest = results_io.fastest_host([again], fastest)
         if results_io.host_slowness(again, fastest) < results_io.host_slowness(best, fastest):
             best = again
+        slowness = results_io.host_slowness(best, fastest)
     if best.get("host"):
         best["host"]["measured"] = measured
     return best, fastest

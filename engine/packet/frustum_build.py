@@ -164,6 +164,25 @@ def slab_far(axis, sign, wn, w_start_far, scale, bounds):
     return wf
 
 
+@njit(cache=True, inline="always")
+def slab_crossings(px, py, pz, gx, gy, gz, axis, sign, wn, wf):
+    """Where the ray from start (px, py, pz) along (gx, gy, gz) (f64) crosses a slab frustum's
+    near plane w' = wn and far plane w' = wf across ``axis`` (w' = sign * coordinate): (u, v on
+    the near plane, u, v on the far plane, the squared length of the ray between the planes).
+    Shared by ``slab_frustum`` and the ray-by-ray tail of the eight-ray builder, whose vector
+    pass (``engine.packet.frustum8.slab_rects_blocks8``) computes the same expressions."""
+    p = (px, py, pz)
+    g = (gx, gy, gz)
+    u = (axis + 1) % 3
+    v = (axis + 2) % 3
+    w0 = sign * p[axis]
+    inv_w = sign / g[axis]
+    tn = (wn - w0) * inv_w
+    tf = (wf - w0) * inv_w
+    return (p[u] + tn * g[u], p[v] + tn * g[v], p[u] + tf * g[u], p[v] + tf * g[v],
+            (tf - tn) * (tf - tn) * (gx * gx + gy * gy + gz * gz))
+
+
 @njit(cache=True)
 def slab_frustum(p0, g, m, extent, bounds, out):
     """Frustum around m rays with scattered starts p0[:m] and directions g[:m] (f64[>=m,3], of
@@ -173,8 +192,6 @@ def slab_frustum(p0, g, m, extent, bounds, out):
     axis, sign = dominant_axis(extent)
     if axis < 0:
         return False
-    u = (axis + 1) % 3
-    v = (axis + 2) % 3
     scale = bounds_scale(bounds)
     wn = np.inf
     w_start_far = -np.inf
@@ -188,17 +205,11 @@ def slab_frustum(p0, g, m, extent, bounds, out):
     un1 = vn1 = uf1 = vf1 = -np.inf
     reach2 = 0.0
     for i in range(m):
-        w0 = sign * p0[i, axis]
-        inv_w = sign / g[i, axis]
-        tn = (wn - w0) * inv_w
-        tf = (wf - w0) * inv_w
-        un = p0[i, u] + tn * g[i, u]
-        vn = p0[i, v] + tn * g[i, v]
-        uf = p0[i, u] + tf * g[i, u]
-        vf = p0[i, v] + tf * g[i, v]
+        un, vn, uf, vf, length2 = slab_crossings(p0[i, 0], p0[i, 1], p0[i, 2], g[i, 0], g[i, 1], g[i, 2], axis,
+                                                 sign, wn, wf)
         un0, un1, vn0, vn1 = min(un0, un), max(un1, un), min(vn0, vn), max(vn1, vn)
         uf0, uf1, vf0, vf1 = min(uf0, uf), max(uf1, uf), min(vf0, vf), max(vf1, vf)
-        reach2 = max(reach2, (tf - tn) * (tf - tn) * (g[i, 0] * g[i, 0] + g[i, 1] * g[i, 1] + g[i, 2] * g[i, 2]))
+        reach2 = max(reach2, length2)
     near_rect = (un0, un1, vn0, vn1)
     far_rect = (uf0, uf1, vf0, vf1)
     side_planes(axis, sign, wn, wf, near_rect, far_rect, FRUSTUM_SLACK * (scale + math.sqrt(reach2)), out)

@@ -32,7 +32,7 @@ from engine.core.lanes8 import rows_of_three
 from engine.packet import frustum8
 from engine.packet.frustum_build import (EMPTY_EXTENT, FRUSTUM_SLACK, abs_max3, apex_frustum, apex_planes,
                                          bounds_scale, dominant_axis, farthest_corner, grow_extent, side_planes,
-                                         slab_far, slab_frustum)
+                                         slab_crossings, slab_far, slab_frustum)
 from engine.packet.frustum8 import gather_blocks8, slab_gather_blocks8, slab_rects_blocks8, slopes_blocks8
 from engine.packet.kernels import longest_packet
 
@@ -281,26 +281,16 @@ def general_frustum8(org, dirs, tmin, tmax, lo, hi, bounds, plane):
     wf = slab_far(axis, sign, wn, w_start_far, scale, bounds)
     un0, un1, vn0, vn1, uf0, uf1, vf0, vf1, reach2 = slab_rects_blocks8(org, dirs, tmin, tmax, lo, blocks, axis,
                                                                         sign, wn, wf)
-    u = (axis + 1) % 3
-    v = (axis + 2) % 3
     for r in range(lo + 8 * blocks, hi):
         if not tmin[r] <= tmax[r]:
             continue
         t = np.float64(tmin[r])
-        g0, g1, g2 = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
-        p0 = (org[r, 0] + t * g0, org[r, 1] + t * g1, org[r, 2] + t * g2)
-        g = (g0, g1, g2)
-        w0 = sign * p0[axis]
-        inv_w = sign / g[axis]
-        tn = (wn - w0) * inv_w
-        tf = (wf - w0) * inv_w
-        un = p0[u] + tn * g[u]
-        vn = p0[v] + tn * g[v]
-        uf = p0[u] + tf * g[u]
-        vf = p0[v] + tf * g[v]
+        gx, gy, gz = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
+        un, vn, uf, vf, length2 = slab_crossings(org[r, 0] + t * gx, org[r, 1] + t * gy, org[r, 2] + t * gz,
+                                                 gx, gy, gz, axis, sign, wn, wf)
         un0, un1, vn0, vn1 = min(un0, un), max(un1, un), min(vn0, vn), max(vn1, vn)
         uf0, uf1, vf0, vf1 = min(uf0, uf), max(uf1, uf), min(vf0, vf), max(vf1, vf)
-        reach2 = max(reach2, (tf - tn) * (tf - tn) * (g0 * g0 + g1 * g1 + g2 * g2))
+        reach2 = max(reach2, length2)
     side_planes(axis, sign, wn, wf, (un0, un1, vn0, vn1), (uf0, uf1, vf0, vf1),
                 FRUSTUM_SLACK * (scale + math.sqrt(reach2)), plane)
     return True
