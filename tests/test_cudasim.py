@@ -61,11 +61,13 @@ def test_every_thread_of_a_block_gets_the_same_shared_array():
 
 
 BARRIERS = textwrap.dedent("""
-    import json
+    import json, sys
     import numpy as np
     from tests.cudasim import prepare
 
-    prepare()
+    scheduler = sys.argv[1]
+    prepare(greenlets=scheduler == "greenlets")
+    mark = {"greenlets": "greenlets", "threads": "waits_at_barriers"}[scheduler]  # set on the one installed
     from numba import cuda
     from numba.cuda.simulator import kernel
     from engine.gpu.device import BLOCK
@@ -106,16 +108,18 @@ BARRIERS = textwrap.dedent("""
         raised = type(error).__name__ + ": " + str(error)
     print(json.dumps({"rounds": out.tolist(), "scan": scanned.copy_to_host().tolist(), "total": total,
                       "values": values.tolist(), "block": BLOCK, "raised": raised,
-                      "installed": getattr(kernel.BlockManager.run, "waits_at_barriers", False)}))
+                      "installed": getattr(kernel.BlockManager.run, mark, False)}))
 """)
 
 
-def test_barriers_wait_for_every_unfinished_thread_and_errors_are_raised():
-    """The harness's barrier (``wait_at_barriers``): threads that finished early are not waited
-    for, the others pass every barrier together (each reads its neighbour's value before any
-    overwrites it), the block scan of ``engine.gpu.scan`` is numpy's cumulative sum, and an
+@pytest.mark.parametrize("scheduler", ["greenlets", "threads"])
+def test_barriers_wait_for_every_unfinished_thread_and_errors_are_raised(scheduler):
+    """The harness's block schedulers (``run_blocks_in_greenlets``, what the GPU tests run, and
+    ``wait_at_barriers``, its fallback with OS threads): threads that finished early are not
+    waited for, the others pass every barrier together (each reads its neighbour's value before
+    any overwrites it), the block scan of ``engine.gpu.scan`` is numpy's cumulative sum, and an
     error in one thread is raised by the launch instead of leaving its block waiting."""
-    run = simulated("-c", BARRIERS, timeout=240)
+    run = simulated("-c", BARRIERS, scheduler, timeout=240)
     assert run.returncode == 0, run.stderr[-3000:]
     result = json.loads(run.stdout.strip().splitlines()[-1])
     expected = [[2 * ((t + 1) % 32) if t < 20 else -1 for t in range(32)]] * 3
