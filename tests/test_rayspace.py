@@ -613,20 +613,20 @@ def test_parents_hold_their_children(seed):
     h = build_hierarchy(org, d, np.zeros(n, np.float32), tmax, np.arange(n, dtype=np.int32), width, height)
     from engine.rayspace.cone_sphere import children
 
-    seen = 0
+    pairs = []   # (child, parent): every node below the root, with the node whose children hold it
     for level in range(1, h.levels + 1):
         for local in range(h.level_offset[level + 1] - h.level_offset[level]):
             parent = h.level_offset[level] + local
             first, nx, ny, stride = children(h, level, local)
-            for child in (h.level_offset[level - 1] + first + jy * stride + jx for jy in range(ny) for jx in range(nx)):
-                seen += 1
-                if h.radius[child] < 0:
-                    continue
-                gap = np.linalg.norm(h.centre[child].astype(np.float64) - h.centre[parent])
-                assert gap + h.radius[child] <= h.radius[parent]
-                assert gap + h.far[child] <= h.far[parent]
-                ac, ap = h.axis[child].astype(np.float64), h.axis[parent].astype(np.float64)
-                theta = math.atan2(np.linalg.norm(np.cross(ac, ap)), np.dot(ac, ap))  # exact near 0 and pi
-                full = h.alpha[parent] >= np.float32(math.pi)  # every direction
-                assert full or theta + h.alpha[child] <= h.alpha[parent] + 1e-6
-    assert seen == h.level_offset[-2]  # every node below the root is exactly one node's child
+            pairs += [(h.level_offset[level - 1] + first + jy * stride + jx, parent)
+                      for jy in range(ny) for jx in range(nx)]
+    child, parent = np.array(pairs).T
+    assert len(pairs) == h.level_offset[-2] and len(set(child.tolist())) == len(pairs)  # exactly one parent each
+    child, parent = child[h.radius[child] >= 0], parent[h.radius[child] >= 0]  # empty children hold nothing
+    gap = np.linalg.norm(h.centre[child].astype(np.float64) - h.centre[parent], axis=1)
+    assert np.all(gap + h.radius[child] <= h.radius[parent])
+    assert np.all(gap + h.far[child] <= h.far[parent])
+    ac, ap = h.axis[child].astype(np.float64), h.axis[parent].astype(np.float64)
+    theta = np.arctan2(np.linalg.norm(np.cross(ac, ap), axis=1), np.sum(ac * ap, axis=1))  # exact near 0 and pi
+    full = h.alpha[parent] >= np.float32(math.pi)  # every direction
+    assert np.all(full | (theta + h.alpha[child] <= h.alpha[parent] + 1e-6))
