@@ -1,13 +1,13 @@
 """numba's CUDA simulator as the GPU tests run it: in their child processes only
 (``NUMBA_ENABLE_CUDASIM=1``), before ``engine.gpu``'s kernels are imported.
 
-``prepare()`` does three things:
+``prepare()`` does these things:
 
-1. Quicker thread switches and one-warp blocks: the simulator runs every GPU thread as a
-   Python thread and polls them from the main one, so short switch intervals and 32-thread
-   blocks cut its barrier cost several times over. The kernels are written for any block size;
-   the real device keeps 128. The rayspace stream gets few blocks, each striding over several
-   rows of pairs, so the striding is exercised.
+1. One-warp blocks: every simulated thread costs Python time, and 32-thread blocks cut the
+   barrier cost several times over. The kernels are written for any block size; the real
+   device keeps 128. The rayspace stream gets few blocks, each striding over several rows of
+   pairs, so the striding is exercised. Where the block's threads stay OS threads (3 below),
+   thread switches are made quicker too.
 2. ``lock_shared_allocation()``: the simulator (numba-cuda 0.30.4) hands out a block's
    ``cuda.shared.array`` by looking its call site up in a dict and, when absent, creating and
    storing one -- without a lock. Two threads of a block that reach the call site together can
@@ -274,11 +274,15 @@ REDUCTIONS = ("syncthreads_count", "syncthreads_and", "syncthreads_or")
 def prepare(greenlets: bool = True) -> None:
     """Everything above; call first thing in a simulator child process. ``greenlets=False``
     keeps the OS threads with the barrier of 3 (``tests/test_cudasim.py`` checks both)."""
-    sys.setswitchinterval(SWITCH_INTERVAL_S)
     if not lock_shared_allocation():
         print("tests/cudasim.py: the simulator's shared arrays are not locked (unknown numba-cuda layout)",
               file=sys.stderr)
-    if not (greenlets and run_blocks_in_greenlets()) and not wait_at_barriers():
+    if greenlets and run_blocks_in_greenlets():
+        pass   # one OS thread runs every simulated thread: no switch interval to shorten
+    elif wait_at_barriers():
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+    else:
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         print("tests/cudasim.py: the simulator's block scheduler is not replaced (unknown numba-cuda layout)",
               file=sys.stderr)
     from engine.gpu import device
