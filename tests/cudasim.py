@@ -32,8 +32,9 @@
    thread has reached it, the next round starts. With OS threads, every simulated thread cost a
    thread start and a GIL hand-off at each switch: the rayspace check (942 blocks, 30,144
    threads) spent 29.7 s of a 31 s run waiting in lock acquisitions, 21 s of it system time. The
-   order the greenlets run in is one schedule a GPU may run too (threads between two barriers
-   in any order), the same every run; the barrier means what it means in 3.
+   order the greenlets run in, shuffled round by round from a seed per block, is one schedule a
+   GPU may run too (threads between two barriers in any order), the same every run; the barrier
+   means what it means in 3.
 """
 from __future__ import annotations
 
@@ -231,6 +232,8 @@ def run_blocks_in_greenlets() -> bool:
         return False
     if getattr(manager.run, "greenlets", False):
         return True
+    import random
+
     import numpy as np
 
     for name in REDUCTIONS:  # they store into the block's state and call self.syncthreads()
@@ -244,9 +247,15 @@ def run_blocks_in_greenlets() -> bool:
         self.scheduler = greenlet.getcurrent()
         threads = [_SimulatedThread(self, grid_point, point, kernel.Dim3) for point in np.ndindex(*self._block_dim)]
         lets = [greenlet.greenlet(lambda: self._f(*args)) for _ in threads]
+        # Each round runs the unfinished threads in a shuffled order, seeded by the block's index:
+        # a kernel that reads another thread's write without a barrier between them fails
+        # whichever thread it reads (in thread order, a read of a lower thread's value always
+        # passed), and every run of a test takes the same schedule.
+        shuffle = random.Random(hash(tuple(grid_point))).shuffle
         waiting = list(range(len(threads)))
         while waiting:    # one round: every unfinished thread runs to the next barrier or its end
             arrived = []
+            shuffle(waiting)
             for i in waiting:
                 current.running = threads[i]
                 try:
