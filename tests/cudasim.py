@@ -182,6 +182,10 @@ def wait_at_barriers() -> bool:
     return True
 
 
+#: The simulator's block reductions, kept as they are on the greenlet threads.
+REDUCTIONS = ("syncthreads_count", "syncthreads_and", "syncthreads_or")
+
+
 class _SimulatedThread:
     """One simulated GPU thread run as a greenlet: what the simulator's ``kernelapi`` asks of
     ``threading.current_thread()`` inside a kernel (its indices, ``syncthreads`` and the
@@ -276,9 +280,6 @@ def run_blocks_in_greenlets() -> bool:
     return True
 
 
-#: The simulator's block reductions, kept as they are on the greenlet threads.
-REDUCTIONS = ("syncthreads_count", "syncthreads_and", "syncthreads_or")
-
 
 def prepare(greenlets: bool = True) -> None:
     """Everything above; call first thing in a simulator child process. ``greenlets=False``
@@ -286,14 +287,12 @@ def prepare(greenlets: bool = True) -> None:
     if not lock_shared_allocation():
         print("tests/cudasim.py: the simulator's shared arrays are not locked (unknown numba-cuda layout)",
               file=sys.stderr)
-    if greenlets and run_blocks_in_greenlets():
-        pass   # one OS thread runs every simulated thread: no switch interval to shorten
-    elif wait_at_barriers():
+    if not (greenlets and run_blocks_in_greenlets()):
+        # The simulated threads stay OS threads: quicker switches cut the cost of their barriers.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
-    else:
-        sys.setswitchinterval(SWITCH_INTERVAL_S)
-        print("tests/cudasim.py: the simulator's block scheduler is not replaced (unknown numba-cuda layout)",
-              file=sys.stderr)
+        if not wait_at_barriers():
+            print("tests/cudasim.py: the simulator's block scheduler is not replaced (unknown numba-cuda layout)",
+                  file=sys.stderr)
     from engine.gpu import device
 
     device.BLOCK = SIMULATED_BLOCK
