@@ -622,7 +622,8 @@ def test_parents_hold_their_children(seed):
                       for jy in range(ny) for jx in range(nx)]
     child, parent = np.array(pairs).T
     assert len(pairs) == h.level_offset[-2] and len(set(child.tolist())) == len(pairs)  # exactly one parent each
-    child, parent = child[h.radius[child] >= 0], parent[h.radius[child] >= 0]  # empty children hold nothing
+    filled = h.radius[child] >= 0  # empty children hold nothing
+    child, parent = child[filled], parent[filled]
     gap = np.linalg.norm(h.centre[child].astype(np.float64) - h.centre[parent], axis=1)
     assert np.all(gap + h.radius[child] <= h.radius[parent])
     assert np.all(gap + h.far[child] <= h.far[parent])
