@@ -5,13 +5,15 @@ import os
 from pathlib import Path
 
 
-def crash_once_then_run(cell, repeat, scene_cache, yardstick, machine, matrix_name, references, open3d=None):
-    """Kill this worker process the first time any cell starts (a marker file in
-    PACKETRT_TEST_CRASH_MARKER says it happened), as a machine lost mid-cell would; measure
-    normally afterwards."""
+def crash_once_then_run(cell, repeat, scene_cache, yardstick, machine, matrix_name, references, open3d=None,
+                        marker=None):
+    """Kill this worker process the first time any cell starts (the file ``marker`` says it
+    happened), as a machine lost mid-cell would; measure normally afterwards. Bound with
+    ``functools.partial`` so the path travels with the task to workers started before it was
+    chosen."""
     from engine.bench.runner import run_cell
 
-    marker = Path(os.environ["PACKETRT_TEST_CRASH_MARKER"])
+    marker = Path(marker)
     try:
         marker.touch(exist_ok=False)
     except FileExistsError:

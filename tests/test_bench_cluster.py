@@ -3,6 +3,7 @@ two worker processes give the serial runner's cells and answers; a worker killed
 no cell and records none twice."""
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
@@ -28,11 +29,23 @@ def serial(tmp_path_factory):
     return records(out)
 
 
-def test_two_workers_give_the_serial_runners_cells_and_answers(serial, tmp_path):
+@pytest.fixture(scope="module")
+def two_workers():
+    """The address of a local Dask cluster of two worker processes, started once for the module's
+    runs, which reach it as an existing cluster (``--scheduler ADDRESS``): the workers' start-up
+    (Python, numba, packetrt's kernels from the disk cache: about 6 s) is paid once. The
+    ``--scheduler`` path without an address, which starts its own, is the tiled audit's below."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        yield cluster.scheduler_address
+
+
+def test_two_workers_give_the_serial_runners_cells_and_answers(serial, two_workers, tmp_path):
     from engine.bench.matrix import load_matrix
     from engine.bench.runner import run_matrix
 
-    summary = run_matrix(load_matrix(str(SMOKE)), tmp_path, progress=False, scheduler="local", workers=2)
+    summary = run_matrix(load_matrix(str(SMOKE)), tmp_path, progress=False, scheduler=two_workers, workers=2)
     assert summary["ran"] == len(serial) and summary["skipped"] == 0
     lines = (tmp_path / "results.jsonl").read_text().splitlines()
     clustered = records(tmp_path)
@@ -47,16 +60,15 @@ def test_two_workers_give_the_serial_runners_cells_and_answers(serial, tmp_path)
     assert run_matrix(load_matrix(str(SMOKE)), tmp_path, resume=True, progress=False)["ran"] == 0
 
 
-def test_a_worker_lost_mid_cell_loses_no_cell_and_records_none_twice(serial, tmp_path, monkeypatch):
+def test_a_worker_lost_mid_cell_loses_no_cell_and_records_none_twice(serial, two_workers, tmp_path):
     from engine.bench.matrix import load_matrix
     from engine.bench.runner import run_matrix
     from tests.bench_cluster_helpers import crash_once_then_run
 
     marker = tmp_path / "crashed"
-    monkeypatch.setenv("PACKETRT_TEST_CRASH_MARKER", str(marker))
     out = tmp_path / "out"
-    summary = run_matrix(load_matrix(str(SMOKE)), out, progress=False, scheduler="local", workers=2,
-                         run=crash_once_then_run)
+    summary = run_matrix(load_matrix(str(SMOKE)), out, progress=False, scheduler=two_workers, workers=2,
+                         run=functools.partial(crash_once_then_run, marker=str(marker)))
     assert marker.exists()  # a worker did die mid-cell
     ids = [json.loads(line)["id"] for line in (out / "results.jsonl").read_text().splitlines()]
     assert sorted(ids) == sorted(serial) and len(ids) == len(set(ids))
