@@ -12,10 +12,10 @@
    ``cuda.shared.array`` by looking its call site up in a dict and, when absent, creating and
    storing one -- without a lock. Two threads of a block that reach the call site together can
    both create one, and then each writes a shared array of its own: the block's scan or
-   reduction silently goes wrong. With the short switch interval above it shows:
-   ``tests/test_cudasim.py`` measures 5% of 300 trials of 32 threads ending with more than one
-   array, and a kernel summing its threads' entries of a shared array read a wrong sum in 2 of
-   1,500 launches. It is the likely cause of the one failure in seven runs of
+   reduction silently goes wrong. With the short switch interval above it shows: 2 to 11% of
+   300 trials of 32 threads ended with more than one array (``tests/test_cudasim.py`` widens
+   that window until nearly every trial does), and a kernel summing its threads' entries of a
+   shared array read a wrong sum in 2 of 1,500 launches. It is the likely cause of the one failure in seven runs of
    ``test_small_pair_budget_batches_triangles`` under two pytest workers, whose pair counts come
    from block scans and block maxima in shared memory. A real GPU has no such race.
 3. ``wait_at_barriers()``: the simulator's block scheduler polls. Its main thread loops over
@@ -35,13 +35,32 @@
    order the greenlets run in, shuffled round by round from a seed per block, is one schedule a
    GPU may run too (threads between two barriers in any order), the same every run; the barrier
    means what it means in 3.
+5. ``simulated()`` forks its children from a warm process (``serve``: one per pytest worker and
+   environment, started at the first call). A fresh interpreter spent about 2 s of CPU before a
+   child's own code ran -- Python, ``prepare()`` importing numba and its simulator, the engine's
+   GPU and render modules, numba's CPU target set up at its first compile or cache load -- and
+   the GPU tests start over a dozen children. A fork is a process of its own in every other way:
+   its own state, environment, output, exit status and timeout. What ``prepare()`` printed
+   begins every child's output, as it would have; warming beyond it (imports only: no JIT call,
+   no thread) that prints or fails is dropped. The warm objects are frozen out of the garbage
+   collector (``gc.freeze``): a child's collections would otherwise touch, and so copy, every
+   page they sit on (3 s more CPU over six children). Without ``os.fork``, or once a thread has
+   started in it, the children are fresh interpreters again.
 """
 from __future__ import annotations
 
+import atexit
+import gc
+import json
 import os
+import select
+import shutil
+import signal
 import subprocess
 import sys
+import tempfile
 import threading
+import time
 from pathlib import Path
 
 SWITCH_INTERVAL_S = 1e-4
@@ -50,13 +69,133 @@ SIMULATED_STREAM_BLOCKS = 4
 ROOT = Path(__file__).resolve().parents[1]
 
 
+#: Modules most children import, imported by the warm process after ``prepare()`` (never one run
+#: with ``-m``: runpy warns when its module is already imported).
+WARM_IMPORTS = ("engine.gpu.frame", "engine.gpu.queries", "engine.render.whitted", "engine.api",
+                "scenes.catalog", "validation.audit")
+
+
 def simulated(*args, timeout=300) -> subprocess.CompletedProcess:
     """Run ``python args...`` (``-m MODULE ...`` or ``-c CODE ...``) in the repository root under
     the CUDA simulator as ``prepare()`` sets it up, from a test (the parent process keeps numba's
-    CPU JIT); output captured as text."""
+    CPU JIT); output captured as text. The child is forked from a warm process (5 above)."""
     env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-m", "tests.cudasim", *args], cwd=ROOT, env=env, capture_output=True,
-                          text=True, timeout=timeout)
+    command = [sys.executable, "-m", "tests.cudasim", *args]
+    key = tuple(sorted((k, v) for k, v in env.items() if k not in PER_TEST))
+    if key not in _servers:
+        _servers[key] = _Server(env) if hasattr(os, "fork") else None
+    if _servers[key] is not None:
+        done = _servers[key].run(command, list(args), env, timeout)
+        if done is not None:
+            return done
+        _servers[key] = None    # the warm process cannot fork: fresh interpreters from now on
+    return subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+#: Variables that change from test to test: one warm process serves them all, and each child
+#: gets the values of its own call.
+PER_TEST = ("PYTEST_CURRENT_TEST",)
+#: The warm process of each environment (less ``PER_TEST``); None: it cannot fork.
+_servers = {}
+
+
+class _Server:
+    """The pytest side of a warm process (``serve``): requests and replies are JSON lines, output
+    goes through files in a folder of its own."""
+
+    def __init__(self, env: dict):
+        self.env, self.process, self.state = env, None, None
+        atexit.register(self.close)
+
+    def _start(self, warm: bool) -> None:
+        self.folder, self.state, self.buffer = tempfile.mkdtemp(prefix="cudasim-"), None, b""
+        with open(self._path("warm.err"), "wb") as err:
+            self.process = subprocess.Popen([sys.executable, "-m", "tests.cudasim", "--serve", self.folder,
+                                             "warm" if warm else "plain"], cwd=ROOT, env=self.env,
+                                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err)
+
+    def _path(self, name: str) -> str:
+        return os.path.join(self.folder, name)
+
+    def _read(self, name: str) -> str:
+        with open(self._path(name), encoding="utf-8", errors="replace") as f:
+            return f.read()
+
+    def _line(self, deadline: float):
+        """The next reply line; None at the end of the replies; TimeoutError past the deadline."""
+        fd = self.process.stdout.fileno()
+        while b"\n" not in self.buffer:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([fd], [], [], left)[0]:
+                raise TimeoutError
+            chunk = os.read(fd, 65536)
+            if not chunk:
+                return None
+            self.buffer += chunk
+        line, _, self.buffer = self.buffer.partition(b"\n")
+        return line.decode()
+
+    def _died(self) -> RuntimeError:
+        return RuntimeError(f"tests/cudasim.py: the warm process died:\n{self._read('server.err')[-3000:]}")
+
+    def run(self, command: list, args: list, env: dict, timeout: float):
+        """The child's CompletedProcess, as ``subprocess.run`` gives it; None where the warm process
+        cannot fork."""
+        deadline = time.monotonic() + timeout
+        if self.process is None:
+            self._start(warm=True)
+        while self.state != "ready":
+            try:
+                self.state = self._line(deadline)
+            except TimeoutError:
+                self.close(kill=True)
+                raise subprocess.TimeoutExpired(command, timeout) from None
+            if self.state is None:    # prepare() failed: what a fresh child would print and exit with
+                done = subprocess.CompletedProcess(command, self.process.wait(), self._read("warm.out"),
+                                                   self._read("warm.err"))
+                self.close()
+                return done
+            if self.state == "threaded":
+                self.close()
+                return None
+            if self.state == "noisy":  # the warm imports printed or failed: warm with prepare() alone
+                self.close()
+                self._start(warm=False)
+        out, err = self._path("child.out"), self._path("child.err")
+        request = {"args": args, "env": env, "stdout": out, "stderr": err}
+        self.process.stdin.write((json.dumps(request) + "\n").encode())
+        self.process.stdin.flush()
+        started = self._line(time.monotonic() + 60)
+        if started is None:
+            raise self._died()
+        pid = json.loads(started)["pid"]
+        try:
+            reply = self._line(deadline)
+        except TimeoutError:
+            os.kill(pid, signal.SIGKILL)
+            self._line(time.monotonic() + 60)
+            raise subprocess.TimeoutExpired(command, timeout, self._read("child.out"),
+                                            self._read("child.err")) from None
+        if reply is None:
+            raise self._died()
+        return subprocess.CompletedProcess(command, json.loads(reply)["returncode"], self._read("child.out"),
+                                           self._read("child.err"))
+
+    def close(self, kill: bool = False) -> None:
+        """End the warm process (its requests end; killed if ``kill``) and remove its folder."""
+        if self.process is None:
+            return
+        self.process.stdin.close()
+        if kill:
+            self.process.kill()
+        try:
+            self.process.wait(10)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        self.process.stdout.close()
+        self.process = None
+        shutil.rmtree(self.folder, ignore_errors=True)
 
 
 def lock_shared_allocation() -> bool:
@@ -301,21 +440,93 @@ def prepare(greenlets: bool = True) -> None:
     stream.GRID_BLOCKS = SIMULATED_STREAM_BLOCKS
 
 
-def main(argv: list) -> None:
-    """``python -m tests.cudasim -m MODULE ARGS...`` or ``... -c CODE ARGS...``: what ``python``
-    would run, after ``prepare()``; each child of ``simulated`` starts here, so a command-line
-    run (``engine.cli``) gets the same simulator as the check scripts."""
+def _redirect(fd: int, path: str, mode: int = os.O_WRONLY | os.O_CREAT | os.O_TRUNC) -> None:
+    target = os.open(path, mode)
+    os.dup2(target, fd)
+    os.close(target)
+
+
+def serve(folder: str, warm: bool):
+    """``python -m tests.cudasim --serve FOLDER warm|plain``: the warm process of ``simulated`` (5
+    above). Reads requests (JSON lines: args, environment, stdout and stderr paths) on stdin,
+    forks a child for each and replies with its pid, then its exit status. Returns the args in a
+    child, which then runs them; None in the warm process, at the end of the requests."""
+    requests = os.fdopen(os.dup(0), "rb")
+    replies = os.fdopen(os.dup(1), "w")
+    _redirect(0, os.devnull, os.O_RDONLY)
+    paths = {1: os.path.join(folder, "warm.out"), 2: os.path.join(folder, "warm.err")}
+    _redirect(1, paths[1])                 # stderr already goes to warm.err
+    prepare()      # what every child runs first: its output begins theirs, its failure is theirs
+    sys.stdout.flush(), sys.stderr.flush()
+    state, printed = "ready", [os.path.getsize(p) for p in paths.values()]
+    if warm:
+        try:
+            import importlib
+
+            for name in WARM_IMPORTS:
+                importlib.import_module(name)
+            from numba.core.registry import cpu_target
+
+            cpu_target.target_context.refresh()    # what numba's first compile or cache load does
+        except Exception:   # noqa: BLE001 - a child that imports it meets the error itself
+            state = "noisy"
+        sys.stdout.flush(), sys.stderr.flush()
+        if [os.path.getsize(p) for p in paths.values()] != printed:
+            state = "noisy"
+    if threading.active_count() > 1:
+        state = "threaded"   # fork copies one thread
+    _redirect(1, os.devnull)
+    _redirect(2, os.path.join(folder, "server.err"))
+    print(state, file=replies, flush=True)
+    if state != "ready":
+        return None
+    gc.freeze()    # the children's collections leave the warm objects alone: no copy of their pages
+    for line in requests:
+        request = json.loads(line)
+        sys.stdout.flush(), sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:
+            requests.close()
+            replies.close()
+            for fd, name in ((1, "stdout"), (2, "stderr")):
+                shutil.copyfile(paths[fd], request[name])
+                _redirect(fd, request[name], os.O_WRONLY | os.O_APPEND)
+            os.environ.clear()
+            os.environ.update(request["env"])
+            return request["args"]
+        print(json.dumps({"pid": pid}), file=replies, flush=True)
+        _, status = os.waitpid(pid, 0)
+        print(json.dumps({"returncode": os.waitstatus_to_exitcode(status)}), file=replies, flush=True)
+    shutil.rmtree(folder, ignore_errors=True)   # a pytest worker may end without its atexit
+    return None
+
+
+def run(argv: list) -> None:
+    """Run ``-m MODULE ARGS...`` or ``-c CODE ARGS...`` as ``python`` would (after ``prepare()``)."""
     import runpy
 
-    if len(argv) < 2 or argv[0] not in ("-m", "-c"):
-        raise SystemExit("usage: python -m tests.cudasim (-m MODULE | -c CODE) [ARGS...]")
-    prepare()
     if argv[0] == "-m":
         sys.argv = [argv[1], *argv[2:]]
         runpy.run_module(argv[1], run_name="__main__", alter_sys=True)
     else:
         sys.argv = ["-c", *argv[2:]]
         exec(compile(argv[1], "<string>", "exec"), {"__name__": "__main__"})
+
+
+def main(argv: list) -> None:
+    """``python -m tests.cudasim -m MODULE ARGS...`` or ``... -c CODE ARGS...``: what ``python``
+    would run, after ``prepare()``; each child of ``simulated`` starts here (or is forked from
+    ``--serve``, 5 above), so a command-line run (``engine.cli``) gets the same simulator as the
+    check scripts."""
+    if argv[:1] == ["--serve"]:
+        args = serve(argv[1], argv[2] == "warm")
+        if args is not None:
+            run(args)
+        return
+    if len(argv) < 2 or argv[0] not in ("-m", "-c"):
+        raise SystemExit("usage: python -m tests.cudasim (-m MODULE | -c CODE) [ARGS...]")
+    prepare()
+    run(argv)
 
 
 if __name__ == "__main__":

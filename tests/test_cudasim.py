@@ -2,10 +2,13 @@
 simulated block gets the same ``cuda.shared.array``, however the threads interleave.
 
 The check runs in a child process under ``NUMBA_ENABLE_CUDASIM=1`` (the simulator replaces
-numba.cuda for its whole process). 32 Python threads released by a barrier ask one
-``FakeCUDAShared`` for the array of one call site, 300 times, with thread switches every
-microsecond. Without the lock, 5% of such trials ended with more than one array (15 of 300
-when measured), so a harness that lost its lock fails here.
+numba.cuda for its whole process). 32 Python threads (a simulated block) released together by a
+barrier ask one ``FakeCUDAShared`` for the array of one call site, 50 times, with thread switches
+every microsecond. Left to the switch interval alone, a harness without the lock split 2 to 11% of
+trials (of 300, from run to run), so each trial's allocation table sleeps between finding no array
+and storing one, where a thread switch opens the race: the other threads reach the lookup inside
+that window, and without the lock (or with the simulator's own allocation) 47 to 50 of the 50
+trials end with more than one array. A harness that lost its lock fails here on every run.
 """
 from __future__ import annotations
 
@@ -20,33 +23,51 @@ from cudasim import simulated
 pytest.importorskip("numba_cuda")
 
 CHILD = textwrap.dedent("""
-    import json, sys, threading
+    import json, sys, threading, time
     import numpy as np
     from numba.cuda.simulator.kernelapi import FakeCUDAShared
     from tests.cudasim import lock_shared_allocation
 
     locked = lock_shared_allocation()
     sys.setswitchinterval(1e-6)
-    TRIALS, THREADS = 300, 32
-    split = 0
-    for trial in range(TRIALS):
-        shared = FakeCUDAShared(0)
-        got = [None] * THREADS
-        barrier = threading.Barrier(THREADS)
+    TRIALS, THREADS = 50, 32
 
-        def ask(i):
-            barrier.wait()
-            got[i] = shared.array((4, 2), np.int32)   # one call site for every thread
+    class Allocations(dict):
+        # The race is a lookup that finds no array and a store after it: sleeping in between
+        # lets the other threads reach the lookup before the store, as a thread switch there can.
+        def get(self, key, default=None):
+            found = super().get(key, default)
+            if found is None:
+                time.sleep(1e-3)
+            return found
 
-        threads = [threading.Thread(target=ask, args=(i,)) for i in range(THREADS)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-        split += len({id(a) for a in got}) > 1
+    got = [None] * THREADS
+    trial = {}
+
+    def new_shared():
+        trial["shared"] = FakeCUDAShared(0)
+        trial["shared"]._allocations = Allocations()
+
+    start = threading.Barrier(THREADS, action=new_shared)   # the same threads for every trial
+    end = threading.Barrier(THREADS)
+    arrays = []
+
+    def ask(i):
+        for _ in range(TRIALS):
+            start.wait()
+            got[i] = trial["shared"].array((4, 2), np.int32)   # one call site for every thread
+            if end.wait() == 0:
+                arrays.append(len({id(a) for a in got}))
+
+    threads = [threading.Thread(target=ask, args=(i,)) for i in range(THREADS)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
     other = FakeCUDAShared(0).array(3, np.float32)    # another call site, another shared array
-    print(json.dumps({"locked": locked, "split": split, "shape": list(got[0].shape),
-                      "dtype": str(got[0].dtype), "other": [other.shape[0], str(other.dtype)]}))
+    print(json.dumps({"locked": locked, "trials": len(arrays), "split": sum(n > 1 for n in arrays),
+                      "shape": list(got[0].shape), "dtype": str(got[0].dtype),
+                      "other": [other.shape[0], str(other.dtype)]}))
 """)
 
 
@@ -55,7 +76,8 @@ def test_every_thread_of_a_block_gets_the_same_shared_array():
     assert run.returncode == 0, run.stderr[-3000:]
     result = json.loads(run.stdout.strip().splitlines()[-1])
     assert result["locked"], "tests/cudasim.py did not recognise the simulator's shared-array class"
-    assert result["split"] == 0, f"{result['split']} of 300 trials handed one call site more than one array"
+    assert result["trials"] == 50
+    assert result["split"] == 0, f"{result['split']} of 50 trials handed one call site more than one array"
     assert result["shape"] == [4, 2] and result["dtype"] == "int32"
     assert result["other"] == [3, "float32"]
 
@@ -109,9 +131,11 @@ BARRIERS = textwrap.dedent("""
     racy[1, 32](unsynced)
     stale = int(np.sum(unsynced != (np.arange(32) + 31) % 32 + 1000))
     rng = np.random.default_rng(1)
-    values = rng.integers(0, 50, 1000).astype(np.int32)
-    scanned = cuda.device_array(1001, np.int32)
-    total = Scanner().exclusive_scan(cuda.to_device(values), 1000, scanned)
+    # 200 values: seven blocks, the last partial; their sums scanned by one block whose total
+    # passes every lane's barriers (1,000 values, 32 blocks, cost 2 s more of OS threads here).
+    values = rng.integers(0, 50, 200).astype(np.int32)
+    scanned = cuda.device_array(201, np.int32)
+    total = Scanner().exclusive_scan(cuda.to_device(values), 200, scanned)
     try:
         fails[1, 8](np.zeros(4, np.int32))
         raised = ""
