@@ -2,17 +2,14 @@
 CPU's hits (brute force, ``single``, the CPU ``rayspace`` plugin; Embree as a yardstick) on a
 small Whitted scene's camera, reflection/refraction and shadow rays of a 12 x 12 image.
 
-The simulator runs in a child process (tests/gpu_sim_rayspace_check.py) with
-NUMBA_ENABLE_CUDASIM=1 in its environment only: this process keeps numba's CPU JIT for the
-references. All cases run in one child (about 30 s; the simulator runs every GPU thread as a
-Python thread), and each test checks one case.
+The simulator runs in a child process (tests/gpu_sim_rayspace_check.py, through
+``tests.cudasim.simulated``) with NUMBA_ENABLE_CUDASIM=1 in its environment only: this process
+keeps numba's CPU JIT for the references. All cases run in one child, and each test checks one
+case.
 """
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +17,7 @@ import pytest
 from numba import njit
 
 from brute_force import brute_force
+from cudasim import simulated
 from engine.core.bvh import build_bvh
 from engine.core.offset import offset_origin
 from engine.core.triangle import intersect_triangle, ray_shear, safe_inverse
@@ -32,7 +30,6 @@ from traversals.rayspace import RaySpaceTraversal
 
 pytest.importorskip("numba_cuda")
 
-HERE = Path(__file__).resolve().parent
 SIZE = 12
 PACKET = 8          # 12 x 12 in 8 x 8 packets: the batches carry dead padding lanes
 DUPLICATES = 4      # floor triangles repeated at the end of the list: exact ties in t
@@ -189,10 +186,7 @@ def run(tmp_path_factory):
     _case(cases, "off_screen", rays.primary._replace(pixel=rays.primary.pixel + 1), "closest", count)
     folder = tmp_path_factory.mktemp("gpu_rayspace")
     np.savez(folder / "cases.npz", **cases)
-    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1",
-               PYTHONPATH=os.pathsep.join([str(HERE.parent), str(HERE), os.environ.get("PYTHONPATH", "")]))
-    done = subprocess.run([sys.executable, str(HERE / "gpu_sim_rayspace_check.py"), str(folder / "cases.npz"),
-                           str(folder / "out.npz")], env=env, capture_output=True, text=True, timeout=300)
+    done = simulated("-m", "tests.gpu_sim_rayspace_check", str(folder / "cases.npz"), str(folder / "out.npz"))
     assert done.returncode == 0, done.stderr[-4000:]
     out = dict(np.load(folder / "out.npz"))
     answers = {key: out[key] for key in out if not key.endswith("_report")}
