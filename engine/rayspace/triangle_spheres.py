@@ -2,7 +2,7 @@
 
 The smallest enclosing sphere of a triangle is centred at the midpoint of its longest edge
 when the triangle is right or obtuse (that sphere already holds the third corner), else at
-its circumcentre. Computed in float64, stored as float32 with the radius rounded up and
+its circumcentre. Computed in float64, stored as float32 with the radius rounded up (subnormal radii included) and
 measured from the stored (rounded) centre, so every corner is inside the stored sphere.
 Recomputed from the vertices on every call: nothing to refit for dynamic scenes.
 """
@@ -13,6 +13,11 @@ from numba import njit, prange
 
 # Relative growth of a float64 radius before it is rounded to float32 (2^-20 >> one float32 ulp).
 RADIUS_GROWTH = 1.0 + 2.0 ** -20
+# And an absolute one: the float32 subnormals' ulp, 2^-149. Below 2^-126 an ulp is no longer
+# relative, and a radius of 1.98e-45 rounded to nearest gave 1.4e-45: a triangle of corners
+# (0,0,0), (0,0,0), (0,1.4e-45,1.4e-45) left a corner outside its sphere (hypothesis found it).
+# Adding one subnormal ulp before rounding to nearest never rounds below the float64 radius.
+RADIUS_FLOOR = 2.0 ** -149
 
 
 @njit(cache=True)
@@ -61,7 +66,7 @@ def store_sphere(v0, v1, v2, i, centre, radius):
     r2 = max((ax - qx) ** 2 + (ay - qy) ** 2 + (az - qz) ** 2,
              (bx - qx) ** 2 + (by - qy) ** 2 + (bz - qz) ** 2,
              (cx - qx) ** 2 + (cy - qy) ** 2 + (cz - qz) ** 2)
-    radius[i] = np.float32(np.sqrt(r2) * RADIUS_GROWTH)
+    radius[i] = np.float32(np.sqrt(r2) * RADIUS_GROWTH + RADIUS_FLOOR)
 
 
 @njit(cache=True, parallel=True)
