@@ -24,6 +24,20 @@ from engine.core.types import RAY_KINDS
 LIVE_FIELDS = ("org", "dir", "inv_dir", "tmin", "tmax", "pixel", "weight")
 
 
+@pytest.fixture(scope="module")
+def scene_named():
+    """``load_named`` once per scene for this file (building a scene costs more than rendering
+    it at these sizes): renderers and the numpy reference only read a Scene."""
+    loaded = {}
+
+    def load(name):
+        if name not in loaded:
+            loaded[name] = load_named(name)
+        return loaded[name]
+
+    return load
+
+
 def assert_same_layout(got, want):
     """Two (RayBatch, Packets): equal packets and lanes (a dead lane's origin is free)."""
     (rays, packets), (ref, ref_packets) = got, want
@@ -38,8 +52,8 @@ def assert_same_layout(got, want):
 
 
 @pytest.mark.parametrize("width,height,n", [(37, 21, 2), (37, 21, 4), (64, 48, 8), (64, 48, 16), (20, 33, 32)])
-def test_camera_batch_is_make_batch_of_camera_rays(width, height, n):
-    scene = load_named("whitted")
+def test_camera_batch_is_make_batch_of_camera_rays(scene_named, width, height, n):
+    scene = scene_named("whitted")
     org, d = camera_rays(scene, width, height)
     count = width * height
     want = make_batch("primary", org, d, np.zeros(count), np.full(count, np.inf), np.arange(count, dtype=np.int32),
@@ -163,17 +177,17 @@ def _config(traversal, **render):
 
 
 @pytest.mark.parametrize("packet,traversal", [(4, "masked"), (16, "partition"), (2, "simd"), (8, "embree")])
-def test_whitted_scene_image_is_bit_identical_to_the_numpy_loop(packet, traversal):
+def test_whitted_scene_image_is_bit_identical_to_the_numpy_loop(scene_named, packet, traversal):
     config = _config(traversal, width=53, height=41, packet=packet)
-    renderer = WhittedRenderer(load_named("whitted"), config)
+    renderer = WhittedRenderer(scene_named("whitted"), config)
     image = renderer.render().image
     assert np.array_equal(image, render_reference(renderer, 53, 41))
 
 
 @pytest.mark.parametrize("name", ["bart-kitchen", "cornell-box", "bunny"])
-def test_real_scene_images_are_bit_identical_to_the_numpy_loop(shared_scenes, name):
+def test_real_scene_images_are_bit_identical_to_the_numpy_loop(shared_scenes, scene_named, name):
     """Textures, interpolated normals, glass with total internal reflection (the kitchen)."""
-    scene = load_named(name)
+    scene = scene_named(name)
     config = _config("ranged", width=96, height=80, packet=8, max_depth=4, max_reflection_depth=1)
     renderer = WhittedRenderer(scene, config)
     result = renderer.render()
@@ -183,10 +197,10 @@ def test_real_scene_images_are_bit_identical_to_the_numpy_loop(shared_scenes, na
     assert np.array_equal(result.image, render_reference(renderer, 96, 80))
 
 
-def test_frames_reuse_their_arrays_without_changing_the_image():
+def test_frames_reuse_their_arrays_without_changing_the_image(scene_named):
     """The renderer keeps per-lane arrays between frames: a later frame (of another size in
     between) gives the same image and leaves an earlier result's image alone."""
-    renderer = WhittedRenderer(load_named("whitted"), _config("partition", width=40, height=36, packet=8))
+    renderer = WhittedRenderer(scene_named("whitted"), _config("partition", width=40, height=36, packet=8))
     first = renderer.render()
     kept = first.image.copy()
     renderer.render(size=(72, 50))  # grows every buffer
@@ -196,7 +210,7 @@ def test_frames_reuse_their_arrays_without_changing_the_image():
 
 
 @pytest.mark.parametrize("traversal,packet", [("partition", 8), ("simd", 2), ("embree", 8)])
-def test_shadow_rays_walked_in_their_lanes_give_the_compacted_image(monkeypatch, traversal, packet):
+def test_shadow_rays_walked_in_their_lanes_give_the_compacted_image(monkeypatch, scene_named, traversal, packet):
     """Shadow rays walked in their parent batch's own lanes (forced here for every light) give
     the image of the same rays compacted into packets (never in place), bit for bit, through a
     packet walk, the 2x2 SIMD baseline and Embree (kernels this file compiles anyway: the
@@ -206,7 +220,7 @@ def test_shadow_rays_walked_in_their_lanes_give_the_compacted_image(monkeypatch,
     for in_place in (True, False):
         monkeypatch.setattr(whitted, "IN_PLACE_SHADOWS", 0.0 if in_place else 2.0)
         seen = []
-        renderer = WhittedRenderer(load_named("whitted"), _config(traversal, width=45, height=38, packet=packet),
+        renderer = WhittedRenderer(scene_named("whitted"), _config(traversal, width=45, height=38, packet=packet),
                                    observer=lambda kind, query, rays, packets, answer: seen.append(
                                        (kind, query, *copied_batch(rays, packets), packets)))
         images[in_place] = renderer.render().image
@@ -227,7 +241,7 @@ def test_shadow_rays_walked_in_their_lanes_give_the_compacted_image(monkeypatch,
     assert np.array_equal(images[True], images[False])
 
 
-def test_the_gpu_image_checks_recorder_keeps_only_cast_rays(monkeypatch):
+def test_the_gpu_image_checks_recorder_keeps_only_cast_rays(monkeypatch, scene_named):
     """``engine.bench.gpu_pixels.PixelRecorder`` lists a pixel's rays to explain a GPU/CPU image
     difference: the dead lanes of a shadow batch walked in place are no rays of that pixel."""
     from engine.bench.gpu_pixels import PixelRecorder
@@ -240,14 +254,14 @@ def test_the_gpu_image_checks_recorder_keeps_only_cast_rays(monkeypatch):
         if kind == "shadow":
             live.append(int(np.count_nonzero(rays.tmin <= rays.tmax)))
 
-    renderer = WhittedRenderer(load_named("whitted"), _config("partition", width=40, height=32, packet=8),
+    renderer = WhittedRenderer(scene_named("whitted"), _config("partition", width=40, height=32, packet=8),
                                observer=observe)
     result = renderer.render()
     recorded = sum(len(record[0]) for record in recorder.batches["shadow"])
     assert recorded == sum(live) == result.rays["shadow"] > 0
 
 
-def test_shadow_rays_in_place_or_compacted_give_the_same_image(monkeypatch):
+def test_shadow_rays_in_place_or_compacted_give_the_same_image(monkeypatch, scene_named):
     """A light's shadow rays are walked in their parent batch's lanes when enough of them are
     lit (``IN_PLACE_SHADOWS``), else compacted into packets of their own: either way the image
     is the same, bit for bit."""
@@ -255,26 +269,26 @@ def test_shadow_rays_in_place_or_compacted_give_the_same_image(monkeypatch):
     images = []
     for fraction in (0.0, 1.01):  # every batch in place; every batch compacted
         monkeypatch.setattr(whitted, "IN_PLACE_SHADOWS", fraction)
-        images.append(WhittedRenderer(load_named("whitted"), config).render().image)
+        images.append(WhittedRenderer(scene_named("whitted"), config).render().image)
     assert np.array_equal(images[0], images[1])
 
 
 @pytest.mark.parametrize("name, can_spawn", [("cornell-box", False), ("erw6", False), ("whitted", True)])
-def test_scenes_that_cannot_cast_children_skip_the_spawn_step_with_the_same_image(name, can_spawn):
+def test_scenes_that_cannot_cast_children_skip_the_spawn_step_with_the_same_image(scene_named, name, can_spawn):
     """Without a reflecting or transmitting material no hit casts a child ray, so the renderer
     skips the spawn step (``MaterialTable.can_spawn``); the image is the one the full step gives."""
     if name == "cornell-box":  # read from the shared scene folder; the others are procedural
         from conftest import needs_shared_scenes
         needs_shared_scenes()
     config = _config("partition", width=48, height=40, packet=8)
-    renderer = WhittedRenderer(load_named(name), config)
+    renderer = WhittedRenderer(scene_named(name), config)
     assert renderer.materials.can_spawn is can_spawn
     skipped = renderer.render().image
     renderer.materials.can_spawn = True
     assert np.array_equal(renderer.render().image, skipped)
 
 
-def test_the_warm_up_compiles_both_shadow_paths_and_leaves_the_first_frame_to_decide(monkeypatch):
+def test_the_warm_up_compiles_both_shadow_paths_and_leaves_the_first_frame_to_decide(monkeypatch, scene_named):
     """``warm_up`` is what ``packetrt render`` reports as compile time apart from the frames: it
     must reach the in-place and the compacted shadow paths (a real frame's batches may take
     either), run a shadow-order trial, and then forget what that trial learnt."""
@@ -291,7 +305,7 @@ def test_the_warm_up_compiles_both_shadow_paths_and_leaves_the_first_frame_to_de
 
     monkeypatch.setattr(whitted, "add_light_in_place", in_place)
     monkeypatch.setattr(whitted, "add_light", compacted)
-    renderer = WhittedRenderer(load_named("whitted"), _config("partition", width=200, height=150, packet=16))
+    renderer = WhittedRenderer(scene_named("whitted"), _config("partition", width=200, height=150, packet=16))
     trials = []
     real_add_trial = renderer.shadow_order.add_trial
     renderer.shadow_order.add_trial = lambda *args: (trials.append(args), real_add_trial(*args))

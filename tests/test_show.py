@@ -2,6 +2,7 @@
 and counters of the real traversals and with the BVH, the picture's geometry is right, the PNG
 shows the packet, its frustum and its nodes, and mistakes are one-line errors."""
 import copy
+import functools
 import os
 import subprocess
 import sys
@@ -27,16 +28,27 @@ from scenes.catalog import scene_from_config
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@functools.cache
+def load_scene(scene_config, override="none"):
+    """``scene_from_config``, loaded once per process (building the default scene costs more
+    than rendering it at 64x64): renderers and ``build_picture`` only read a Scene."""
+    return scene_from_config(scene_config, override)
+
+
+@functools.cache
 def render_batches(traversal, frustum=None, size=64, packet=8):
     """(renderer, [(kind, query, rays, packets, answer)]) of one render of the default scene,
-    each batch copied as it is cast (the renderer reuses its per-lane arrays within a frame)."""
+    each batch copied as it is cast (the renderer reuses its per-lane arrays within a frame).
+    Rendered once per set of arguments and shared by the tests that ask for it: they only read
+    the batches and trace packets through the renderer's tracer, which keeps no state."""
     config = with_overrides(Config(), traversal=[traversal], frustum=[frustum] if frustum else [],
                             size=(size, size), packet=packet, depth=2)
-    scene = scene_from_config(config.scene, "none")
+    scene = load_scene(config.scene)
     seen = []
     renderer = WhittedRenderer(scene, config, observer=lambda kind, query, rays, packets, answer: seen.append(
         (kind, query, *copied_batch(rays, packets), copy.deepcopy(answer))))
     renderer.render()
+    renderer.observer = None  # shared: no later render adds to ``seen``
     return renderer, seen
 
 
@@ -203,7 +215,7 @@ def test_rayspace_node_keeps_every_hit_triangle():
 def test_frustum_drawing_holds_the_rays():
     """The drawn frustum's corners lie on its planes and every drawn ray lies inside it."""
     config = with_overrides(Config(), size=(64, 64), packet=8, depth=1)
-    scene = scene_from_config(config.scene, "none")
+    scene = load_scene(config.scene)
     for kind in ("primary", "reflection"):
         pic = build_picture(scene, config, kind)
         lines = {name: (pts, seg) for name, pts, seg, _, _ in pic.lines}
@@ -226,7 +238,7 @@ def test_auto_picture_colours_packets_by_their_strategy(kind):
     """With ``auto`` the frustum and the packet map show the strategy each packet was walked by:
     the map's tiles are those ``auto`` chooses for the batch, the drawn packet's among them."""
     config = with_overrides(Config(), traversal=["auto"], size=(64, 64), packet=8, depth=2)
-    scene = scene_from_config(config.scene, "none")
+    scene = load_scene(config.scene)
     renderer = WhittedRenderer(scene, config)
     pic = build_picture(scene, config, kind, renderer=renderer)
     chosen = pic.summary["auto_choice"]
@@ -252,14 +264,24 @@ def test_auto_picture_colours_packets_by_their_strategy(kind):
 
 def test_default_packet_is_near_the_centre():
     config = with_overrides(Config(), size=(64, 64), packet=8, depth=0)
-    scene = scene_from_config(config.scene, "none")
+    scene = load_scene(config.scene)
     pic = build_picture(scene, config, "primary")
     assert pic.summary["packet"] in (27, 28, 35, 36)  # the four tiles around the centre of 8x8 tiles
 
 
-def _colour_pixels(image, colour, tolerance=40):
+def _colours(image):
+    """(colours i64[C,3], pixels i64[C]): the distinct colours of an RGB u8 image and how many
+    pixels have each, so that counting the pixels near a colour is per colour, not per pixel."""
+    packed = (image[..., 0].astype(np.int64) << 16) | (image[..., 1].astype(np.int64) << 8) | image[..., 2]
+    values, pixels = np.unique(packed, return_counts=True)
+    return np.stack([values >> 16, (values >> 8) & 255, values & 255], axis=1), pixels
+
+
+def _colour_pixels(colours, colour, tolerance=40):
+    """Pixels (of ``_colours``'s table) within ``tolerance`` of ``colour``, summed over R, G, B."""
+    values, pixels = colours
     target = np.array(colour) * 255
-    return int((np.abs(image.astype(int) - target).sum(axis=2) < tolerance).sum())
+    return int(pixels[np.abs(values - target).sum(axis=1) < tolerance].sum())
 
 
 def test_show_writes_a_png_with_packet_frustum_and_nodes(tmp_path):
@@ -277,12 +299,13 @@ def test_show_writes_a_png_with_packet_frustum_and_nodes(tmp_path):
     image = np.asarray(Image.open(out).convert("RGB"))
     assert image.shape == (600, 800, 3)
     config = with_overrides(Config(), size=(64, 64), packet=8, depth=1)
-    pic = build_picture(scene_from_config(config.scene, "none"), config, "primary")
+    pic = build_picture(load_scene(config.scene), config, "primary")
     drawing = image[legend_height(pic):]
-    assert _colour_pixels(drawing, RAY_HIT) > 30
-    assert _colour_pixels(drawing, FRUSTUM) > 30
+    colours = _colours(drawing)
+    assert _colour_pixels(colours, RAY_HIT) > 30
+    assert _colour_pixels(colours, FRUSTUM) > 30
     trace_nodes = [c for name, _, _, c, _ in pic.lines if name == "nodes"][0]
-    node_pixels = sum(_colour_pixels(drawing, colour, 20) for colour in np.unique(trace_nodes.round(3), axis=0))
+    node_pixels = sum(_colour_pixels(colours, colour, 20) for colour in np.unique(trace_nodes.round(3), axis=0))
     assert node_pixels > 100
     assert (drawing > 250).all(axis=2).mean() > 0.3  # white background: nothing smeared
 
@@ -312,7 +335,7 @@ def test_a_packet_without_a_live_ray_is_a_one_line_error(monkeypatch, capsys, tm
     a packet is refused in one line, and the default choice never lands on one."""
     monkeypatch.setattr(whitted, "IN_PLACE_SHADOWS", 0.0)
     config = with_overrides(Config(), size=(64, 64), packet=8, depth=0)
-    renderer = WhittedRenderer(scene_from_config(config.scene, "none"), config)
+    renderer = WhittedRenderer(load_scene(config.scene), config)
     rays, packets, *_ = capture_batch(renderer, "shadow")
     live = rays.tmin <= rays.tmax
     dead = [k for k in range(len(packets.offsets) - 1) if not live[packets.offsets[k]:packets.offsets[k + 1]].any()]
@@ -327,7 +350,7 @@ def test_a_packet_without_a_live_ray_is_a_one_line_error(monkeypatch, capsys, tm
 
 def test_rayspace_picture_has_cone_and_survivors():
     config = with_overrides(Config(), traversal=["rayspace"], size=(64, 64), packet=8, depth=1)
-    pic = build_picture(scene_from_config(config.scene, "none"), config, "reflection")
+    pic = build_picture(load_scene(config.scene), config, "reflection")
     names = [name for name, *_ in pic.lines]
     assert "cone" in names and "survivors" in names and "rays" in names
     assert 0 < pic.summary["survivors"] <= 3072
@@ -338,7 +361,7 @@ def test_captured_batch_survives_the_renderer_reusing_its_arrays():
     first one's. The batch ``show`` draws must still be the first, as it was traced."""
     config = with_overrides(Config(), size=(32, 32), depth=4, packet=4)
     config = config.__class__(**{**config.__dict__, "override": "reflective"})
-    renderer = WhittedRenderer(scene_from_config(config.scene, config.override), config)
+    renderer = WhittedRenderer(load_scene(config.scene, config.override), config)
     first = []
 
     def copy_first(kind, query, rays, packets, answer):
