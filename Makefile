@@ -26,9 +26,10 @@ render: $(STAMP)
 
 # One pytest worker per core (pytest-xdist), a test file per worker at a time so that its kernels
 # compile once there: most of a cold run is numba compiling, one kernel at a time in a process,
-# and two workers overlap it. `make test-serial` is the same suite in one process.
+# and two workers overlap it. The files go out longest first (tests/conftest.py's LONGEST_FIRST;
+# --no-loadscope-reorder keeps that order). `make test-serial` is the same suite in one process.
 test: $(STAMP)
-	$(PY) -m pytest -n auto --dist loadfile
+	$(PY) -m pytest -n auto --dist loadfile --no-loadscope-reorder
 
 test-serial: $(STAMP)
 	$(PY) -m pytest
