@@ -53,7 +53,9 @@ def test_importing_engine_writes_nothing(tmp_path):
     # Left out: what the test runner itself writes while this test runs, from the other pytest
     # workers (hypothesis's example database and constants, pytest's cache). A clean clone's first
     # run failed here when another worker's hypothesis wrote .hypothesis/constants in between.
-    runner_state = {".venv", ".git", "out", ".hypothesis", ".pytest_cache"}
+    # __pycache__: `make test` lets Python and pytest write byte code, which the other worker may
+    # do at any moment (the child here is told not to).
+    runner_state = {".venv", ".git", "out", ".hypothesis", ".pytest_cache", "__pycache__"}
 
     def snapshot():
         return {p: p.stat().st_mtime_ns for p in ROOT.rglob("*") if not runner_state.intersection(p.parts)}
