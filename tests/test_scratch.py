@@ -35,17 +35,39 @@ def test_a_constant_holds_its_value_in_every_row_however_it_grows_or_changes():
 
 
 def test_a_new_buffer_has_every_page_written(monkeypatch):
-    """A new buffer is written through once before it is handed out, so that its pages are
-    present: the eight-lane steps store some rows through a lane mask, and a masked store with
-    every lane off into a page never written costs a microcode assist each time on this machine
-    (the bunny's light_directions: 13-16 ms a frame instead of 2.0-2.5). Seen here through an
-    ``np.empty`` that hands out garbage: none of it may reach the caller."""
+    """A new buffer gets a store in every page it spans before it is handed out, so that its
+    pages are present: the eight-lane steps store some rows through a lane mask, and a masked
+    store with every lane off into a page never written costs a microcode assist each time on
+    this machine (the bunny's light_directions: 13-16 ms a frame instead of 2.0-2.5). Seen
+    here through an ``np.empty`` that hands out garbage (7s): each page the buffer spans must
+    hold a byte the scratch wrote, for a buffer touched serially and one touched in parallel,
+    neither starting on a page boundary."""
     import engine.core.scratch as scratch_module
 
     real_empty = np.empty
-    monkeypatch.setattr(scratch_module.np, "empty", lambda shape, dtype=float: np.full(shape, 7, dtype))
+
+    def garbage(shape, dtype=float):
+        # Over-allocate and start 100 bytes into a page, as malloc's buffers may.
+        count = int(np.prod(shape)) * np.dtype(dtype).itemsize
+        raw = np.full(count + 2 * scratch_module.PAGE, 7, np.uint8)
+        start = (-raw.ctypes.data) % scratch_module.PAGE + 100
+        return raw[start:start + count].view(dtype).reshape(shape)
+
+    monkeypatch.setattr(scratch_module.np, "empty", garbage)
     try:
-        view = scratch_module.Scratch().take("k", 1000, (3,), np.float32)
+        scratch = scratch_module.Scratch()
+        # Sizes whose last page holds only the buffer's last few bytes, beyond its last
+        # page-spaced store (16,288 bytes from offset 100; 1,769,472): a numpy pass, a numba one.
+        small = scratch.take("small", 14479, (), np.uint8)
+        large = scratch.take("large", scratch_module.SERIAL_TOUCH_BYTES // 8, (3,))
     finally:
         monkeypatch.setattr(scratch_module.np, "empty", real_empty)
-    assert view.shape == (1000, 3) and not view.any()
+    assert small.shape == (14479,) and large.shape == (scratch_module.SERIAL_TOUCH_BYTES // 8, 3)
+    for key in ("small", "large"):
+        buffer = scratch._buffers[key]   # the whole buffer, with its room beyond the rows taken
+        flat = buffer.reshape(-1).view(np.uint8)
+        pages = (buffer.ctypes.data + np.arange(flat.shape[0])) // scratch_module.PAGE
+        written = np.zeros(pages.max() - pages.min() + 1, bool)
+        written[pages[flat == 0] - pages.min()] = True
+        assert written.all(), f"{(~written).sum()} of {written.size} pages never written"
+        assert (flat == 7).mean() > 0.99  # one store a page, not a fill

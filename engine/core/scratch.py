@@ -11,13 +11,45 @@ is shared between renderers or intersectors.
 """
 from __future__ import annotations
 
+import mmap
+
 import numpy as np
+from numba import njit, prange
+
+#: The bytes of one memory page: a new buffer gets one store per page (``touch_pages``).
+PAGE = mmap.PAGESIZE
+#: Buffers up to this many bytes are touched by a numpy pass on the calling thread; larger ones
+#: by ``touch_pages`` on every numba thread (a parallel launch costs more than a few pages).
+SERIAL_TOUCH_BYTES = 1 << 20
+
+
+@njit(cache=True, parallel=True)
+def touch_pages(flat, step):
+    """Store a zero at flat[0], flat[step], flat[2 step], ... and flat[-1] (flat: u8[n], n >
+    0), so that every page of ``step`` bytes the buffer spans has been written once."""
+    n = flat.shape[0]
+    for i in prange((n + step - 1) // step):
+        flat[i * step] = 0
+    flat[n - 1] = 0
+
+
+def make_pages_present(buffer: np.ndarray) -> None:
+    """One store into every page ``buffer`` (C-contiguous) spans, on all numba threads when it
+    is large: what a new buffer needs before the kernels see it (see ``Scratch._view``)."""
+    flat = buffer.reshape(-1).view(np.uint8)
+    if flat.shape[0] == 0:
+        return
+    if flat.shape[0] <= SERIAL_TOUCH_BYTES:
+        flat[::PAGE] = 0
+        flat[-1] = 0
+    else:
+        touch_pages(flat, PAGE)
 
 
 class Scratch:
     """Named, growing buffers. ``take(key, rows, tail, dtype)`` -> a C-contiguous view of
-    shape (rows, *tail), uninitialised (callers may not rely on what it holds: zeros when new,
-    the last use's values after); the same key returns the same memory next time."""
+    shape (rows, *tail), uninitialised (callers may not rely on what it holds); the same key
+    returns the same memory next time."""
 
     def __init__(self):
         self._buffers: dict = {}
@@ -36,8 +68,12 @@ class Scratch:
             # store whose lanes are all off, into a page never written, costs a microcode assist
             # each time: the page never becomes present, as nothing else writes it. The bunny's
             # camera batch (22% of lanes hit) spent 13-16 ms a frame in light_directions
-            # instead of 2.0-2.5 ms (dist and ndotl are stored on hit lanes only).
-            buffer.fill(0)
+            # instead of 2.0-2.5 ms (dist and ndotl are stored on hit lanes only). One store a
+            # page does that, on both cores: a kitchen frame at 1024x1024 takes about 500 MB of
+            # new buffers, which ``fill(0)`` on one thread wrote in 0.79-0.85 s of the first
+            # frame and the stores make present in 0.26-0.71 s (session 28; what a first touch
+            # costs on this VM varies from run to run). The first frame: 1.19-1.31 -> 1.00-1.15 s.
+            make_pages_present(buffer)
             self._buffers[key] = buffer
         return buffer[:rows]
 
