@@ -735,6 +735,11 @@ class Loader:
         self.parsed: dict = {}
         self.builder = SceneBuilder(root.stem, source=str(root))
         self.textures: dict = {}
+        # Each path resolved and each texture found once per load: BART Robots names a texture
+        # on each of its 1,660 animated triangles and includes files 836 times, and resolving
+        # (an lstat per path component) took 0.5 s of its 1.6 s load.
+        self.resolved: dict = {}      # Path -> Path.resolve()
+        self.texture_paths: dict = {}  # (texture name, folder of the naming file) -> resolved file
         self.keyframes: dict = {}
         self.settings = {"view": None, "background": (0.0, 0.0, 0.0), "ambient": (1.0, 1.0, 1.0),
                          "animation": None}
@@ -749,8 +754,13 @@ class Loader:
         self.current_material: Optional[Material] = None
         self.default_material = Material(name="aff-default")
 
+    def resolve(self, path: Path) -> Path:
+        if path not in self.resolved:
+            self.resolved[path] = path.resolve()
+        return self.resolved[path]
+
     def parse(self, path: Path) -> ParsedFile:
-        key = path.resolve()
+        key = self.resolve(path)
         if key not in self.parsed:
             self.parsed[key] = Parser(path, self.tessellation).parse()
         return self.parsed[key]
@@ -779,10 +789,10 @@ class Loader:
                 if not target.is_file():
                     raise SceneError(f"{path}:{line}: included file {target.name!r} not found "
                                      f"(looked for {target})")
-                if target.resolve() in stack:
+                if self.resolve(target) in stack:
                     raise SceneError(f"{path}:{line}: {target.name!r} includes itself (through "
                                      f"{' -> '.join(p.name for p in stack)})")
-                self.walk(target, nodes[-1], stack + (path.resolve(),))
+                self.walk(target, nodes[-1], stack + (self.resolve(path),))
             elif kind == "tpa":
                 self.counts["tpa"] += 1
                 self.animated_tris.append((nodes[-1], op[1], self._material_index(None, path, op[2])))
@@ -801,11 +811,15 @@ class Loader:
         return self.builder.add_material(material, key=key)
 
     def _find_texture(self, name: str, path: Path, line: int) -> Path:
+        found = self.texture_paths.get((name, path.parent))
+        if found is not None:
+            return found
         candidates = [path.parent / name, path.parent.parent / "TextureFiles" / name,
                       self.root.parent / name, self.root.parent.parent / "TextureFiles" / name]
         for candidate in candidates:
             if candidate.is_file():
-                return candidate.resolve()
+                found = self.texture_paths[(name, path.parent)] = candidate.resolve()
+                return found
         raise SceneError(f"{path}:{line}: texture {name!r} not found (looked in "
                          f"{', '.join(sorted({str(c.parent) for c in candidates}))})")
 
