@@ -365,40 +365,57 @@ class Track:
                 order.pop()
             order.append(k)
         self.times, self.values, self.tcb = self.times[order], self.values[order], self.tcb[order]
-        if self.kind == "rot":
-            self._quats = [_qexp(math.radians(d) / 2 * _unit(a)) for a, d in zip(self.values[:, :3],
-                                                                                self.values[:, 3])]
-            self._deltas = np.array([_qlog(_qmul(_qconj(p), q)) for p, q in zip(self._quats, self._quats[1:])]
-                                    ).reshape(-1, 3)
-        else:
-            self._deltas = np.diff(self.values, axis=0)                      # [K-1, D]
-        # Each key's tangents depend on the keys only: made once, not per frame (BART Robots
-        # evaluates some 190 tracks a frame).
-        h = np.diff(self.times)
-        self._key_tangents = [self._tangents(k, h) for k in range(len(self.times))]
+        self._spans = np.diff(self.times)                                    # [K-1]
+        # A key's quaternion, the rotation from it to the next key and its tangents depend on
+        # the keys only: each is made the first time a time between its keys is asked for and
+        # kept, not per frame (BART Robots evaluates some 190 tracks a frame), nor for every key
+        # up front (its tracks hold 13,632 keys; a scene at one time needs two a track, and
+        # making all of them was 0.9 s of a 1.5 s load).
+        keys = len(self.times)
+        self._quats: list = [None] * keys
+        self._rot_deltas: list = [None] * max(keys - 1, 0)
+        self._key_tangents: list = [None] * keys
+        self._diffs = None if self.kind == "rot" else np.diff(self.values, axis=0)   # [K-1, D]
 
-    def _tangents(self, k: int, h: np.ndarray):
-        """(outgoing, incoming) tangents at key k; h: the segments' time spans."""
-        before = self._deltas[k - 1] if k > 0 else None
-        after = self._deltas[k] if k < len(self._deltas) else None
-        return _kb_tangents(before, after, h[k - 1] if k > 0 else 0.0,
-                            h[k] if k < len(h) else 0.0, self.tcb[k])
+    def _quat(self, k: int) -> np.ndarray:
+        """f64[4]: the unit quaternion of rotation key k (axis, degrees)."""
+        if self._quats[k] is None:
+            self._quats[k] = _qexp(math.radians(self.values[k, 3]) / 2 * _unit(self.values[k, :3]))
+        return self._quats[k]
+
+    def _delta(self, k: int) -> np.ndarray:
+        """The step from key k to key k + 1: f64[D], or for rotations the f64[3] log of q_k^-1 q_k+1."""
+        if self._diffs is not None:
+            return self._diffs[k]
+        if self._rot_deltas[k] is None:
+            self._rot_deltas[k] = _qlog(_qmul(_qconj(self._quat(k)), self._quat(k + 1)))
+        return self._rot_deltas[k]
+
+    def _tangents(self, k: int):
+        """(outgoing, incoming) tangents at key k (see ``_kb_tangents``), made once."""
+        if self._key_tangents[k] is None:
+            h, last = self._spans, len(self.times) - 1
+            before = self._delta(k - 1) if k > 0 else None
+            after = self._delta(k) if k < last else None
+            self._key_tangents[k] = _kb_tangents(before, after, h[k - 1] if k > 0 else 0.0,
+                                                 h[k] if k < last else 0.0, self.tcb[k])
+        return self._key_tangents[k]
 
     def at(self, time: float) -> np.ndarray:
         """The channel's value at ``time``: f64[3] (translation/scale) or f64[4] quaternion."""
         k_last = len(self.times) - 1
         if k_last == 0 or time <= self.times[0] or time >= self.times[-1]:
             k = 0 if k_last == 0 or time <= self.times[0] else k_last
-            return self._quats[k] if self.kind == "rot" else self.values[k]
+            return self._quat(k) if self.kind == "rot" else self.values[k]
         k = int(np.searchsorted(self.times, time, side="right")) - 1
         u = (time - self.times[k]) / (self.times[k + 1] - self.times[k])
-        out_k, _ = self._key_tangents[k]
-        _, in_next = self._key_tangents[k + 1]
+        out_k, _ = self._tangents(k)
+        _, in_next = self._tangents(k + 1)
         h00, h10, h01, h11 = _hermite(u)
         if self.kind == "rot":
             # Hermite in the log space of q_k^-1 q(t): 0 at u = 0, delta at u = 1.
-            local = h10 * out_k + h01 * self._deltas[k] + h11 * in_next
-            return _qmul(self._quats[k], _qexp(local))
+            local = h10 * out_k + h01 * self._delta(k) + h11 * in_next
+            return _qmul(self._quat(k), _qexp(local))
         return h00 * self.values[k] + h10 * out_k + h01 * self.values[k + 1] + h11 * in_next
 
 
