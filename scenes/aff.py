@@ -67,7 +67,6 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
-from itertools import chain
 from pathlib import Path
 from typing import Optional
 
@@ -87,6 +86,25 @@ DIRECTIVES = ("v", "b", "l", "am", "fm", "f", "m", "p", "pp", "tt", "ttp", "s", 
 # Tokens
 # --------------------------------------------------------------------------------------------
 
+#: Which of the 256 latin-1 characters ``str.split()`` splits at (its whitespace).
+_SPLITS_AT = np.array([chr(code).isspace() for code in range(256)])
+
+
+def words_and_lines(text: str) -> tuple:
+    """(words, line_of, last_line) of latin-1 ``text`` (every character below 256): its words
+    as ``text.split()`` gives them, the 1-based line of each word as i32[W] (lines end at
+    "\\n"), and the number of lines. A word's line is one more than the newlines before its
+    first character, counted in one numpy pass over the bytes; a ``split()`` per line, as
+    before, took twice as long over the BART files (0.40 against 0.20 s for all 110)."""
+    words = text.split()
+    codes = np.frombuffer(text.encode("latin-1"), np.uint8)
+    gap = _SPLITS_AT[codes]
+    starts = ~gap
+    starts[1:] &= gap[:-1]
+    line_of = (np.cumsum(codes == ord("\n"), dtype=np.int64)[starts] + 1).astype(np.int32)
+    return words, line_of, text.count("\n") + 1
+
+
 class Tokens:
     """Whitespace-separated words of one file, comments removed, with their line numbers.
 
@@ -96,11 +114,7 @@ class Tokens:
 
     def __init__(self, path: Path, text: str):
         self.path = path
-        per_line = [line.split() for line in _COMMENT.sub("", text).split("\n")]
-        self.words = list(chain.from_iterable(per_line))
-        self.line_of = np.repeat(np.arange(1, len(per_line) + 1, dtype=np.int32),
-                                 [len(words) for words in per_line])
-        self.last_line = max(len(per_line), 1)
+        self.words, self.line_of, self.last_line = words_and_lines(_COMMENT.sub("", text))
         self.pos = 0
 
     def at_end(self) -> bool:

@@ -8,6 +8,8 @@ import textwrap
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from engine.core.errors import ConfigError, SceneError
 from scenes.aff import Track, cone_triangles, sphere_triangles
@@ -397,3 +399,21 @@ def test_bad_lights_values_are_one_line_config_errors(tmp_path, bad):
     with pytest.raises(ConfigError, match=r"^lights must be \"all\" or an integer >= 0 .*got ") as caught:
         load(tmp_path, TRIANGLE_MESH, lights=bad)
     assert "\n" not in str(caught.value)
+
+
+# Every character ``str.split()`` treats as a gap in latin-1 text, beside word characters.
+_TOKEN_TEXT = st.text(alphabet=" \t\n\r\x0b\x0c\x1c\x1d\x1e\x1f\x85\xa0ab1.-{}\xff\x00", max_size=60)
+
+
+@given(_TOKEN_TEXT)
+def test_words_and_their_lines_are_those_of_a_split_per_line(text):
+    """``words_and_lines`` counts newlines in one numpy pass; it must give the words and lines
+    that splitting each line would, whatever whitespace (latin-1's \\x85 and \\xa0 included)."""
+    from scenes.aff import words_and_lines
+
+    per_line = [line.split() for line in text.split("\n")]
+    words, line_of, last_line = words_and_lines(text)
+    assert words == [w for line in per_line for w in line]
+    assert line_of.dtype == np.int32
+    assert line_of.tolist() == [n + 1 for n, line in enumerate(per_line) for _ in line]
+    assert last_line == len(per_line)
