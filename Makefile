@@ -24,7 +24,7 @@ $(STAMP): pyproject.toml .ci/system-deps
 # The project's own modules byte-compiled into their (git-ignored) __pycache__ folders, even where
 # PYTHONDONTWRITEBYTECODE is set (it is on this project's hosts): an editable install compiles
 # nothing, and without .pyc files every `packetrt` command compiles the engine's sources again
-# (session 28: a warm `packetrt render` of the default scene 2.6-2.9 s without, 1.9-2.3 s with).
+# (session 28: a warm `packetrt render` of the default scene 2.6-2.9 s without, 1.9-2.5 s with).
 # Only stale files are compiled again.
 PACKAGES := engine traversals frusta validation scenes
 

@@ -386,10 +386,13 @@ class Track:
         # up front (its tracks hold 13,632 keys; a scene at one time needs two a track, and
         # making all of them was 0.9 s of a 1.5 s load).
         keys = len(self.times)
-        self._quats: list = [None] * keys
-        self._rot_deltas: list = [None] * max(keys - 1, 0)
         self._key_tangents: list = [None] * keys
-        self._diffs = None if self.kind == "rot" else np.diff(self.values, axis=0)   # [K-1, D]
+        if self.kind == "rot":
+            self._quats: list = [None] * keys
+            self._rot_deltas: list = [None] * (keys - 1)
+            self._diffs = None
+        else:
+            self._diffs = np.diff(self.values, axis=0)                       # [K-1, D]
 
     def _quat(self, k: int) -> np.ndarray:
         """f64[4]: the unit quaternion of rotation key k (axis, degrees)."""
