@@ -1,11 +1,12 @@
-"""``engine.core.prefetch.prefetch_row``: three cache-line prefetches of an array's row, no effect
-on any value, and the per-ray walk issues them for the children it pushes."""
+"""``engine.core.prefetch``: ``prefetch_row`` is three cache-line prefetches of an array's row and
+``prefetch_line`` one, with no effect on any value; the per-ray walk issues them for the children
+it pushes and for the child and size rows of every node it tests."""
 import numpy as np
 import pytest
 from numba import njit
 from numba.core.errors import TypingError
 
-from engine.core.prefetch import LINES, prefetch_row
+from engine.core.prefetch import LINES, prefetch_line, prefetch_row
 from engine.query.walk import CLOSEST, new_stack, walk
 
 
@@ -27,6 +28,20 @@ def test_prefetch_changes_nothing_and_emits_three_prefetches_a_row():
     assert llvm.count("call void @llvm.prefetch") == LINES
 
 
+def prefetch_one_line(rows, r):
+    prefetch_line(rows, r)
+    return rows[r, 0]
+
+
+def test_prefetch_line_changes_nothing_and_emits_one_prefetch():
+    rows = np.arange(10 * 8, dtype=np.int32).reshape(10, 8)
+    before = rows.copy()
+    fresh = njit(prefetch_one_line)
+    assert [fresh(rows, r) for r in range(10)] == list(rows[:, 0])
+    np.testing.assert_array_equal(rows, before)
+    assert fresh.inspect_llvm(fresh.signatures[0]).count("call void @llvm.prefetch") == 1
+
+
 def test_prefetch_refuses_a_strided_view():
     rows = np.zeros((10, 48), np.float32)
     with pytest.raises(TypingError, match="C-contiguous"):
@@ -43,7 +58,8 @@ def one_walk(box, child, size, block_tri, blocks):
 
 def test_the_walk_prefetches_the_rows_of_the_children_it_pushes():
     """A pushed inner node's boxes or a pushed leaf's block: LLVM selects the row's address and
-    emits one set of LINES prefetches for both."""
+    emits one set of LINES prefetches for both; and a node's child and size rows, one line each,
+    before its boxes are tested."""
     import trimesh
     from engine.query.intersector import RayMeshIntersector
     s = RayMeshIntersector(trimesh.creation.icosphere(subdivisions=2))._structure()
@@ -51,4 +67,4 @@ def test_the_walk_prefetches_the_rows_of_the_children_it_pushes():
     hit, t, tri, _, _ = fresh(*s.wide, s.block_tri, s.blocks)
     assert hit == 1 and t == pytest.approx(1.5, abs=0.01)
     llvm = fresh.inspect_llvm(fresh.signatures[0])
-    assert llvm.count("call void @llvm.prefetch") >= LINES
+    assert llvm.count("call void @llvm.prefetch") >= LINES + 2

@@ -1,5 +1,6 @@
 """``prefetch_row(array, row)``: start fetching the first 192 bytes of ``array[row]`` (three cache
-lines) into the caches, without waiting for them and without changing any value.
+lines) into the caches, without waiting for them and without changing any value;
+``prefetch_line(array, row)``: the same for the one line that holds the row's first byte.
 
 A per-ray BVH walk is a chain of dependent loads, each one a cache miss on a large mesh. When a
 node's test finds several children, the walk visits the nearest and pushes the others; it pops
@@ -25,9 +26,9 @@ _I64 = ir.IntType(64)
 LINES, LINE_BYTES = 3, 64
 
 
-@intrinsic
-def prefetch_row(typingctx, array, row):
-    """Prefetch the first LINES * LINE_BYTES bytes of row ``row`` of a C-contiguous array."""
+def _prefetch_signature(array, row, lines):
+    """The signature and code generator of a prefetch of ``lines`` cache lines from the start of
+    row ``row`` of a C-contiguous array."""
     if not (isinstance(array, types.Array) and array.layout == "C" and array.ndim >= 1):
         raise TypingError(f"array must be a C-contiguous array, got {array}")
     if not isinstance(row, types.Integer):
@@ -41,10 +42,24 @@ def prefetch_row(typingctx, array, row):
         base = builder.bitcast(arr.data, _I8P)
         fetch = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [_I8P, _I32, _I32, _I32]),
                                                "llvm.prefetch.p0i8")
-        for line in range(LINES):
+        for line in range(lines):
             address = builder.gep(base, [builder.add(start, ir.Constant(_I64, line * LINE_BYTES))])
             # read (0), keep in all levels (3), data cache (1)
             builder.call(fetch, [address, ir.Constant(_I32, 0), ir.Constant(_I32, 3), ir.Constant(_I32, 1)])
         return context.get_dummy_value()
 
     return sig, codegen
+
+
+@intrinsic
+def prefetch_row(typingctx, array, row):
+    """Prefetch the first LINES * LINE_BYTES bytes of row ``row`` of a C-contiguous array."""
+    return _prefetch_signature(array, row, LINES)
+
+
+@intrinsic
+def prefetch_line(typingctx, array, row):
+    """Prefetch the cache line that holds the first byte of row ``row`` of a C-contiguous array
+    (a wide node's ``child`` or ``size`` row: 32 bytes, in one line unless the array's start
+    puts it across two)."""
+    return _prefetch_signature(array, row, 1)
