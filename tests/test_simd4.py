@@ -14,6 +14,7 @@ from numba import njit
 from engine.core.triangle import F32_INF, HUGE_INV, safe_inverse, slab_test
 from engine.packet.kernels import IX, OX, RF_ROWS, THI, TLO
 from engine.packet.simd4 import planes4_box, planes4_triangle, slab1x8, slab4, slab4x2
+from engine.query.wide import pack_nodes
 
 LANES = 32
 BOXES = 40
@@ -147,6 +148,12 @@ def test_slab1x8_is_slab_test_on_eight_child_boxes(seed):
     bits = (masks[:, :, None] >> np.arange(8)) & 1
     np.testing.assert_array_equal(bits == 1, np.isfinite(vector))
     assert np.isfinite(vector).any() and np.isinf(vector).any()
+    # The same boxes in the walks' packed nodes (eight rows a node, ``engine.query.wide``).
+    n_wide = box.shape[0]
+    nodes = pack_nodes(box, np.zeros((n_wide, 8), np.int32), np.zeros((n_wide, 8), np.int32))
+    packed, packed_masks = children_vector(nodes, org, inv, t_lo, t_hi)
+    np.testing.assert_array_equal(packed.view(np.uint32), vector.view(np.uint32))
+    np.testing.assert_array_equal(packed_masks, masks)
 
 
 @njit(cache=True)

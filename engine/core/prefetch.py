@@ -1,13 +1,13 @@
 """``prefetch_row(array, row)``: start fetching the first 192 bytes of ``array[row]`` (three cache
 lines) into the caches, without waiting for them and without changing any value;
-``prefetch_line(array, row)``: the same for the one line that holds the row's first byte.
+``prefetch_node(array, row)``: the same for the four lines of a packed wide node.
 
 A per-ray BVH walk is a chain of dependent loads, each one a cache miss on a large mesh. When a
 node's test finds several children, the walk visits the nearest and pushes the others; it pops
 them later, after the nearest's subtree. Prefetching each pushed child's row when it is pushed
 lets those misses overlap the subtree's work instead of stalling the pop
-(``engine.query.walk``). Three lines cover a wide node's boxes (f32[6,8], 192 bytes) and a leaf
-block (f32[10,4], 160 bytes at any 32-byte offset).
+(``engine.query.walk``). Four lines cover a packed wide node (f32[8,8], 256 bytes, the array on a
+line's start) and three a leaf block (f32[10,4], 160 bytes at any 32-byte offset).
 
 It emits LLVM's ``llvm.prefetch`` (read, high locality, data cache), which LLVM drops on a
 target without a prefetch instruction; the answers never depend on it.
@@ -24,6 +24,7 @@ _I8P = ir.IntType(8).as_pointer()
 _I32 = ir.IntType(32)
 _I64 = ir.IntType(64)
 LINES, LINE_BYTES = 3, 64
+NODE_LINES = 4
 
 
 def _prefetch_signature(array, row, lines):
@@ -58,8 +59,7 @@ def prefetch_row(typingctx, array, row):
 
 
 @intrinsic
-def prefetch_line(typingctx, array, row):
-    """Prefetch the cache line that holds the first byte of row ``row`` of a C-contiguous array
-    (a wide node's ``child`` or ``size`` row: 32 bytes, in one line unless the array's start
-    puts it across two)."""
-    return _prefetch_signature(array, row, 1)
+def prefetch_node(typingctx, array, row):
+    """Prefetch the first NODE_LINES * LINE_BYTES bytes of row ``row`` of a C-contiguous array: a
+    packed wide node (``engine.query.wide.pack_nodes``, 256 bytes on a cache line's start)."""
+    return _prefetch_signature(array, row, NODE_LINES)

@@ -159,8 +159,8 @@ def _f32_inf_vector(width):
 @intrinsic
 def slab1x8(typingctx, box, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi, entries):
     """One ray against the eight child boxes of a node of the mesh queries' 8-wide tree
-    (box: f32[W,6,8], C order, rows lo x, y, z then hi x, y, z, ``engine.query.wide``; node: its
-    row), as one <8 x float> test (this machine's AVX2 width). Returns the int64 mask (bit s set
+    (box: f32[W,R,8], R >= 6, C order, rows lo x, y, z then hi x, y, z first: the packed nodes of
+    ``engine.query.wide``; node: its row), as one <8 x float> test (this machine's AVX2 width). Returns the int64 mask (bit s set
     when child s is hit) and stores the eight entry distances in entries[0:8] (f32, C order),
     each the child's ``engine.core.triangle.slab_test`` answer (inf: missed), the same
     operations in the same order, lane by lane. A slot whose box is NaN is never hit.

@@ -28,10 +28,10 @@ DIRECTIONS = DIRECTIONS / np.linalg.norm(DIRECTIONS, axis=1, keepdims=True)
 
 
 @njit(cache=True, inline="always")
-def _line(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz, stack, stack_t, entries, answers, bt,
+def _line(nodes, node_bits, block_tri, blocks, ox, oy, oz, dx, dy, dz, stack, stack_t, entries, answers, bt,
           btri, bu, bv, gap):
     """(crossings ahead, crossings behind, ambiguous) of the line (ox, oy, oz) + t (dx, dy, dz)."""
-    n, _, _, _, _ = walk(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz,
+    n, _, _, _, _ = walk(nodes, node_bits, block_tri, blocks, ox, oy, oz, dx, dy, dz,
                          np.float32(-np.inf), np.float32(np.inf), COLLECT, stack, stack_t, entries, answers,
                          bt, btri, bu, bv, CAP)
     if n > CAP:
@@ -50,7 +50,7 @@ def _line(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz, stack, st
 
 
 @njit(cache=True, parallel=True)
-def contains_kernel(box, child, size, block_tri, blocks, points, center, scale, lo, hi, directions, gap,
+def contains_kernel(nodes, node_bits, block_tri, blocks, points, center, scale, lo, hi, directions, gap,
                     out):
     """out (bool[n]): is each world point (f64[n,3]) inside the closed mesh. center (f64[3]),
     scale: the mesh's frame; lo, hi (f64[3]): the mesh's box in that frame (points outside it, or
@@ -72,7 +72,7 @@ def contains_kernel(box, child, size, block_tri, blocks, points, center, scale, 
             casts = 0
             decided = False
             for k in range(directions.shape[0]):
-                ahead, behind, unclear = _line(box, child, size, block_tri, blocks, ox, oy, oz,
+                ahead, behind, unclear = _line(nodes, node_bits, block_tri, blocks, ox, oy, oz,
                                                directions[k, 0], directions[k, 1], directions[k, 2],
                                                stack, stack_t, entries, answers, bt, btri, bu, bv, gap)
                 p_forward = ahead % 2

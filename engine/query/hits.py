@@ -1,7 +1,7 @@
 """Parallel query kernels over rays.
 
-Every kernel takes the 8-wide tree's arrays (``engine.query.wide``, leaf slots pointing at
-blocks) and the leaves' triangles in blocks of four (blocks f32[G,10,4] and block_tri, their
+Every kernel takes the 8-wide tree's packed nodes and their int32 view
+(``engine.query.wide.pack_nodes``, leaf slots pointing at blocks) and the leaves' triangles in blocks of four (blocks f32[G,10,4] and block_tri, their
 int32 view: ``engine.query.leaf_blocks``), the world rays origins, directions
 (f64[n,3], any direction length) with the mesh frame's center (f64[3]) and scale, and
 ``rows`` (i64[n]): row k walks input ray rows[k] (``order.ray_order``, or 0..n-1). Each ray is
@@ -39,7 +39,7 @@ F32_ZERO, F32_INF = np.float32(0.0), np.float32(np.inf)
 
 
 @njit(cache=True, parallel=True)
-def first_hit_kernel(box, child, size, block_tri, blocks, origins, directions, center, scale, rows,
+def first_hit_kernel(nodes, node_bits, block_tri, blocks, origins, directions, center, scale, rows,
                      any_hit, out_tri, out_u, out_v, ok):
     """out_tri (i64[n], -1 = miss), out_u, out_v (f32[n]: barycentrics) of the closest hit
     (any_hit False) or of some hit (any_hit True) of every ray on [0, inf), by input ray;
@@ -63,7 +63,7 @@ def first_hit_kernel(box, child, size, block_tri, blocks, origins, directions, c
             ok[r] = good
             if not good:
                 continue
-            hit, t, tri, u, v = walk(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz,
+            hit, t, tri, u, v = walk(nodes, node_bits, block_tri, blocks, ox, oy, oz, dx, dy, dz,
                                      F32_ZERO, F32_INF, mode, stack, stack_t, entries, answers,
                                      empty_t, empty_i, empty_t, empty_t, 0)
             if hit:
@@ -73,7 +73,7 @@ def first_hit_kernel(box, child, size, block_tri, blocks, origins, directions, c
 
 
 @njit(cache=True, parallel=True)
-def collect_hits_kernel(box, child, size, block_tri, blocks, origins, directions, center, scale, rows,
+def collect_hits_kernel(nodes, node_bits, block_tri, blocks, origins, directions, center, scale, rows,
                         gap, max_hits, slot, out_t, out_tri, out_u, out_v, kept, ok):
     """Row k's hits, sorted by (t, triangle), merged within ``gap`` and cut to max_hits, go to
     out_*[k * slot : k * slot + kept[k]] (out_t, out_u, out_v f32[n * slot], out_tri i32[n * slot]);
@@ -94,7 +94,7 @@ def collect_hits_kernel(box, child, size, block_tri, blocks, origins, directions
             ok[r] = good
             if not good:
                 continue
-            found, _, _, _, _ = walk(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz,
+            found, _, _, _, _ = walk(nodes, node_bits, block_tri, blocks, ox, oy, oz, dx, dy, dz,
                                      F32_ZERO, F32_INF, COLLECT, stack, stack_t, entries, answers,
                                      st, stri, su, sv, SCRATCH)
             if found > SCRATCH:
@@ -114,7 +114,7 @@ def collect_hits_kernel(box, child, size, block_tri, blocks, origins, directions
 
 
 @njit(cache=True)  # serial: only the rare rays with many hits come here
-def count_hits_kernel(box, child, size, block_tri, blocks, origins, directions, center, scale, rows,
+def count_hits_kernel(nodes, node_bits, block_tri, blocks, origins, directions, center, scale, rows,
                       counts):
     """counts (i64[n]): how many triangles the ray of each row hits on [0, inf), before merging
     (rows: well-formed rays only)."""
@@ -125,13 +125,13 @@ def count_hits_kernel(box, child, size, block_tri, blocks, origins, directions, 
         stack, stack_t, entries, answers = new_stack()
         for k in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
             _, ox, oy, oz, dx, dy, dz = local_ray(origins, directions, rows[k], center, scale)
-            counts[k], _, _, _, _ = walk(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz,
+            counts[k], _, _, _, _ = walk(nodes, node_bits, block_tri, blocks, ox, oy, oz, dx, dy, dz,
                                          F32_ZERO, F32_INF, COLLECT, stack, stack_t, entries, answers,
                                          empty_t, empty_i, empty_t, empty_t, 0)
 
 
 @njit(cache=True)  # serial: only the rare rays with many hits come here
-def fill_hits_kernel(box, child, size, block_tri, blocks, origins, directions, center, scale, rows,
+def fill_hits_kernel(nodes, node_bits, block_tri, blocks, origins, directions, center, scale, rows,
                      offsets, gap, max_hits, buf_t, buf_tri, buf_u, buf_v, kept):
     """Row k's hits go to slice offsets[k] : offsets[k + 1] of buf_t, buf_tri, buf_u, buf_v
     (sized by ``count_hits_kernel``), sorted by (t, triangle), merged within ``gap`` (local
@@ -146,7 +146,7 @@ def fill_hits_kernel(box, child, size, block_tri, blocks, origins, directions, c
                 continue
             _, ox, oy, oz, dx, dy, dz = local_ray(origins, directions, rows[k], center, scale)
             st, stri, su, sv = buf_t[lo:hi], buf_tri[lo:hi], buf_u[lo:hi], buf_v[lo:hi]
-            found, _, _, _, _ = walk(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz,
+            found, _, _, _, _ = walk(nodes, node_bits, block_tri, blocks, ox, oy, oz, dx, dy, dz,
                                      F32_ZERO, F32_INF, COLLECT, stack, stack_t, entries, answers,
                                      st, stri, su, sv, hi - lo)
             found = min(found, hi - lo)

@@ -61,7 +61,7 @@ from engine.query.hits import (collect_hits_kernel, compact_hits_kernel, count_h
 from engine.query.leaf_blocks import leaf_blocks
 from engine.query.locations import locations_kernel
 from engine.query.order import ray_order
-from engine.query.wide import collapse
+from engine.query.wide import collapse, pack_nodes
 
 #: Hits closer than this (in units of the mesh's largest extent) to the previous one along a
 #: ray are one crossing; trimesh steps 1e-6 of the mesh's scale past each hit.
@@ -83,7 +83,8 @@ class _Structure(NamedTuple):
     faces: np.ndarray      # i64[T,3]
     frame: MeshFrame
     bvh: BVH
-    wide: tuple            # (box, child, size) of the 8-wide tree over bvh, leaf slots at blocks
+    nodes: np.ndarray      # f32[W,8,8] the 8-wide tree over bvh (``wide.pack_nodes``), leaf slots at blocks
+    node_bits: np.ndarray  # i32[W,8,8] nodes' memory as int32: rows 6 and 7, each slot's child and size
     block_tri: np.ndarray  # i32[G,10,4] blocks' memory as int32: row 9, each lane's triangle
     blocks: np.ndarray     # f32[G,10,4] the leaves' local corners, four triangles a block
                            # (engine.query.leaf_blocks)
@@ -216,8 +217,9 @@ class RayMeshIntersector:
         child, block_tri, blocks = leaf_blocks(bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2, child,
                                                size)
         keys = child_order_keys(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
-        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, (box, child, size), block_tri,
-                                           blocks, tris, keys)
+        nodes = pack_nodes(box, child, size)
+        self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, nodes, nodes.view(np.int32),
+                                           block_tri, blocks, tris, keys)
         return self._structure_cache
 
     def __getstate__(self):
@@ -264,7 +266,7 @@ class RayMeshIntersector:
 
     @staticmethod
     def _tree(s: _Structure):
-        return (*s.wide, s.block_tri, s.blocks)
+        return s.nodes, s.node_bits, s.block_tri, s.blocks
 
     @staticmethod
     def _frame_args(s: _Structure, rays: _Rays):

@@ -23,22 +23,19 @@ visits bit by bit: a tuple indexed by a run-time lane compiles to a jump table, 
 branches were the walk's costliest mispredictions. The stack is indexed by an unsigned counter,
 so numba adds no negative-index wraparound to its loads and stores. A child pushed on the stack
 has its row (node boxes or leaf block) prefetched as it is pushed: on the bunny's incoherent
-rays the walk's time went mostly to cache misses on those rows. And a node's ``child`` and
-``size`` rows are prefetched before its boxes are tested: their addresses are known from the
-start, but the loads that use them wait for the test's answer, so on a cache miss they were a
-second wait after the boxes' (bunny, 200,000 incoherent rays, medians of 31 alternating calls:
-first hits 40.0 -> 37.4 ms on two threads, 90.8 -> 82.2 ms on one; the kitchen unchanged).
+rays the walk's time went mostly to cache misses on those rows. A node's children and sizes
+sit in its own row, after its boxes (``engine.query.wide.pack_nodes``), so they arrive with them.
 """
 import numpy as np
 from numba import njit
 from numba.cpython.unsafe.numbers import trailing_zeros
 
-from engine.core.prefetch import prefetch_line, prefetch_row
+from engine.core.prefetch import prefetch_node, prefetch_row
 from engine.core.triangle import F32_INF, F32_ONE, HUGE_INV, closer, ray_shear
 from engine.packet.simd4 import slab1x8
 from engine.packet.simd4_triangle import triangles_block
 from engine.query.leaf_blocks import TRI_ROW
-from engine.query.wide import WIDTH
+from engine.query.wide import CHILD_ROW, SIZE_ROW, WIDTH
 from engine.core.types import MAX_BVH_DEPTH
 
 CLOSEST, ANY, COLLECT = 0, 1, 2
@@ -72,10 +69,11 @@ def new_hit_buffers(cap):
 
 
 @njit(cache=True, inline="always")  # inlined: a call per ray costs as much as a short walk
-def walk(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz, t_lo, t_hi, mode, stack, stack_t,
+def walk(nodes, node_bits, block_tri, blocks, ox, oy, oz, dx, dy, dz, t_lo, t_hi, mode, stack, stack_t,
          entries, answers, buf_t, buf_tri, buf_u, buf_v, cap):
     """Walk the ray (ox, oy, oz) + t (dx, dy, dz) (f32 scalars, local frame, non-zero direction)
-    over [t_lo, t_hi] through the 8-wide tree (box, child, size: ``engine.query.wide``).
+    over [t_lo, t_hi] through the 8-wide tree (nodes f32[W,8,8] and node_bits, its int32 view:
+    ``engine.query.wide.pack_nodes``).
 
     blocks f32[G,10,4], block_tri (its int32 view): the leaves' triangles
     (``engine.query.leaf_blocks``; a leaf slot's child is its first block). Returns
@@ -125,14 +123,12 @@ def walk(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz, t_lo, t_hi
                             return n, best_t, best_tri, best_u, best_v
                         t_hi = t  # CLOSEST: nothing beyond this hit matters any more
         else:
-            prefetch_line(child, node)  # read once the boxes' test is done (module doc)
-            prefetch_line(size, node)
-            hit = slab1x8(box, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi, entries)
+            hit = slab1x8(nodes, node, ox, oy, oz, ix, iy, iz, t_lo, t_hi, entries)
             if hit != 0:
                 if hit & (hit - 1) == 0:  # one child hit: straight there, no stack traffic
                     s = trailing_zeros(hit)
-                    leaf = size[node, s]
-                    node = child[node, s]
+                    leaf = node_bits[node, SIZE_ROW, s]
+                    node = node_bits[node, CHILD_ROW, s]
                     continue
                 # Several: push them all (CLOSEST: keeping stack[base:top] sorted far (bottom)
                 # to near (top)), then take the top one.
@@ -147,14 +143,14 @@ def walk(box, child, size, block_tri, blocks, ox, oy, oz, dx, dy, dz, t_lo, t_hi
                         stack[j, 1] = stack[j - one, 1]
                         stack_t[j] = stack_t[j - one]
                         j -= one
-                    pushed = child[node, s]
-                    pushed_size = size[node, s]
+                    pushed = node_bits[node, CHILD_ROW, s]
+                    pushed_size = node_bits[node, SIZE_ROW, s]
                     # Its row is fetched now, while the nearer subtrees are walked
                     # (``engine.core.prefetch``).
                     if pushed_size > 0:
                         prefetch_row(blocks, pushed)
                     else:
-                        prefetch_row(box, pushed)
+                        prefetch_node(nodes, pushed)
                     stack[j, 0] = pushed
                     stack[j, 1] = pushed_size
                     stack_t[j] = tn
