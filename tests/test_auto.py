@@ -383,3 +383,40 @@ def test_the_fit_draws_auto_against_ranged_and_partition_row_by_row(tmp_path):
     with Image.open(few) as a, Image.open(many) as b:
         assert a.format == b.format == "PNG"
         assert b.height > a.height  # a bar per row
+
+
+def test_paired_ratios_give_the_median_and_the_sign_tests_interval():
+    """Ratios of times taken in the same repetitions: the median, and for n = 41 the 14th and 28th
+    smallest ratios as the 95% interval; a row is faster or slower only when the whole interval
+    is on one side of 1."""
+    from engine.bench.auto_fit import paired_ratio, verdict
+
+    rng = np.random.default_rng(3)
+    ratios = rng.permutation(np.arange(1, 42) / 21.0)
+    best = rng.uniform(1e-3, 2e-3, 41)
+    median, low, high = paired_ratio(ratios * best, best)
+    assert median == pytest.approx(1.0) and low == pytest.approx(14 / 21) and high == pytest.approx(28 / 21)
+    assert verdict(low, high) == "same"
+    assert verdict(*paired_ratio(0.9 * best, best)[1:]) == "faster"
+    assert verdict(*paired_ratio(1.1 * best, best)[1:]) == "slower"
+    # A drift shared by both sides of each repetition cancels.
+    drift = np.linspace(1.0, 2.0, 41)
+    assert paired_ratio(0.95 * best * drift, best * drift)[2] < 1.0
+
+
+def test_fit_auto_measures_a_thresholds_file_or_names_what_is_wrong_with_it(tmp_path, capsys):
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    from fit_auto import main, read_limits
+
+    shipped = Path(__file__).resolve().parents[1] / "engine/packet/auto_thresholds.json"
+    assert read_limits(str(shipped)) == json.loads(shipped.read_text())["limits"]
+    bad = tmp_path / "bad.json"
+    for text in ("{", '{"limits": {"min_live": 0.9}}', "[]"):
+        bad.write_text(text)
+        assert main(["--limits", str(bad), "--measure-repeat", "0"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"fit_auto: --limits {bad}") and "\n" not in err

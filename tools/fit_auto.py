@@ -3,11 +3,13 @@
     python tools/fit_auto.py [--scenes erw6,bart-museum,bart-kitchen,spd-rings] [--packets 8,16]
                              [--size 256] [--repeat 5] [--measure-repeat 5] [--threads 0]
                              [--thresholds engine/packet/auto_thresholds.json]
-                             [--report docs/auto-fit.md]
+                             [--report docs/auto-fit.md] [--limits THRESHOLDS.json]
 
 A reduced, reproducible fit (``engine.bench.auto_fit``): the named scenes at one small
 resolution, the given packet sizes, every ray kind. Needs the BART scenes on
 ``PACKETRT_SCENE_PATH``. ``--measure-repeat 0`` fits without the frame measurement.
+``--limits FILE`` measures the thresholds of a thresholds file (its "limits") instead of
+fitting new ones, and writes no thresholds: the report then describes that file's ``auto``.
 """
 from __future__ import annotations
 
@@ -18,6 +20,22 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+
+def read_limits(path: str) -> dict:
+    """The "limits" of a thresholds file, or ValueError naming the file and what is wrong."""
+    import json
+
+    from engine.packet.choose import LIMIT_NAMES
+
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"--limits {path}: cannot read a JSON thresholds file ({exc})") from None
+    limits = data.get("limits") if isinstance(data, dict) else None
+    if not isinstance(limits, dict) or set(limits) != set(LIMIT_NAMES):
+        raise ValueError(f"--limits {path}: expected a \"limits\" table with exactly {', '.join(LIMIT_NAMES)}")
+    return limits
 
 
 def main(argv=None) -> int:
@@ -33,6 +51,7 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, default=0, help="threads for the frame measurement (0: all)")
     parser.add_argument("--thresholds", default=str(ROOT / "engine/packet/auto_thresholds.json"))
     parser.add_argument("--report", default=str(ROOT / "docs/auto-fit.md"))
+    parser.add_argument("--limits", default=None, help="measure this thresholds file's limits instead of fitting")
     args = parser.parse_args(argv)
     try:
         packets = [int(p) for p in args.packets.split(",")]
@@ -42,11 +61,18 @@ def main(argv=None) -> int:
     if args.size < 16 or args.repeat < 1 or args.measure_repeat < 0 or args.threads < 0:
         print("fit_auto: --size must be >= 16, --repeat >= 1, --measure-repeat >= 0, --threads >= 0", file=sys.stderr)
         return 2
+    limits = None
+    if args.limits is not None:
+        try:
+            limits = read_limits(args.limits)
+        except ValueError as exc:
+            print(f"fit_auto: {exc}", file=sys.stderr)
+            return 2
     command = "python tools/fit_auto.py " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     try:
         auto_fit.run(args.scenes.split(","), packets, args.size, args.repeat, args.measure_repeat,
                      args.thresholds, args.report, command.strip(), log=lambda m: print(m, flush=True),
-                     threads=args.threads)
+                     threads=args.threads, limits=limits)
     except PacketrtError as exc:
         print(f"fit_auto: {exc}", file=sys.stderr)
         return 2

@@ -235,10 +235,12 @@ def collect(scenes, packets, size, repeat, log, threads=0):
 
 
 def measure(frames, limits, repeat, log):
-    """{(scene, packet, kind): {traversal: median seconds per frame}} of replaying each frame's
-    batches with ranged, partition, auto (``limits``) and "auto/packet" (the same limits, every
-    batch whose sample is split chosen packet by packet: ``split_min_packets = 0``), interleaved;
-    and {(scene, packet, kind): auto's packets per strategy}. Both autos' answers must equal Partition's."""
+    """{(scene, packet, kind): {traversal: median seconds per frame, "paired": {auto: (median,
+    low, high)}}} of replaying each frame's batches with ranged, partition, auto (``limits``) and
+    "auto/packet" (the same limits, every batch whose sample is split chosen packet by packet:
+    ``split_min_packets = 0``), interleaved, where "paired" is each auto's ``paired_ratio``
+    against the better of ranged and partition; and {(scene, packet, kind): auto's packets per
+    strategy}. Both autos' answers must equal Partition's."""
     names = ("ranged", "partition", "auto", "auto/packet")
     options = {"auto": limits, "auto/packet": {**limits, "split_min_packets": 0}}
     out, counts = {}, {}
@@ -264,7 +266,12 @@ def measure(frames, limits, repeat, log):
                 if not same:
                     raise AssertionError(f"{auto}'s answers differ from partition's on {name} {kind}")
         for kind in {k for k, *_ in batches}:
-            out[(name, n, kind)] = {t: float(np.median([r[kind] for r in runs[t]])) for t in names}
+            row = {t: float(np.median([r[kind] for r in runs[t]])) for t in names}
+            per_rep = {t: np.array([r[kind] for r in runs[t]]) for t in names}
+            best = "ranged" if row["ranged"] <= row["partition"] else "partition"
+            # Each auto against the better strategy's time in the same repetition.
+            row["paired"] = {t: paired_ratio(per_rep[t], per_rep[best]) for t in ("auto", "auto/packet")}
+            out[(name, n, kind)] = row
         tally = Tally(count=True)  # one counting replay: auto's choices per kind
         for kind, query, rays, pk in batches:
             tracers["auto"].trace(kind, query, rays, pk, tally)
@@ -275,6 +282,32 @@ def measure(frames, limits, repeat, log):
 
 
 # -- outputs ---------------------------------------------------------------------------------
+
+#: Two-sided confidence of the interval around a row's median paired ratio (``paired_ratio``).
+CONFIDENCE_Z = 1.96
+
+
+def paired_ratio(numerator, denominator):
+    """(median, low, high) of the per-repetition ratios numerator[i] / denominator[i] (f64[n]:
+    times of two traversals measured in the same repetition, interleaved), with a
+    distribution-free 95% interval for the median: the order statistics at (1-based) ranks
+    floor((n+1)/2 - 1.96 sqrt(n)/2) and ceil((n+1)/2 + 1.96 sqrt(n)/2) (the sign test's interval,
+    the binomial by its normal approximation; for n = 41 the 14th and 28th).
+    Pairing by repetition cancels the drift this host shows from second to second, which moves
+    single ms-scale rows by 5-10% between runs."""
+    ratios = np.sort(np.asarray(numerator, np.float64) / np.asarray(denominator, np.float64))
+    n = len(ratios)
+    half = CONFIDENCE_Z * np.sqrt(n) / 2
+    low = int(max(1, np.floor((n + 1) / 2 - half))) - 1
+    high = int(min(n, np.ceil((n + 1) / 2 + half))) - 1
+    return float(np.median(ratios)), float(ratios[low]), float(ratios[high])
+
+
+def verdict(low, high) -> str:
+    """A row's paired interval of auto over the better strategy: "faster" (below 1 throughout),
+    "slower" (above 1 throughout) or "same" (1 inside: equal within the run's noise)."""
+    return "faster" if high < 1.0 else ("slower" if low > 1.0 else "same")
+
 
 def totals_by(cells, choice):
     """Summed seconds per ray kind when each cell is walked by choice[c] (a strategy number)."""
@@ -305,7 +338,8 @@ def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds, 
              "refraction), paper frusta. Cell timings on one thread, best of "
              f"{args['repeat']}; frame timings on {args['threads']} threads, median of {args['measure_repeat']}.",
              "", f"Command: `{args['command']}` ({seconds:.0f} s on {args['machine']}).", "",
-             "## Fitted thresholds", "", "| limit | value |", "|---|---|"]
+             "## Fitted thresholds" if args.get("fitted", True) else
+             "## Thresholds (given with `--limits`, measured, not refitted)", "", "| limit | value |", "|---|---|"]
     lines += [f"| `{k}` | {v:.6g} |" if isinstance(v, float) else f"| `{k}` | {v} |" for k, v in limits.items()]
     lines += ["", f"Footprint bin edges (quantiles of {FOOTPRINT_BINS} bins): "
               + ", ".join(f"{e:.4g}" for e in f_edges) + f"; live edges: {', '.join(map(str, LIVE_EDGES))}.",
@@ -317,13 +351,18 @@ def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds, 
                      + f" | {1e3 * sum(t.values()):.1f} |")
     lines += ["", "## Frame trace time: auto against the better of Ranged and Partition", "",
               "Median trace time per frame (frustum build + traversal, ms) per ray kind; `auto/best` is auto "
-              "over the faster of Ranged and Partition for that row (above 1: auto is slower). `choices` are "
+              "over the faster of Ranged and Partition for that row (above 1: auto is slower). `paired` is the "
+              "median of the per-repetition ratios of auto to the better strategy measured in the same "
+              "repetition, with its 95% interval (distribution-free: the sign test's order statistics); "
+              "`verdict` says whether that interval lies below 1 (auto faster than both), above 1 (slower) "
+              "or around it (the same within the run's noise). `choices` are "
               "auto's packets walked by Masked / Ranged / Partition. `auto by packet` is auto with "
               "`split_min_packets = 0` (every batch whose sample is split chosen packet by packet).", "",
               *([f"![auto over the better of Ranged and Partition per row]({plot.name})", ""] if plot else []),
-              "| scene | packet | kind | ranged | partition | auto | auto/best | choices M/R/P | auto by packet | "
-              "by packet/best |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
+              "| scene | packet | kind | ranged | partition | auto | auto/best | paired [95%] | verdict | "
+              "choices M/R/P | auto by packet | by packet/best |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    verdicts = {"faster": 0, "same": 0, "slower": 0}
     sums = {t: 0.0 for t in ("ranged", "partition", "auto", "auto/packet", "best")}
     for (scene, n, kind) in sorted(timing, key=lambda k: (k[0], k[1], RAY_KINDS.index(k[2]))):
         t = timing[(scene, n, kind)]
@@ -335,21 +374,33 @@ def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds, 
         by_packet = t.get("auto/packet", np.nan)
         sums["auto/packet"] += by_packet
         sums["best"] += best
+        paired = t.get("paired", {}).get("auto")
+        if paired is None:  # a timing without repetitions kept (an older caller)
+            paired_cell, row_verdict = "–", "–"
+        else:
+            row_verdict = verdict(paired[1], paired[2])
+            verdicts[row_verdict] += 1
+            paired_cell = f"{paired[0]:.3f} [{paired[1]:.3f}, {paired[2]:.3f}]"
         lines.append(f"| {scene} | {n} | {kind} | {1e3 * t['ranged']:.2f} | {1e3 * t['partition']:.2f} | "
-                     f"{1e3 * t['auto']:.2f} | {t['auto'] / best:.3f} | "
+                     f"{1e3 * t['auto']:.2f} | {t['auto'] / best:.3f} | {paired_cell} | {row_verdict} | "
                      + "/".join(str(c.get(x, 0)) for x in CHOSEN_NAMES)
                      + f" | {1e3 * by_packet:.2f} | {by_packet / best:.3f} |")
     lines += [f"| **all** | | | {1e3 * sums['ranged']:.1f} | {1e3 * sums['partition']:.1f} | "
-              f"{1e3 * sums['auto']:.1f} | {sums['auto'] / sums['best']:.3f} (vs per-row best) | | "
+              f"{1e3 * sums['auto']:.1f} | {sums['auto'] / sums['best']:.3f} (vs per-row best) | | | | "
               f"{1e3 * sums['auto/packet']:.1f} | {sums['auto/packet'] / sums['best']:.3f} |", ""]
+    if sum(verdicts.values()):
+        lines += [f"Paired verdicts over {sum(verdicts.values())} rows: auto faster than both in "
+                  f"{verdicts['faster']}, the same as the better within the noise in {verdicts['same']}, "
+                  f"slower than the better in {verdicts['slower']}.", ""]
     return "\n".join(lines) + "\n"
 
 
 def figure(timing, counts, path):
     """``path`` (PNG): per (scene, packet, ray kind) row of ``timing`` ({(scene, n, kind):
     {traversal: seconds}}), Ranged, Partition and auto over the better of Ranged and Partition,
-    on one axis around 1; a green auto bar is a row where auto beat both, a red one where it lost.
-    Returns the path."""
+    on one axis around 1; a green auto bar is a row where auto beat both, a red one where it lost;
+    where the rows carry ``paired`` ratios (``measure``), a dot and whisker per row give auto's
+    paired median and 95% interval. Returns the path."""
     from engine.bench.figures import pyplot, save
 
     plt = pyplot()
@@ -360,6 +411,11 @@ def figure(timing, counts, path):
     fig, ax = plt.subplots(figsize=(7.5, 0.24 * len(keys) + 1.4))
     colours = ["tab:green" if r < 1.0 else "tab:red" for r in ratio["auto"]]
     ax.barh(ys, [r - 1.0 for r in ratio["auto"]], left=1.0, height=0.6, color=colours, label="auto")
+    paired = [timing[k].get("paired", {}).get("auto") for k in keys]
+    if all(p is not None for p in paired):  # the paired ratios' 95% intervals (``paired_ratio``)
+        ax.errorbar([p[0] for p in paired], ys, xerr=[[p[0] - p[1] for p in paired], [p[2] - p[0] for p in paired]],
+                    fmt="o", color="0.15", markersize=2.5, elinewidth=0.9, capsize=2,
+                    label="auto, paired per repetition (95%)")
     ax.plot(ratio["ranged"], ys, "|", color="tab:blue", markersize=9, mew=2, label="Ranged")
     ax.plot(ratio["partition"], ys, "|", color="tab:orange", markersize=9, mew=2, label="Partition")
     ax.axvline(1.0, color="0.3", lw=0.8)
@@ -389,23 +445,33 @@ def _index_of(limits, f_edges):
 
 
 def run(scenes=SCENES, packets=PACKETS, size=SIZE, repeat=5, measure_repeat=5, thresholds_out=None,
-        report_out=None, command="", log=print, threads=0) -> dict:
+        report_out=None, command="", log=print, threads=0, limits=None) -> dict:
     """Collect, fit, write the thresholds, measure (on ``threads`` threads, 0: all), write the
-    report. Returns the limits."""
+    report. ``limits``: thresholds to measure instead of fitting ({name: value}, as in the
+    thresholds file; none is written then). Returns the limits."""
     with numba_threads(threads):  # for this run only; the caller's count comes back
         return _run(scenes, packets, size, repeat, measure_repeat, thresholds_out, report_out, command, log,
-                    threads)
+                    threads, limits)
 
 
-def _run(scenes, packets, size, repeat, measure_repeat, thresholds_out, report_out, command, log, threads):
+def _run(scenes, packets, size, repeat, measure_repeat, thresholds_out, report_out, command, log, threads,
+         given=None):
     start = time.perf_counter()
     frames, f_edges, cells = collect(scenes, packets, size, repeat, log, threads)
-    limits, total, _ = fit_limits(cells, f_edges)
-    log(f"fitted {limits} (summed cell time {1e3 * total:.1f} ms)")
+    if given is None:
+        limits, total, _ = fit_limits(cells, f_edges)
+        log(f"fitted {limits} (summed cell time {1e3 * total:.1f} ms)")
+    else:
+        limits = dict(given)
+        total = sum(totals_by(cells, rule_choice(cells["fb"], cells["lb"], cells["valid"],
+                                                 *_index_of(limits, f_edges))).values())
+        thresholds_out = None  # measured, not fitted: the thresholds file stays as it is
+        log(f"measuring the given thresholds {limits} (summed cell time {1e3 * total:.1f} ms)")
     fit_seconds = time.perf_counter() - start
     info = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "scenes": list(scenes), "packets": list(packets), "size": size, "repeat": repeat,
             "measure_repeat": measure_repeat, "threads": numba.get_num_threads(), "command": command,
+            "fitted": given is None,
             "machine": machine_info().get("cpu", "this machine")}
     if thresholds_out:
         write_json(thresholds_out, {"limits": limits, "fit": {**info, "seconds": round(fit_seconds, 1),
