@@ -420,3 +420,23 @@ def test_fit_auto_measures_a_thresholds_file_or_names_what_is_wrong_with_it(tmp_
         assert main(["--limits", str(bad), "--measure-repeat", "0"]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith(f"fit_auto: --limits {bad}") and "\n" not in err
+
+
+def test_the_report_gives_each_row_its_paired_interval_and_counts_the_verdicts():
+    from engine.bench.auto_fit import LIVE_EDGES, report
+
+    cells = {"group": [("erw6", 8, "primary"), ("erw6", 8, "shadow")], "fb": np.array([0, 1]),
+             "lb": np.array([len(LIVE_EDGES) - 1] * 2), "valid": np.array([True, True]),
+             "seconds": np.array([[3.0, 1.0, 2.0], [3.0, 2.0, 1.0]])}
+    timing = {("erw6", 8, "primary"): {"ranged": 1e-3, "partition": 2e-3, "auto": 0.9e-3, "auto/packet": 1e-3,
+                                       "paired": {"auto": (0.9, 0.85, 0.95), "auto/packet": (1.0, 0.9, 1.1)}},
+              ("erw6", 8, "shadow"): {"ranged": 2e-3, "partition": 1e-3, "auto": 1.2e-3, "auto/packet": 1e-3,
+                                      "paired": {"auto": (1.2, 1.1, 1.3), "auto/packet": (1.0, 0.9, 1.1)}}}
+    limits = {"ranged_max_footprint": 0.5, "masked_max_footprint": -1.0, "min_live": LIVE_EDGES[-1],
+              "invalid_frustum": "partition"}
+    args = {"date": "today", "scenes": ["erw6"], "size": 64, "packets": [8], "repeat": 1, "threads": 2,
+            "measure_repeat": 3, "command": "fit", "machine": "here", "fitted": False}
+    text = report(args, limits, 2.0, cells, np.array([0.5]), timing, {}, 1.0)
+    assert "given with `--limits`" in text
+    assert "| 0.900 [0.850, 0.950] | faster |" in text and "| 1.200 [1.100, 1.300] | slower |" in text
+    assert "auto faster than both in 1, the same as the better within the noise in 0, slower than the better in 1" in text
