@@ -415,7 +415,8 @@ def test_fit_auto_measures_a_thresholds_file_or_names_what_is_wrong_with_it(tmp_
     shipped = Path(__file__).resolve().parents[1] / "engine/packet/auto_thresholds.json"
     assert read_limits(str(shipped)) == json.loads(shipped.read_text())["limits"]
     bad = tmp_path / "bad.json"
-    for text in ("{", '{"limits": {"min_live": 0.9}}', "[]"):
+    bad_value = json.dumps({"limits": {**json.loads(shipped.read_text())["limits"], "ranged_max_footprint": "abc"}})
+    for text in ("{", '{"limits": {"min_live": 0.9}}', "[]", bad_value):
         bad.write_text(text)
         assert main(["--limits", str(bad), "--measure-repeat", "0"]) == 2
         err = capsys.readouterr().err.strip()

@@ -23,9 +23,11 @@ sys.path.insert(0, str(ROOT))
 
 
 def read_limits(path: str) -> dict:
-    """The "limits" of a thresholds file, or ValueError naming the file and what is wrong."""
+    """The "limits" of a thresholds file, checked as ``auto`` checks its options
+    (``engine.packet.auto_limits.limits_array``), or ValueError naming the file and what is wrong."""
     import json
 
+    from engine.packet.auto_limits import limits_array
     from engine.packet.choose import LIMIT_NAMES
 
     try:
@@ -33,8 +35,9 @@ def read_limits(path: str) -> dict:
     except (OSError, ValueError) as exc:
         raise ValueError(f"--limits {path}: cannot read a JSON thresholds file ({exc})") from None
     limits = data.get("limits") if isinstance(data, dict) else None
-    if not isinstance(limits, dict) or set(limits) != set(LIMIT_NAMES):
-        raise ValueError(f"--limits {path}: expected a \"limits\" table with exactly {', '.join(LIMIT_NAMES)}")
+    if not isinstance(limits, dict):
+        raise ValueError(f"--limits {path}: expected a \"limits\" table with {', '.join(LIMIT_NAMES)}")
+    limits_array(limits, where=f"--limits {path}: limits")  # every name, numbers, a known strategy
     return limits
 
 

@@ -34,6 +34,8 @@ children until it has eight) and refitted by collapsing again (the binary tree i
 import numpy as np
 from numba import njit
 
+from engine.core.prefetch import LINE_BYTES
+
 WIDTH = 8
 
 
@@ -104,7 +106,6 @@ def collapse(bmin, bmax, first, count):
 
 #: Rows of a packed node (``pack_nodes``): the six box rows, then the child and size rows.
 CHILD_ROW, SIZE_ROW, NODE_ROWS = 6, 7, 8
-CACHE_LINE = 64
 
 
 def pack_nodes(box: np.ndarray, child: np.ndarray, size: np.ndarray) -> np.ndarray:
@@ -112,10 +113,10 @@ def pack_nodes(box: np.ndarray, child: np.ndarray, size: np.ndarray) -> np.ndarr
     starting on a 64-byte boundary (numpy and numba align to 16 or 32 bytes only)."""
     shape = (box.shape[0], NODE_ROWS, WIDTH)
     nbytes = shape[0] * NODE_ROWS * WIDTH * 4
-    raw = np.empty(nbytes + CACHE_LINE, np.uint8)
-    start = (-raw.ctypes.data) % CACHE_LINE
+    raw = np.empty(nbytes + LINE_BYTES, np.uint8)
+    start = (-raw.ctypes.data) % LINE_BYTES
     nodes = raw[start:start + nbytes].view(np.float32).reshape(shape)
-    nodes[:, :6, :] = box
+    nodes[:, :CHILD_ROW, :] = box
     bits = nodes.view(np.int32)
     bits[:, CHILD_ROW, :] = child
     bits[:, SIZE_ROW, :] = size
