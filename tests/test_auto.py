@@ -343,6 +343,41 @@ def test_the_fit_picks_the_thresholds_that_minimise_the_summed_time():
     assert total == pytest.approx(cells["seconds"].min(axis=1).sum())
 
 
+def test_the_worst_row_fit_protects_the_row_the_summed_time_sacrifices():
+    """Two rows of cells, footprint bins 0..3: a long row (spd-rings-like) where Partition wins
+    from bin 1 up by a lot, and a short row (kitchen-like) where Ranged wins in every bin. The
+    summed time puts the Ranged limit at bin 0 (the long row's gain outweighs the short row's
+    loss: 1.375x its Ranged time); the worst-row objective moves it to bin 1, where the worse
+    of the two rows is 1.25x (the short one) and the long one 1.14x."""
+    from engine.bench.auto_fit import LIVE_EDGES, fit_limits, row_ratios, rule_choice
+
+    f_edges = np.array([1.0, 2.0, 3.0])
+    full = len(LIVE_EDGES) - 1
+    group, fb, seconds = [], [], []
+    for f in range(4):  # the long row: Ranged 10 s a cell, Partition 10 in bin 0, then 6
+        group.append(("long", 16, "shadow")), fb.append(f), seconds.append([99.0, 10.0, 10.0 if f == 0 else 6.0])
+    for f in range(4):  # the short row: Ranged 1 s, Partition 1.5 s in every bin
+        group.append(("short", 16, "shadow")), fb.append(f), seconds.append([99.0, 1.0, 1.5])
+    cells = {"group": group, "fb": np.array(fb), "lb": np.full(8, full), "valid": np.ones(8, bool),
+             "seconds": np.array(seconds)}
+    by_total, total, index = fit_limits(cells, f_edges)  # the default: the summed time
+    assert by_total["ranged_max_footprint"] == 1.0  # Ranged for bin 0 only: the short row 1.375x
+    assert row_ratios(cells, rule_choice(cells["fb"], cells["lb"], cells["valid"], *index)).max() == pytest.approx(1.375)
+    by_row, total_by_row, index = fit_limits(cells, f_edges, "worst-row")
+    ratios = row_ratios(cells, rule_choice(cells["fb"], cells["lb"], cells["valid"], *index))
+    assert by_row["ranged_max_footprint"] == 2.0 and ratios.max() == pytest.approx(1.25)
+    assert ratios.min() == pytest.approx(32 / 28) and total_by_row > total
+    with pytest.raises(ValueError, match="objective"):
+        fit_limits(cells, f_edges, "fastest")
+
+
+def test_rows_carry_their_resolution_only_when_a_fit_has_several():
+    from engine.bench.auto_fit import row_label
+
+    assert row_label("erw6", 256, [256]) == "erw6"
+    assert row_label("erw6", 1024, [256, 1024]) == "erw6 1024x1024"
+
+
 @pytest.mark.parametrize("packet", [4, 16])
 @pytest.mark.parametrize("split_min_packets", [None, 0])
 def test_a_whitted_frame_by_auto_audits_clean_against_embree(tmp_path, packet, split_min_packets):
@@ -421,6 +456,10 @@ def test_fit_auto_measures_a_thresholds_file_or_names_what_is_wrong_with_it(tmp_
         assert main(["--limits", str(bad), "--measure-repeat", "0"]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith(f"fit_auto: --limits {bad}") and "\n" not in err
+    for option in (["--size", "256,x"], ["--size", "8"], ["--packets", "16,"]):
+        assert main([*option, "--measure-repeat", "0"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("fit_auto: ") and "\n" not in err
 
 
 def test_the_report_gives_each_row_its_paired_interval_and_counts_the_verdicts():
@@ -435,7 +474,7 @@ def test_the_report_gives_each_row_its_paired_interval_and_counts_the_verdicts()
                                       "paired": {"auto": (1.2, 1.1, 1.3), "auto/packet": (1.0, 0.9, 1.1)}}}
     limits = {"ranged_max_footprint": 0.5, "masked_max_footprint": -1.0, "min_live": LIVE_EDGES[-1],
               "invalid_frustum": "partition"}
-    args = {"date": "today", "scenes": ["erw6"], "size": 64, "packets": [8], "repeat": 1, "threads": 2,
+    args = {"date": "today", "scenes": ["erw6"], "sizes": [64], "packets": [8], "repeat": 1, "threads": 2,
             "measure_repeat": 3, "command": "fit", "machine": "here", "fitted": False}
     text = report(args, limits, 2.0, cells, np.array([0.5]), timing, {}, 1.0)
     assert "given with `--limits`" in text

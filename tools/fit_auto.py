@@ -1,12 +1,14 @@
 """Fit the ``auto`` traversal's thresholds and measure ``auto`` against Ranged and Partition.
 
     python tools/fit_auto.py [--scenes erw6,bart-museum,bart-kitchen,spd-rings] [--packets 8,16]
-                             [--size 256] [--repeat 5] [--measure-repeat 5] [--threads 0]
+                             [--size 256[,1024]] [--objective worst-row|total]
+                             [--repeat 5] [--measure-repeat 5] [--threads 0]
                              [--thresholds engine/packet/auto_thresholds.json]
                              [--report docs/auto-fit.md] [--limits THRESHOLDS.json]
 
-A reduced, reproducible fit (``engine.bench.auto_fit``): the named scenes at one small
-resolution, the given packet sizes, every ray kind. Needs the BART scenes on
+A reduced, reproducible fit (``engine.bench.auto_fit``): the named scenes at the given
+resolutions (one thresholds file for all of them: the footprint is in leaf widths), the given
+packet sizes, every ray kind. Needs the BART scenes on
 ``PACKETRT_SCENE_PATH``. ``--measure-repeat 0`` fits without the frame measurement.
 ``--limits FILE`` measures the thresholds of a thresholds file (its "limits") instead of
 fitting new ones, and writes no thresholds: the report then describes that file's ``auto``.
@@ -48,7 +50,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", default=",".join(auto_fit.SCENES))
     parser.add_argument("--packets", default=",".join(map(str, auto_fit.PACKETS)))
-    parser.add_argument("--size", type=int, default=auto_fit.SIZE)
+    parser.add_argument("--size", default=str(auto_fit.SIZE), help="image side(s), comma-separated")
+    parser.add_argument("--objective", default=auto_fit.OBJECTIVES[0], choices=auto_fit.OBJECTIVES)
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--measure-repeat", type=int, default=5)
     parser.add_argument("--threads", type=int, default=0, help="threads for the frame measurement (0: all)")
@@ -58,10 +61,12 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         packets = [int(p) for p in args.packets.split(",")]
+        sizes = [int(z) for z in args.size.split(",")]
     except ValueError:
-        print(f"fit_auto: --packets must be comma-separated integers, got {args.packets!r}", file=sys.stderr)
+        print(f"fit_auto: --packets and --size must be comma-separated integers, got {args.packets!r} and "
+              f"{args.size!r}", file=sys.stderr)
         return 2
-    if args.size < 16 or args.repeat < 1 or args.measure_repeat < 0 or args.threads < 0:
+    if min(sizes) < 16 or args.repeat < 1 or args.measure_repeat < 0 or args.threads < 0:
         print("fit_auto: --size must be >= 16, --repeat >= 1, --measure-repeat >= 0, --threads >= 0", file=sys.stderr)
         return 2
     limits = None
@@ -73,9 +78,9 @@ def main(argv=None) -> int:
             return 2
     command = "python tools/fit_auto.py " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     try:
-        auto_fit.run(args.scenes.split(","), packets, args.size, args.repeat, args.measure_repeat,
+        auto_fit.run(args.scenes.split(","), packets, sizes, args.repeat, args.measure_repeat,
                      args.thresholds, args.report, command.strip(), log=lambda m: print(m, flush=True),
-                     threads=args.threads, limits=limits)
+                     threads=args.threads, limits=limits, objective=args.objective)
     except PacketrtError as exc:
         print(f"fit_auto: {exc}", file=sys.stderr)
         return 2
