@@ -452,7 +452,8 @@ class RayTracer:
                    auto-framed camera and one point light (for ``render``).
     traversal      traversal plugin for the queries (``packetrt plugins``): "partition"
                    (default; the packet traversal that copes best with incoherent rays),
-                   "ranged", "masked", "simd", "auto" (per packet), "single", "rayspace", "embree".
+                   "ranged", "masked", "simd", "auto" (per packet), "single", "wide" (one ray at a
+                   time over an 8-wide tree), "rayspace", "embree".
     frustum        frustum builder for the packets: "general" (default; valid for any origins),
                    "none", or any registered name (a builder that does not fit marks packets
                    unculled).

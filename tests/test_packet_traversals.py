@@ -1,4 +1,5 @@
-"""The packet traversals (simd, masked, ranged, partition, auto) against the reference ``single``.
+"""The packet traversals (simd, masked, ranged, partition, auto) and the 8-wide single-ray walk
+(wide) against the reference ``single``.
 
 Every traversal, with and without the frustum for its ray kind, at every packet size, must
 return exactly the reference's prim, t, u, v (closest hit) and occlusion answers on primary,
@@ -23,6 +24,8 @@ PACKET_TRAVERSALS = ["simd", "masked", "ranged", "partition", "auto"]
 #: ``auto`` with every batch whose sample is split chosen packet by packet: the test batches are
 #: smaller than its default ``split_min_packets`` and would otherwise all be walked whole.
 OPTIONS = {"auto-split": ("auto", {"split_min_packets": 0})}
+#: Single-ray walks held to the same answers: ``wide`` (the 8-wide tree of the mesh queries).
+SINGLE_RAY_PEERS = ["wide"]
 FRUSTUM_FOR = {"primary": "pinhole", "shadow": "pointlight", "reflection": "general", "refraction": "general"}
 SCENES = {"bunny": {"lod": 3}, "cornell-box": {}, "whitted": {}}
 SIZE = 64
@@ -60,7 +63,7 @@ def batch_and_reference(rs, kind, n):
 
 
 @pytest.mark.parametrize("frustum", [False, True], ids=["no-frustum", "frustum"])
-@pytest.mark.parametrize("traversal", PACKET_TRAVERSALS + list(OPTIONS))
+@pytest.mark.parametrize("traversal", PACKET_TRAVERSALS + list(OPTIONS) + SINGLE_RAY_PEERS)
 @pytest.mark.parametrize("kind", RAY_KINDS)
 def test_same_hits_as_single(rayset, kind, traversal, frustum):
     for n in PACKET_SIZES:

@@ -2,7 +2,7 @@
 
 On ``device = "cuda"`` a kind's traversal is ``bvh`` (``engine.gpu.bvh_trace``, a per-ray
 stack walk of the shared BVH) or ``rayspace`` (``engine.gpu.rayspace``, Roger et al.'s
-hierarchy over the rays). The CPU's BVH traversals (single, masked, ranged, partition, simd, auto)
+hierarchy over the rays). The CPU's BVH traversals (single, wide, masked, ranged, partition, simd, auto)
 are ways of walking the same tree with CPU SIMD lanes; they all return the same hits, and on
 the device their names select ``bvh``, so a CPU config runs on the GPU unchanged.
 """
@@ -12,7 +12,7 @@ from engine.core.errors import ConfigError
 
 DEVICE_TRAVERSALS = ("bvh", "rayspace")
 #: CPU traversal names that walk the BVH and so run as ``bvh`` on the device.
-CPU_BVH_TRAVERSALS = ("single", "masked", "ranged", "partition", "simd", "auto")
+CPU_BVH_TRAVERSALS = ("single", "wide", "masked", "ranged", "partition", "simd", "auto")
 
 
 def device_traversal_name(name: str, kind: str = "") -> str:

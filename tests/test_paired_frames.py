@@ -1,0 +1,69 @@
+"""``engine.bench.paired_frames`` and ``tools/paired_frames.py``: frames of several configurations
+interleaved in one process, each later variant's time over the first's per repetition."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+
+
+def test_frames_are_paired_by_repetition_and_reported(tmp_path, capsys):
+    from paired_frames import main
+
+    report = tmp_path / "paired.md"
+    assert main(["--scene", "whitted", "--recursion", "render-defaults", "--size", "32", "--repeat", "3",
+                 "--threads", "1", "--variant", "single/none/4", "--variant", "paper/paper/4",
+                 "--report", str(report)]) == 0
+    text = report.read_text()
+    assert capsys.readouterr().out == text
+    assert "| single/none 4x4 |" in text and "| paper/paper 4x4 |" in text
+    assert "the first's speed" in text
+
+
+def test_the_ratios_are_the_later_variants_over_the_first(monkeypatch):
+    """With frame times fixed per variant, the paired ratio is exactly their quotient."""
+    import engine.render.whitted as whitted
+    from engine.bench.paired_frames import paired_frames
+    from paired_frames import parse_variant
+
+    class Args:
+        scene, recursion, size, threads = "whitted", "render-defaults", 32, 1
+
+    cells = [parse_variant("single/none/4", Args), parse_variant("simd/none/2", Args)]
+    seconds = {4: 0.2, 2: 0.5}
+    real = whitted.WhittedRenderer.render
+
+    def fixed(self, size=None):
+        result = real(self, size)
+        result.seconds = {"total": seconds[self.config.render.packet], "trace": {"primary": 0.1}, "shade": 0.05}
+        return result
+
+    monkeypatch.setattr(whitted.WhittedRenderer, "render", fixed)
+    result = paired_frames(cells, 5, log=lambda m: None)
+    assert [len(v["frame"]) for v in result["variants"]] == [5, 5]
+    median, low, high = result["ratios"][0]["frame"]
+    assert median == low == high == pytest.approx(2.5)
+    assert result["ratios"][0]["trace"][0] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("variant", ["single/none", "single/none/5", "nosuch/none/4", "single/nosuch/4"])
+def test_a_bad_variant_is_one_line_and_exit_2(variant, capsys):
+    from paired_frames import main
+
+    assert main(["--scene", "whitted", "--recursion", "render-defaults", "--size", "32", "--repeat", "1",
+                 "--variant", "single/none/4", "--variant", variant]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("paired_frames: ") and "\n" not in err
+
+
+def test_too_few_variants_or_an_unknown_preset_is_one_line_and_exit_2(capsys):
+    from paired_frames import main
+
+    assert main(["--scene", "whitted", "--variant", "single/none/4"]) == 2
+    assert main(["--scene", "whitted", "--recursion", "nosuch", "--variant", "single/none/4",
+                 "--variant", "single/none/8"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 2 and all(line.startswith("paired_frames: ") for line in lines)
