@@ -22,7 +22,7 @@ sys.path.insert(0, str(ROOT))
 
 def parse_variant(text: str, args):
     """The Cell of ``TRAVERSAL/FRUSTUM/PACKET`` with the run's scene, recursion, size and threads."""
-    from engine.bench.matrix import RECURSION, Cell, SceneSpec, _plugin
+    from engine.bench.matrix import RECURSION, Cell, SceneSpec, plugin_spec
     from engine.core.errors import ConfigError
     from engine.packet.layout import PACKET_SIZES
 
@@ -32,8 +32,8 @@ def parse_variant(text: str, args):
                           f"{', '.join(map(str, PACKET_SIZES))}")
     if args.recursion not in RECURSION:
         raise ConfigError(f"--recursion {args.recursion!r}: expected one of {', '.join(RECURSION)}")
-    traversal = _plugin("--variant", text, parts[0], "traversal")
-    frustum = _plugin("--variant", text, parts[1], "frustum")
+    traversal = plugin_spec(parts[0], "traversal", f"--variant {text}")
+    frustum = plugin_spec(parts[1], "frustum", f"--variant {text}")
     return Cell(SceneSpec(args.scene, label=args.scene), traversal, frustum, int(parts[2]), args.recursion,
                 args.size, args.size, threads=args.threads, embree=False)
 

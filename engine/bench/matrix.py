@@ -240,6 +240,12 @@ def _plugin(source, where, value, what: str) -> PluginSpec:
     _fail(source, where, f"must be a {what} name or a table ({allowed}), got {value!r} ({_type_name(value)})")
 
 
+def plugin_spec(value, what: str, where: str) -> PluginSpec:
+    """The PluginSpec of a matrix value for ``what`` ("traversal" or "frustum"): a registered name,
+    "paper", or a table of ray kinds; a ConfigError naming ``where`` otherwise."""
+    return _plugin(where, what, value, what)
+
+
 def _scene(source, where, value) -> SceneSpec:
     from scenes.catalog import entries
 
