@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from engine.core.bvh import build_bvh
 from engine.core.types import empty_hits, new_stats
@@ -68,3 +69,32 @@ def test_wide_answers_every_ray_and_records_its_tree():
     wide.occluded(bvh, tris, rays, packets, None, occluded, stats)
     np.testing.assert_array_equal(occluded, reference.prim >= 0)
     assert stats.extra["wide"]["nodes"] > 0 and stats.extra["wide"]["blocks"] > 0
+
+
+@pytest.mark.parametrize("name", ["single", "wide", "embree", "rayspace"])
+def test_a_traversal_that_ignores_frusta_is_not_charged_for_building_them(name):
+    """The tracer builds frusta only for traversals that read them: a frustum builder configured
+    beside ``single``, ``wide``, ``embree`` or ``rayspace`` is never called by ``trace``."""
+    from engine.render.tracer import Tracer
+
+    scene = load_named("whitted", {})
+    tris = scene.triangles
+    bvh = build_bvh(tris)
+    n = 64
+    rng = np.random.default_rng(4)
+    org = np.tile(np.asarray(scene.camera.eye, np.float32), (n, 1))
+    dirs = (tris.v0[rng.integers(0, len(tris.v0), n)] - org).astype(np.float32)
+    rays, packets = make_batch("primary", org, dirs, np.zeros(n, np.float32), np.full(n, np.inf, np.float32),
+                               np.arange(n, dtype=np.int32), np.ones((n, 3), np.float32), 8, 8, 4)
+
+    class CountingFrustum:
+        calls = 0
+
+        def build(self, rays, packets, bounds):
+            CountingFrustum.calls += 1
+            raise AssertionError("built frusta for a traversal that does not read them")
+
+    bounds = np.stack([bvh.bmin[0], bvh.bmax[0]]).astype(np.float32)
+    tracer = Tracer(bvh, tris, bounds, {"primary": make_traversal(name)}, {"primary": CountingFrustum()})
+    hits = tracer.trace("primary", "intersect", rays, packets)
+    assert CountingFrustum.calls == 0 and (hits.prim >= 0).any()

@@ -25,6 +25,9 @@ from engine.core.types import check_answer_arrays
 class EmbreeTraversal:
     """Intel Embree (embreex), robust mode, same thread count as numba."""
 
+    #: Frusta are not read: the tracer builds none for this traversal.
+    uses_frusta = False
+
     OPTIONS = {"robust": True}
     #: Embree builds its own scene (``prepare``); the engine's BVH is not read.
     uses_bvh = False

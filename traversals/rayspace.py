@@ -269,6 +269,8 @@ class RaySpaceTraversal:
     OPTIONS = {"pair_budget": 1 << 22}
     #: The hierarchy is over the rays: a moving scene has no structure of ours to keep current.
     uses_bvh = False
+    #: Frusta are not read: the tracer builds none for this traversal.
+    uses_frusta = False
 
     def __init__(self, pair_budget=OPTIONS["pair_budget"]):
         """Options as in the module doc; a bad value is a ConfigError."""

@@ -114,6 +114,9 @@ def trace_single(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmi
 class SingleRayTraversal:
     """One ray at a time, stack-based, near child first; the reference CPU traversal."""
 
+    #: Frusta are not read: the tracer builds none for this traversal.
+    uses_frusta = False
+
     def intersect(self, bvh, tris, rays, packets, frusta, hits, stats):
         check_answer_arrays(rays.org.shape[0], hits.t, hits.prim, hits.u, hits.v)
         trace_single(bvh.bmin, bvh.bmax, bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,

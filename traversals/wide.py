@@ -72,6 +72,9 @@ def any_hits(nodes, node_bits, block_tri, blocks, org, dirs, tmin, tmax, occlude
 class WideTraversal:
     """One ray at a time over an 8-wide tree of the render's BVH (the mesh queries' walk)."""
 
+    #: Frusta are not read: the tracer builds none for this traversal.
+    uses_frusta = False
+
     #: Every ray's answer is written (dead rays as misses): the tracer need not reset them.
     writes_every_answer = True
 

@@ -1,6 +1,7 @@
 """The one place a batch of rays is traced.
 
-``Tracer.trace(kind, query, rays, packets, tally)`` builds the kind's frusta, allocates the
+``Tracer.trace(kind, query, rays, packets, tally)`` builds the kind's frusta (none for a traversal
+that declares ``uses_frusta = False``: ``single``, ``wide``, ``embree``, ``rayspace``), allocates the
 answer arrays, calls the kind's traversal plugin, and adds the seconds (frustum build and query
 together: culling is part of what a traversal strategy costs), the live rays and, when the tally
 counts, the traversal counters to ``tally``. Everything that casts rays through a plugin goes
@@ -85,7 +86,8 @@ class Tracer:
         stats = tally.stats_for(kind) if tally is not None else None
         n = rays.org.shape[0]
         start = time.perf_counter()
-        frusta = self.frusta_for(kind, rays, packets)
+        # A traversal that ignores frusta (``uses_frusta = False``) is not charged for building them.
+        frusta = self.frusta_for(kind, rays, packets) if getattr(traversal, "uses_frusta", True) else None
         if query == "intersect":
             if answer is None:
                 answer = empty_hits(n)
