@@ -456,7 +456,9 @@ def test_fit_auto_measures_a_thresholds_file_or_names_what_is_wrong_with_it(tmp_
         assert main(["--limits", str(bad), "--measure-repeat", "0"]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith(f"fit_auto: --limits {bad}") and "\n" not in err
-    for option in (["--size", "256,x"], ["--size", "8"], ["--packets", "16,"]):
+    # A folder given as an output file is refused before the fit (no probe file in the project).
+    for option in (["--size", "256,x"], ["--size", "8"], ["--packets", "16,"], ["--thresholds", str(tmp_path)],
+                   ["--thresholds", str(tmp_path / "t.json"), "--report", str(tmp_path)]):
         assert main([*option, "--measure-repeat", "0"]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("fit_auto: ") and "\n" not in err

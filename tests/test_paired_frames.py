@@ -67,3 +67,14 @@ def test_too_few_variants_or_an_unknown_preset_is_one_line_and_exit_2(capsys):
                  "--variant", "single/none/8"]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 2 and all(line.startswith("paired_frames: ") for line in lines)
+
+
+def test_a_report_that_cannot_be_written_is_refused_before_any_frame(tmp_path, capsys, monkeypatch):
+    import engine.bench.paired_frames as paired
+    from paired_frames import main
+
+    monkeypatch.setattr(paired, "paired_frames", lambda *a, **k: (_ for _ in ()).throw(AssertionError("rendered")))
+    assert main(["--scene", "whitted", "--recursion", "render-defaults", "--size", "32", "--variant", "single/none/4",
+                 "--variant", "single/none/8", "--report", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("paired_frames: --report") and "folder" in err and "\n" not in err

@@ -76,6 +76,16 @@ def main(argv=None) -> int:
         except ValueError as exc:
             print(f"fit_auto: {exc}", file=sys.stderr)
             return 2
+    from engine.core.atomic import output_file
+
+    try:  # the outputs can be written: checked before the fit, which takes minutes
+        for option, path in (("--thresholds", args.thresholds if args.limits is None else None),
+                             ("--report", args.report)):
+            if path:
+                output_file(path, option)
+    except PacketrtError as exc:
+        print(f"fit_auto: {exc}", file=sys.stderr)
+        return 2
     command = "python tools/fit_auto.py " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     try:
         auto_fit.run(args.scenes.split(","), packets, sizes, args.repeat, args.measure_repeat,

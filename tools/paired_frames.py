@@ -40,7 +40,7 @@ def parse_variant(text: str, args):
 
 def main(argv=None) -> int:
     from engine.bench.paired_frames import markdown, paired_frames
-    from engine.core.atomic import write_text
+    from engine.core.atomic import output_file, write_text
     from engine.core.errors import PacketrtError
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -57,6 +57,8 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 2
     try:
+        if args.report:
+            output_file(args.report, "--report")  # before the frames, not after them
         cells = [parse_variant(v, args) for v in args.variant]
         result = paired_frames(cells, args.repeat, log=lambda m: print(m, file=sys.stderr, flush=True))
         text = markdown(result, f"{args.scene} {args.recursion} {args.size}x{args.size}, "
