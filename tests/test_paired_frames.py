@@ -78,3 +78,47 @@ def test_a_report_that_cannot_be_written_is_refused_before_any_frame(tmp_path, c
                  "--variant", "single/none/8", "--report", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("paired_frames: --report") and "folder" in err and "\n" not in err
+
+
+TABLE2 = {"name": "t2", "repeat": 1, "embree": False, "plot": ["table2"],
+          "axes": {"scene": ["whitted"], "recursion": ["reflection1-shadows"], "resolution": [32]},
+          "group": [{"traversal": ["simd"], "frustum": ["none"], "packet": [2]},
+                    {"traversal": ["paper"], "frustum": ["paper", "none"], "packet": [16]}]}
+
+
+def test_a_matrix_with_paired_variants_writes_them_and_table2_shows_them(tmp_path):
+    import json
+
+    import engine.bench.runner as bench
+    from engine.bench.matrix import parse_matrix
+
+    matrix = parse_matrix({**TABLE2, "paired": {"variants": ["simd/none/2", "paper/paper/16"], "repeat": 2}},
+                          "t2.toml")
+    assert [(t.label, f.label, n) for t, f, n in matrix.paired] == [("simd", "none", 2), ("paper", "paper", 16)]
+    summary = bench.run_matrix(matrix, tmp_path, progress=False)
+    assert {"paired.json", "paired.md", "table2.md"} <= {p.name for p in summary["files"]}
+    data = json.loads((tmp_path / "paired.json").read_text())
+    (group,) = data["groups"]
+    assert data["repeat"] == 2 and group["scene"] == "whitted" and group["size"] == "32x32"
+    assert [len(v["frame"]) for v in group["variants"]] == [2, 2]
+    table = (tmp_path / "table2.md").read_text()
+    assert "## Per frame, paired by repetition" in table
+    assert "| whitted | reflection1-shadows | 32x32 | paper/paper 16x16 over simd/none 2x2 |" in table
+    # A later run of a matrix without [paired] into the same folder leaves no stale pairs behind.
+    bench.run_matrix(parse_matrix(TABLE2, "t2.toml"), tmp_path, progress=False)
+    assert not (tmp_path / "paired.json").exists()
+    assert "paired by repetition" not in (tmp_path / "table2.md").read_text()
+
+
+@pytest.mark.parametrize("paired, where", [
+    ("no", "paired"), ({"variants": ["simd/none/2"]}, "paired.variants"),
+    ({"variants": ["simd/none/2", "paper/paper"]}, "paired.variants[1]"),
+    ({"variants": ["simd/none/2", "nosuch/paper/16"]}, "paired.variants[1]"),
+    ({"variants": ["simd/none/2", "paper/paper/16"], "repeat": 0}, "paired.repeat"),
+    ({"variants": ["simd/none/2", "paper/paper/16"], "reps": 3}, "paired.reps")])
+def test_a_bad_paired_table_names_its_key(paired, where):
+    from engine.bench.matrix import parse_matrix
+    from engine.core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=f"t2.toml: {where.replace('[', '.').replace(']', '.')}"):
+        parse_matrix({**TABLE2, "paired": paired}, "t2.toml")

@@ -50,7 +50,9 @@ import numpy as np
 
 from engine.bench.machine import machine_info
 from engine.bench.matrix import Cell, PluginSpec, SceneSpec
-from engine.bench.runner import BatchRecorder, SceneCache, cell_scene
+from engine.bench.cell_scenes import SceneCache, cell_scene
+from engine.bench.paired_stats import paired_ratio, verdict
+from engine.bench.runner import BatchRecorder
 from engine.core.atomic import write_json, write_text
 from engine.core.threads import numba_threads
 from engine.core.types import RAY_KINDS, Frusta, Packets, RayBatch, empty_hits
@@ -326,32 +328,6 @@ def measure(frames, limits, repeat, log):
 
 
 # -- outputs ---------------------------------------------------------------------------------
-
-#: Two-sided confidence of the interval around a row's median paired ratio (``paired_ratio``).
-CONFIDENCE_Z = 1.96
-
-
-def paired_ratio(numerator, denominator):
-    """(median, low, high) of the per-repetition ratios numerator[i] / denominator[i] (f64[n]:
-    times of two traversals measured in the same repetition, interleaved), with a
-    distribution-free 95% interval for the median: the order statistics at (1-based) ranks
-    floor((n+1)/2 - 1.96 sqrt(n)/2) and ceil((n+1)/2 + 1.96 sqrt(n)/2) (the sign test's interval,
-    the binomial by its normal approximation; for n = 41 the 14th and 28th).
-    Pairing by repetition cancels the drift this host shows from second to second, which moves
-    single ms-scale rows by 5-10% between runs."""
-    ratios = np.sort(np.asarray(numerator, np.float64) / np.asarray(denominator, np.float64))
-    n = len(ratios)
-    half = CONFIDENCE_Z * np.sqrt(n) / 2
-    low = int(max(1, np.floor((n + 1) / 2 - half))) - 1
-    high = int(min(n, np.ceil((n + 1) / 2 + half))) - 1
-    return float(np.median(ratios)), float(ratios[low]), float(ratios[high])
-
-
-def verdict(low, high) -> str:
-    """A row's paired interval of auto over the better strategy: "faster" (below 1 throughout),
-    "slower" (above 1 throughout) or "same" (1 inside: equal within the run's noise)."""
-    return "faster" if high < 1.0 else ("slower" if low > 1.0 else "same")
-
 
 def totals_by(cells, choice):
     """Summed seconds per ray kind when each cell is walked by choice[c] (a strategy number)."""

@@ -97,7 +97,10 @@ RECURSION = {
 }
 
 AXES = ("scene", "traversal", "frustum", "packet", "recursion", "resolution")
-TOP_KEYS = ("name", "description", "repeat", "threads", "embree", "open3d", "plot", "axes", "group", "options")
+TOP_KEYS = ("name", "description", "repeat", "threads", "embree", "open3d", "plot", "axes", "group", "options",
+            "paired")
+#: Repetitions of a ``[paired]`` measurement when the table gives none (``engine.bench.paired_frames``).
+DEFAULT_PAIRED_REPEAT = 21
 PAPER = {"traversal": PAPER_TRAVERSAL, "frustum": PAPER_FRUSTUM}
 DEFAULT_REPEAT = 5
 MAX_REPEAT = 1000
@@ -193,6 +196,10 @@ class Matrix:
     plots: tuple
     cells: list = field(default_factory=list)
     open3d: bool = False
+    #: ``[paired]``: ((traversal PluginSpec, frustum PluginSpec, packet), ...) rendered frame by
+    #: frame against the first for every (scene, recursion, size) of the cells, and its repetitions.
+    paired: tuple = ()
+    paired_repeat: int = 0
 
 
 # -- parsing ------------------------------------------------------------------------------
@@ -423,7 +430,44 @@ def parse_matrix(data: dict, source: str = "<matrix>", repeat: int | None = None
         first.setdefault(("recursion", cell.recursion), len(first))
     ordered = sorted(cells.values(), key=lambda c: (first["scene", c.scene.name, c.scene.params, c.scene.time],
                                                      first["recursion", c.recursion], c.width * c.height, c.packet))
-    return Matrix(name, description, source, repeat, threads, embree, tuple(plots), ordered, open3d)
+    paired, paired_repeat = _paired(source, data.get("paired"))
+    return Matrix(name, description, source, repeat, threads, embree, tuple(plots), ordered, open3d, paired,
+                  paired_repeat)
+
+
+def _paired(source: str, table) -> tuple:
+    """((traversal, frustum, packet) per variant, repeat) of a ``[paired]`` table, or ((), 0).
+
+    [paired]
+    variants = ["simd/none/2", "paper/paper/16"]   # TRAVERSAL/FRUSTUM/PACKET, two or more; the first
+                                                   # is the one the others are divided by
+    repeat = 21                                    # paired repetitions (engine.bench.paired_frames)
+    """
+    from engine.packet.layout import PACKET_SIZES
+
+    if table is None:
+        return (), 0
+    if not isinstance(table, dict):
+        _fail(source, "paired", "must be a table [paired] with variants = [...] and repeat")
+    unknown = set(table) - {"variants", "repeat"}
+    if unknown:
+        _fail(source, f"paired.{sorted(unknown)[0]}", "unknown key; allowed: variants, repeat")
+    variants = table.get("variants")
+    if not isinstance(variants, list) or len(variants) < 2 or not all(isinstance(v, str) for v in variants):
+        _fail(source, "paired.variants", f"must list two or more \"TRAVERSAL/FRUSTUM/PACKET\" strings, got {variants!r}")
+    parsed = []
+    for i, text in enumerate(variants):
+        parts = text.split("/")
+        where = f"paired.variants[{i}]"
+        if len(parts) != 3 or not parts[2].isdigit() or int(parts[2]) not in PACKET_SIZES:
+            _fail(source, where, f"expected TRAVERSAL/FRUSTUM/PACKET with a packet size in "
+                                 f"{', '.join(map(str, PACKET_SIZES))}, got {text!r}")
+        parsed.append((_plugin(source, where, parts[0], "traversal"), _plugin(source, where, parts[1], "frustum"),
+                       int(parts[2])))
+    repeat = _int(source, "paired.repeat", table.get("repeat", DEFAULT_PAIRED_REPEAT), f"1..{MAX_REPEAT}")
+    if not 1 <= repeat <= MAX_REPEAT:
+        _fail(source, "paired.repeat", f"must be in 1..{MAX_REPEAT}, got {repeat}")
+    return tuple(parsed), repeat
 
 
 def _check_cell(source: str, where: str, cell: Cell) -> None:

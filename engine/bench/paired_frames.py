@@ -6,7 +6,7 @@ minutes apart: on this shared 2-core host the speed moves by 1.3-1.8x from minut
 (``engine.bench.host_speed``), so a per-frame ratio of two cells mixes two host speeds (session
 30: the kitchen's 2x2 SIMD cell ran at a host slow-down of 1.72, its 16x16 cell at 1.35). Here
 every repetition renders one frame of each variant back to back, in an order that alternates, and
-the ratio is taken within the repetition (``engine.bench.auto_fit.paired_ratio``: the median of
+the ratio is taken within the repetition (``engine.bench.paired_stats.paired_ratio``: the median of
 the per-repetition ratios and the sign test's 95% interval), so a drift shared by the variants
 cancels.
 
@@ -19,9 +19,9 @@ import time
 
 import numpy as np
 
-from engine.bench.auto_fit import paired_ratio, verdict
+from engine.bench.paired_stats import paired_ratio, verdict
 from engine.bench.matrix import Cell
-from engine.bench.runner import SceneCache, cell_scene
+from engine.bench.cell_scenes import SceneCache, cell_scene
 from engine.core.threads import numba_threads
 
 

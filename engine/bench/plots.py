@@ -356,6 +356,34 @@ def table2_rows(records: list) -> list:
     return rows
 
 
+def paired_section(out: Path) -> list:
+    """Markdown lines of the run's frames paired by repetition (``paired.json``, written by the
+    matrix's ``[paired]`` table: ``engine.bench.runner.run_paired``), or none."""
+    import json
+
+    path = out / "paired.json"
+    if not path.is_file():
+        return []
+    data = json.loads(path.read_text())
+    lines = ["", "## Per frame, paired by repetition", "",
+             f"The cells above are measured minutes apart, and this host's speed moves between them, so a ratio "
+             f"of two cells mixes two host speeds. Here each repetition renders one frame of every variant, in "
+             f"alternating order ({data['repeat']} repetitions), and each variant's speed-up over the first is "
+             f"taken within the repetition: the median and its 95% interval (the sign test's; "
+             f"`engine.bench.paired_frames`). `paired.md` has the times.", "",
+             "| scene | configuration | size | variant | frame speed-up [95%] | trace speed-up [95%] |",
+             "|---|---|---|---|---|---|"]
+    for group in data["groups"]:
+        for ratio in group["ratios"]:
+            cells = []
+            for what in ("frame", "trace"):
+                median, low, high = ratio[what]
+                cells.append(f"{1 / median:.2f}× [{1 / high:.2f}, {1 / low:.2f}]")
+            lines.append(f"| {group['scene']} | {group['recursion']} | {group['size']} | {ratio['label']} over "
+                         f"{group['variants'][0]['label']} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def table2(records: list, out: Path) -> list:
     rows = table2_rows(records)
     if not rows:
@@ -416,6 +444,7 @@ def table2(records: list, out: Path) -> list:
             lines.append(f"| {row['scene']} | {row['recursion']} | {label} | {total * 1e3:,.1f} | {traced * 1e3:,.1f} | "
                          f"{fmt(None if shade is None else shade * 1e3, 1)} | "
                          f"{'–' if outside is None else f'{outside:.0%}'} |")
+    lines += paired_section(out)
     md = out / "table2.md"
     write_text(md, "\n".join(lines) + "\n")
     return [md, _table2_figure(rows, out / "table2.png", open3d, adaptive)]
