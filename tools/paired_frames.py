@@ -22,19 +22,13 @@ sys.path.insert(0, str(ROOT))
 
 def parse_variant(text: str, args):
     """The Cell of ``TRAVERSAL/FRUSTUM/PACKET`` with the run's scene, recursion, size and threads."""
-    from engine.bench.matrix import RECURSION, Cell, SceneSpec, plugin_spec
+    from engine.bench.matrix import RECURSION, Cell, SceneSpec, parse_variant
     from engine.core.errors import ConfigError
-    from engine.packet.layout import PACKET_SIZES
 
-    parts = text.split("/")
-    if len(parts) != 3 or not parts[2].isdigit() or int(parts[2]) not in PACKET_SIZES:
-        raise ConfigError(f"--variant {text!r}: expected TRAVERSAL/FRUSTUM/PACKET with a packet size in "
-                          f"{', '.join(map(str, PACKET_SIZES))}")
     if args.recursion not in RECURSION:
         raise ConfigError(f"--recursion {args.recursion!r}: expected one of {', '.join(RECURSION)}")
-    traversal = plugin_spec(parts[0], "traversal", f"--variant {text}")
-    frustum = plugin_spec(parts[1], "frustum", f"--variant {text}")
-    return Cell(SceneSpec(args.scene, label=args.scene), traversal, frustum, int(parts[2]), args.recursion,
+    traversal, frustum, packet = parse_variant(text, "--variant", repr(text))
+    return Cell(SceneSpec(args.scene, label=args.scene), traversal, frustum, packet, args.recursion,
                 args.size, args.size, threads=args.threads, embree=False)
 
 

@@ -23,9 +23,8 @@ from numba import njit, prange
 
 from engine.core.registry import register_traversal
 from engine.core.types import check_answer_arrays
-from engine.query.leaf_blocks import leaf_blocks
 from engine.query.walk import ANY, CLOSEST, new_stack, walk
-from engine.query.wide import collapse, pack_nodes
+from engine.query.wide import packed_tree
 
 CHUNK = 256  # rays per prange task: one stack allocation per chunk
 F32_INF = np.float32(np.inf)
@@ -87,10 +86,7 @@ class WideTraversal:
         built = self._built
         if built is None or built[0] is not bvh.bmin or built[1] is not tris.v0:
             start = time.perf_counter()
-            box, child, size = collapse(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
-            child, block_tri, blocks = leaf_blocks(bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
-                                                   child, size)
-            nodes = pack_nodes(box, child, size)
+            nodes, block_tri, blocks = packed_tree(bvh, tris.v0, tris.v1, tris.v2)
             info = {"nodes": int(nodes.shape[0]), "blocks": int(blocks.shape[0]),
                     "build_seconds": time.perf_counter() - start}
             built = self._built = (bvh.bmin, tris.v0, (nodes, nodes.view(np.int32), block_tri, blocks), info)

@@ -177,9 +177,9 @@ def rule_choice(fb, lb, valid, r_idx, m_idx, l_idx, invalid):
     return out
 
 
-def row_ratios(cells, choice):
-    """f64[G] per row (``cells["group"]``; one row when absent): the summed cell seconds when
-    cell c is walked by choice[c], over the better of all-Ranged and all-Partition on the row."""
+def row_baseline(cells) -> tuple:
+    """(row of each cell i64[C], rows, f64[rows] the better of all-Ranged and all-Partition's
+    summed seconds on each row) of ``cells["group"]`` (one row when absent)."""
     seconds = cells["seconds"]
     groups = cells.get("group")
     if groups is None:
@@ -189,8 +189,15 @@ def row_ratios(cells, choice):
         index = np.array([names[g] for g in groups], np.int64)
     n_rows = int(index.max()) + 1 if len(index) else 0
     ranged, partition = (np.bincount(index, seconds[:, STRATEGIES[x]], n_rows) for x in ("ranged", "partition"))
-    chosen = np.bincount(index, seconds[np.arange(len(seconds)), choice], n_rows)
-    return chosen / np.maximum(np.minimum(ranged, partition), 1e-300)
+    return index, n_rows, np.maximum(np.minimum(ranged, partition), 1e-300)
+
+
+def row_ratios(cells, choice, baseline=None):
+    """f64[G] per row (``cells["group"]``; one row when absent): the summed cell seconds when
+    cell c is walked by choice[c], over the better of all-Ranged and all-Partition on the row.
+    ``baseline``: ``row_baseline(cells)``, when the caller asks for many choices."""
+    index, n_rows, better = baseline or row_baseline(cells)
+    return np.bincount(index, cells["seconds"][np.arange(len(index)), choice], n_rows) / better
 
 
 def fit_limits(cells, f_edges, objective: str = "total"):
@@ -203,6 +210,7 @@ def fit_limits(cells, f_edges, objective: str = "total"):
         raise ValueError(f"objective must be one of {', '.join(OBJECTIVES)}, got {objective!r}")
     fb, lb, valid, seconds = cells["fb"], cells["lb"], cells["valid"], cells["seconds"]
     rows = np.arange(len(fb))
+    baseline = row_baseline(cells) if objective == "worst-row" else None
     best = ((np.inf, np.inf), None)
     n_f = len(f_edges)
     for invalid in range(len(CHOSEN_NAMES)):
@@ -212,8 +220,7 @@ def fit_limits(cells, f_edges, objective: str = "total"):
                     choice = rule_choice(fb, lb, valid, r_idx, m_idx, l_idx, invalid)
                     total = seconds[rows, choice].sum()
                     # Ratios compared to 1e-9: cell sums in another order differ in the last bits.
-                    key = (round(float(row_ratios(cells, choice).max()), 9) if objective == "worst-row" else 0.0,
-                           total)
+                    key = (round(float(row_ratios(cells, choice, baseline).max()), 9) if baseline else 0.0, total)
                     if key[0] < best[0][0] or (key[0] == best[0][0] and total < best[0][1] - 1e-12):
                         best = (key, (r_idx, m_idx, l_idx, invalid))
     (_, total), (r_idx, m_idx, l_idx, invalid) = best

@@ -247,10 +247,16 @@ def _plugin(source, where, value, what: str) -> PluginSpec:
     _fail(source, where, f"must be a {what} name or a table ({allowed}), got {value!r} ({_type_name(value)})")
 
 
-def plugin_spec(value, what: str, where: str) -> PluginSpec:
-    """The PluginSpec of a matrix value for ``what`` ("traversal" or "frustum"): a registered name,
-    "paper", or a table of ray kinds; a ConfigError naming ``where`` otherwise."""
-    return _plugin(where, what, value, what)
+def parse_variant(text, source: str, where: str) -> tuple:
+    """(traversal PluginSpec, frustum PluginSpec, packet) of a "TRAVERSAL/FRUSTUM/PACKET" string
+    (plugin names or "paper", a packet size); a ConfigError naming ``source`` and ``where``."""
+    from engine.packet.layout import PACKET_SIZES
+
+    parts = text.split("/") if isinstance(text, str) else []
+    if len(parts) != 3 or not parts[2].isdigit() or int(parts[2]) not in PACKET_SIZES:
+        _fail(source, where, f"expected TRAVERSAL/FRUSTUM/PACKET with a packet size in "
+                             f"{', '.join(map(str, PACKET_SIZES))}, got {text!r}")
+    return _plugin(source, where, parts[0], "traversal"), _plugin(source, where, parts[1], "frustum"), int(parts[2])
 
 
 def _scene(source, where, value) -> SceneSpec:
@@ -443,8 +449,6 @@ def _paired(source: str, table) -> tuple:
                                                    # is the one the others are divided by
     repeat = 21                                    # paired repetitions (engine.bench.paired_frames)
     """
-    from engine.packet.layout import PACKET_SIZES
-
     if table is None:
         return (), 0
     if not isinstance(table, dict):
@@ -455,15 +459,7 @@ def _paired(source: str, table) -> tuple:
     variants = table.get("variants")
     if not isinstance(variants, list) or len(variants) < 2 or not all(isinstance(v, str) for v in variants):
         _fail(source, "paired.variants", f"must list two or more \"TRAVERSAL/FRUSTUM/PACKET\" strings, got {variants!r}")
-    parsed = []
-    for i, text in enumerate(variants):
-        parts = text.split("/")
-        where = f"paired.variants[{i}]"
-        if len(parts) != 3 or not parts[2].isdigit() or int(parts[2]) not in PACKET_SIZES:
-            _fail(source, where, f"expected TRAVERSAL/FRUSTUM/PACKET with a packet size in "
-                                 f"{', '.join(map(str, PACKET_SIZES))}, got {text!r}")
-        parsed.append((_plugin(source, where, parts[0], "traversal"), _plugin(source, where, parts[1], "frustum"),
-                       int(parts[2])))
+    parsed = [parse_variant(text, source, f"paired.variants[{i}]") for i, text in enumerate(variants)]
     repeat = _int(source, "paired.repeat", table.get("repeat", DEFAULT_PAIRED_REPEAT), f"1..{MAX_REPEAT}")
     if not 1 <= repeat <= MAX_REPEAT:
         _fail(source, "paired.repeat", f"must be in 1..{MAX_REPEAT}, got {repeat}")

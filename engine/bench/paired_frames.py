@@ -12,16 +12,21 @@ cancels.
 
 Each variant is a ``Cell`` (scene, traversal, frustum, packet size, recursion preset, size,
 threads), rendered by its own ``WhittedRenderer`` after one untimed warm-up frame (compilation).
+``tools/paired_frames.py`` runs it from the command line; a matrix's ``[paired]`` table runs it
+after the matrix's cells (``run_paired``).
 """
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from engine.bench.paired_stats import paired_ratio, verdict
-from engine.bench.matrix import Cell
+from engine.bench.matrix import Cell, Matrix
 from engine.bench.cell_scenes import SceneCache, cell_scene
+from engine.core.atomic import write_json, write_text
 from engine.core.threads import numba_threads
 
 
@@ -83,3 +88,28 @@ def markdown(result: dict, title: str) -> str:
                       {"faster": "faster", "slower": "slower", "same": "the same within the noise"}[speed]]
         lines.append(f"| {r['label']} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+#: The files ``run_paired`` writes into a run's folder.
+PAIRED_FILES = ("paired.json", "paired.md")
+
+
+def run_paired(matrix: Matrix, out: Path) -> list:
+    """The matrix's ``[paired]`` variants rendered frame by frame against the first
+    (``paired_frames``) for every (scene, recursion, size) of its cells, in their
+    order, at the matrix's thread count; writes paired.json ({"repeat", "groups": [{"scene",
+    "recursion", "size", "variants", "ratios"}]}) and paired.md into ``out``. Returns their paths."""
+    groups = dict.fromkeys((c.scene, c.recursion, c.width, c.height) for c in matrix.cells)
+    results, texts = [], []
+    for scene, recursion, width, height in groups:
+        cells = [Cell(scene, traversal, frustum, packet, recursion, width, height, threads=matrix.threads,
+                      embree=False, options=matrix.cells[0].options) for traversal, frustum, packet in matrix.paired]
+        title = f"{scene.label} {recursion} {width}x{height}"
+        print(f"packetrt bench: paired frames, {title}: {', '.join(describe(c) for c in cells)}", file=sys.stderr)
+        result = paired_frames(cells, matrix.paired_repeat, log=lambda m: None)
+        results.append({"scene": scene.label, "recursion": recursion, "size": f"{width}x{height}", **result})
+        texts.append(markdown(result, title).replace("# ", "## ", 1))
+    write_json(out / PAIRED_FILES[0], {"repeat": matrix.paired_repeat, "groups": results})
+    write_text(out / PAIRED_FILES[1], f"# {matrix.name}: frames paired by repetition ({matrix.paired_repeat} "
+                                      f"repetitions, {matrix.threads or 'all'} threads)\n\n" + "\n".join(texts))
+    return [out / name for name in PAIRED_FILES]

@@ -358,7 +358,7 @@ def table2_rows(records: list) -> list:
 
 def paired_section(out: Path) -> list:
     """Markdown lines of the run's frames paired by repetition (``paired.json``, written by the
-    matrix's ``[paired]`` table: ``engine.bench.runner.run_paired``), or none."""
+    matrix's ``[paired]`` table: ``engine.bench.paired_frames.run_paired``), or none."""
     import json
 
     path = out / "paired.json"

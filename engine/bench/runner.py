@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.bench import host_speed
+from engine.bench import host_speed, paired_frames
 from engine.bench import results as results_io
 from engine.bench.floor import floor_tracer, uses_packet_traversals
 from engine.bench.machine import machine_info
@@ -52,7 +52,7 @@ from engine.bench.cell_scenes import SceneCache, cell_scene
 from engine.bench.matrix import Cell, Matrix, load_matrix
 from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require_open3d
 from engine.bench.yardstick import replay_once
-from engine.core.atomic import output_folder, write_json, write_text
+from engine.core.atomic import output_folder
 from engine.core.errors import ConfigError
 from engine.core.threads import numba_threads
 from engine.core.types import RAY_KINDS, copied_batch
@@ -492,7 +492,7 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
         os.replace(path, backup)
         print(f"packetrt bench: starting afresh; earlier results moved to {backup} (--resume keeps them)",
               file=sys.stderr)
-        for stale in PAIRED_FILES:  # the earlier run's paired frames: this run writes its own, or none
+        for stale in paired_frames.PAIRED_FILES:  # the earlier run's pairs: this run writes its own, or none
             (out / stale).unlink(missing_ok=True)
     done = {r["id"] for r in results_io.read_results(path)[0]}
     todo = [c for c in matrix.cells if c.key not in done]
@@ -534,7 +534,7 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
                 open3d.close()
         if matrix.paired:
             if scheduler is None:
-                run_paired(matrix, out)
+                paired_frames.run_paired(matrix, out)
             else:
                 print("packetrt bench: [paired] frames are rendered here, one process for all variants; "
                       "skipped with --scheduler", file=sys.stderr)
@@ -543,39 +543,12 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
             raise
         interrupted = True
     files = write_outputs(out, matrix)
-    files += [out / name for name in PAIRED_FILES if matrix.paired and (out / name).is_file()]
+    files += [out / name for name in paired_frames.PAIRED_FILES if matrix.paired and (out / name).is_file()]
     if interrupted:
         print(f"packetrt bench: interrupted after {ran} new cell(s); {out / results_io.RESULTS} holds every "
               f"finished cell; run again with --resume to finish", file=sys.stderr)
         raise KeyboardInterrupt
     return {"ran": ran, "skipped": len(matrix.cells) - len(todo), "files": files}
-
-
-#: The files ``run_paired`` writes into a run's folder.
-PAIRED_FILES = ("paired.json", "paired.md")
-
-
-def run_paired(matrix: Matrix, out: Path) -> list:
-    """The matrix's ``[paired]`` variants rendered frame by frame against the first
-    (``engine.bench.paired_frames``) for every (scene, recursion, size) of its cells, in their
-    order, at the matrix's thread count; writes paired.json ({"repeat", "groups": [{"scene",
-    "recursion", "size", "variants", "ratios"}]}) and paired.md into ``out``. Returns their paths."""
-    from engine.bench.paired_frames import describe, markdown, paired_frames
-
-    groups = dict.fromkeys((c.scene, c.recursion, c.width, c.height) for c in matrix.cells)
-    results, texts = [], []
-    for scene, recursion, width, height in groups:
-        cells = [Cell(scene, traversal, frustum, packet, recursion, width, height, threads=matrix.threads,
-                      embree=False, options=matrix.cells[0].options) for traversal, frustum, packet in matrix.paired]
-        title = f"{scene.label} {recursion} {width}x{height}"
-        print(f"packetrt bench: paired frames, {title}: {', '.join(describe(c) for c in cells)}", file=sys.stderr)
-        result = paired_frames(cells, matrix.paired_repeat, log=lambda m: None)
-        results.append({"scene": scene.label, "recursion": recursion, "size": f"{width}x{height}", **result})
-        texts.append(markdown(result, title).replace("# ", "## ", 1))
-    write_json(out / PAIRED_FILES[0], {"repeat": matrix.paired_repeat, "groups": results})
-    write_text(out / PAIRED_FILES[1], f"# {matrix.name}: frames paired by repetition ({matrix.paired_repeat} "
-                                      f"repetitions, {matrix.threads or 'all'} threads)\n\n" + "\n".join(texts))
-    return [out / name for name in PAIRED_FILES]
 
 
 def cmd_bench(args) -> int:

@@ -58,10 +58,9 @@ from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
 from engine.query.frame import MeshFrame, mesh_frame
 from engine.query.hits import (collect_hits_kernel, compact_hits_kernel, count_hits_kernel, fill_hits_kernel,
                                first_hit_kernel)
-from engine.query.leaf_blocks import leaf_blocks
 from engine.query.locations import locations_kernel
 from engine.query.order import ray_order
-from engine.query.wide import collapse, pack_nodes
+from engine.query.wide import packed_tree
 
 #: Hits closer than this (in units of the mesh's largest extent) to the previous one along a
 #: ray are one crossing; trimesh steps 1e-6 of the mesh's scale past each hit.
@@ -213,11 +212,8 @@ class RayMeshIntersector:
             faces = old.faces
         else:
             bvh = build_bvh(tris, leaf_size=self._leaf_size, bins=self._bins)
-        box, child, size = collapse(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
-        child, block_tri, blocks = leaf_blocks(bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2, child,
-                                               size)
+        nodes, block_tri, blocks = packed_tree(bvh, tris.v0, tris.v1, tris.v2)
         keys = child_order_keys(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
-        nodes = pack_nodes(box, child, size)
         self._structure_cache = _Structure(faces_key, vertices_key, faces, frame, bvh, nodes, nodes.view(np.int32),
                                            block_tri, blocks, tris, keys)
         return self._structure_cache

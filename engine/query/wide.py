@@ -35,6 +35,7 @@ import numpy as np
 from numba import njit
 
 from engine.core.prefetch import LINE_BYTES
+from engine.query.leaf_blocks import leaf_blocks
 
 WIDTH = 8
 
@@ -121,3 +122,12 @@ def pack_nodes(box: np.ndarray, child: np.ndarray, size: np.ndarray) -> np.ndarr
     bits[:, CHILD_ROW, :] = child
     bits[:, SIZE_ROW, :] = size
     return nodes
+
+
+def packed_tree(bvh, v0, v1, v2) -> tuple:
+    """(nodes, block_tri, blocks): the walks' 8-wide tree over a binary ``bvh`` (``pack_nodes``)
+    with its leaves' triangles, corners v0, v1, v2 f32[T,3], in blocks (``leaf_blocks``). The
+    mesh queries build it over the mesh's local frame, the ``wide`` traversal over a scene."""
+    box, child, size = collapse(bvh.bmin, bvh.bmax, bvh.first, bvh.count)
+    child, block_tri, blocks = leaf_blocks(bvh.first, bvh.count, bvh.prim, v0, v1, v2, child, size)
+    return pack_nodes(box, child, size), block_tri, blocks
