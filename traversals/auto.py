@@ -17,6 +17,14 @@ packet than whole by the sample's majority (Ranged) (see the README). The packet
 the chosen strategy's own copy of the one packet walk (``engine.packet.walk``), so their hits are
 the other traversals' hits, bit for bit.
 
+A batch chosen packet by packet is also checked by timing (``engine.packet.auto_trial``): the
+first time the plugin walks it, each group of at least 256 packets (those the rule gave Ranged,
+those it gave Partition) has an eighth of its packets walked by each strategy in four
+interleaved timed passes, and the rest of the group goes to the faster one. The verdicts are kept
+by batch signature (ray kind, packets, rays), so the same batch of the next frame is walked by
+them without a trial. The rule's measures do not tell the kitchen's 1024x1024 shadow packets
+from spd-rings' of the same footprint; the trial does.
+
 Options (``[options.auto]``), each defaulting to the fitted value in
 ``engine/packet/auto_thresholds.json`` (``tools/fit_auto.py``):
 
@@ -26,10 +34,13 @@ Options (``[options.auto]``), each defaulting to the fitted value in
 - ``min_live``: the least fraction of live lanes for Ranged or Masked;
 - ``invalid_frustum``: the strategy for packets without a frustum;
 - ``split_min_packets``: the fewest packets a batch whose sample is split must have to be chosen
-  packet by packet (0: every such batch; a huge number: never), default SPLIT_MIN_PACKETS.
+  packet by packet (0: every such batch; a huge number: never), default SPLIT_MIN_PACKETS;
+- ``trials``: check the per-packet choice by timed trials (default true; false: the rule alone).
 
 Statistics (``--stats``: ``extra.plugins.KIND.auto``): ``packets``, the packets walked by each
-strategy, and ``per_batch``, the same for every batch traced, in order.
+strategy, ``per_batch``, the same for every batch traced, in order, and ``trials``, for each batch
+whose groups were tried (in any earlier frame), one entry per group tried (kind, packets, group,
+tried_packets, own_seconds, other_seconds, walked_by).
 """
 from __future__ import annotations
 
@@ -38,6 +49,7 @@ import numpy as np
 from engine.core.errors import ConfigError
 from engine.core.registry import register_traversal
 from engine.packet.auto_limits import fitted_limits, limits_array
+from engine.packet.auto_trial import TrialBook, apply_verdicts
 from engine.packet.choose import LIMIT_NAMES
 from engine.packet.plugin import PacketTraversal, walk_batch
 from engine.packet.strategies import AUTO, CHOSEN_NAMES
@@ -54,12 +66,16 @@ class AutoTraversal(PacketTraversal):
     """Large packets walked by Ranged, Partition or Masked, chosen from measures of the packets."""
 
     strategy = AUTO
-    OPTIONS = {**dict.fromkeys(LIMIT_NAMES), "split_min_packets": SPLIT_MIN_PACKETS}  # a limit None: fitted
+    OPTIONS = {**dict.fromkeys(LIMIT_NAMES), "split_min_packets": SPLIT_MIN_PACKETS,
+               "trials": True}  # a limit None: fitted
 
-    def __init__(self, split_min_packets=SPLIT_MIN_PACKETS, **limits):
+    def __init__(self, split_min_packets=SPLIT_MIN_PACKETS, trials=True, **limits):
         if isinstance(split_min_packets, bool) or not isinstance(split_min_packets, int) or split_min_packets < 0:
             raise ConfigError(f"options.auto.split_min_packets must be an integer >= 0, got {split_min_packets!r}")
+        if not isinstance(trials, bool):
+            raise ConfigError(f"options.auto.trials must be true or false, got {trials!r}")
         self.split_min_packets = split_min_packets
+        self.book = TrialBook() if trials else None  # this instance's verdicts only
         chosen = fitted_limits()
         chosen.update({name: value for name, value in limits.items() if value is not None})
         self.limits = chosen
@@ -72,27 +88,32 @@ class AutoTraversal(PacketTraversal):
     def choose(self, bvh, rays, packets, frusta) -> np.ndarray:
         """i8[K]: the strategy (``engine.packet.strategies`` number) each packet would be walked
         by, without walking (``packetrt show``, tests): the walk's own choice
-        (``engine.packet.walk.choose_batch``)."""
+        (``engine.packet.walk.choose_batch``), with the verdicts of trials already made on this
+        batch (a batch not yet tried shows the rule's choice)."""
         offsets = np.ascontiguousarray(packets.offsets, np.int32)
         n_packets = offsets.shape[0] - 1
         valid = np.zeros(n_packets, np.bool_) if frusta is None else np.ascontiguousarray(frusta.valid, np.bool_)
         out = np.empty(n_packets, np.int8)
-        choose_batch(bvh.bmin, bvh.bmax, rays.org, rays.dir, rays.tmin, rays.tmax, offsets, valid, self._limits,
-                     out, per_packet=self._per_packet(packets))
+        _, whole = choose_batch(bvh.bmin, bvh.bmax, rays.org, rays.dir, rays.tmin, rays.tmax, offsets, valid,
+                                self._limits, out, per_packet=self._per_packet(packets))
+        if whole < 0 and self.book is not None:
+            apply_verdicts(out, self.book.verdicts(self.book.signature(rays.kind, n_packets, rays.org.shape[0])) or {})
         return out
 
     def walk_recorded(self, bvh, tris, rays, packets, frusta, any_hit, hits, record):
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, any_hit, hits.t, hits.prim, hits.u, hits.v,
-                   record=record, limits=self._limits, per_packet=self._per_packet(packets))
+                   record=record, limits=self._limits, per_packet=self._per_packet(packets), book=self.book)
 
     def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats,
              from_end=False):
         choices = np.empty(len(packets.offsets) - 1, np.int8)
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
                    None if stats is None else stats.counters, limits=self._limits, choices=choices,
-                   from_end=from_end, per_packet=self._per_packet(packets))
+                   from_end=from_end, per_packet=self._per_packet(packets), book=self.book)
         if stats is not None:
-            add_choices(stats, choices)
+            trials = [] if self.book is None else self.book.trials_of(
+                self.book.signature(rays.kind, len(packets.offsets) - 1, rays.org.shape[0]))
+            add_choices(stats, choices, trials)
 
     def _walk_group(self, bvh, tris, rays, packets, frusta, any_hit, stats, from_end, chosen, visits):
         choices = np.empty(len(packets.offsets) - 1, np.int8)
@@ -104,11 +125,14 @@ class AutoTraversal(PacketTraversal):
             add_choices(stats, choices[chosen >= 0])
 
 
-def add_choices(stats, choices: np.ndarray) -> None:
-    """Count one batch's choices (i8[K]) into stats.extra["auto"]."""
+def add_choices(stats, choices: np.ndarray, trials: list = ()) -> None:
+    """Count one batch's choices (i8[K]) into stats.extra["auto"], with the trials that decided
+    how its groups are walked (``engine.packet.auto_trial.TrialBook.trials_of``)."""
     per = np.bincount(choices, minlength=len(CHOSEN_NAMES))
     batch = {name: int(per[i]) for i, name in enumerate(CHOSEN_NAMES)}
     total = stats.extra.setdefault("auto", {"packets": dict.fromkeys(CHOSEN_NAMES, 0), "per_batch": []})
     for name, n in batch.items():
         total["packets"][name] += n
     total["per_batch"].append(batch)
+    if trials:
+        total.setdefault("trials", []).extend(trials)

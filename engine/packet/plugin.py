@@ -77,7 +77,7 @@ def deck_count(n_packets: int) -> int:
 
 def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
                counters=None, record=None, kernel=None, limits=None, choices=None, from_end=False, chosen=None,
-               visits=None, per_packet=False):
+               visits=None, per_packet=False, book=None):
     """Walk every packet of ``rays`` (in ``packets``) through ``bvh`` by ``strategy``, with its
     frustum from ``frusta`` (None: no culling), writing the best (any_hit: first) hits into
     out_t, out_prim, out_u, out_v (f32/i32[R]). counters: i64[threads,3,D] or None; record: a
@@ -92,7 +92,9 @@ def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_p
     ray's blockers, and sooner or later than in the usual order (``engine.render.shadow_order``).
     chosen: None (every packet), or i8[K] and only packets k with chosen[k] == strategy are
     walked (with AUTO: packets k with chosen[k] >= 0, each by the strategy it chooses).
-    visits: i64[threads] that receives the nodes visited (added to), or None."""
+    visits: i64[threads] that receives the nodes visited (added to), or None.
+    book: AUTO only, an ``engine.packet.auto_trial.TrialBook`` whose verdicts (and, when none is
+    held for this batch, timed trials) correct the per-packet choice, or None."""
     check_answer_arrays(rays.org.shape[0], out_t, out_prim, out_u, out_v)
     offsets = np.ascontiguousarray(packets.offsets, np.int32)
     n_packets = offsets.shape[0] - 1
@@ -126,7 +128,8 @@ def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_p
         choices = np.empty(n_packets, np.int8)
     elif choices.shape != (n_packets,) or choices.dtype != np.int8:
         raise ValueError(f"auto choices must be i8[{n_packets}], got {choices.dtype}{list(choices.shape)}")
-    walk_packets_auto(*args, limits, choices, record, visits, chosen, per_packet)
+    signature = None if book is None else book.signature(rays.kind, n_packets, rays.org.shape[0])
+    walk_packets_auto(*args, limits, choices, record, visits, chosen, per_packet, book, signature)
 
 
 class PacketTraversal:

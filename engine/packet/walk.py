@@ -40,6 +40,7 @@ from engine.packet.kernels import (STACK_SIZE, intersect_lanes, intersect_lanes_
                                    load_packet, longest_packet, node_box, packet_scratch, store_hits)
 from engine.packet.record import new_record, record_visit
 from engine.packet.steps import leaf_ray, leaf_rays, node_step, visit_record, walk_start, walkers
+from engine.packet.auto_trial import apply_verdicts, tried_walk, walk_by_strategy
 from engine.packet.choose import batch_choice, choose_packet, scene_scales
 from engine.packet.strategies import ENTERED, MASKED, N_STRATEGIES, PARTITION, RANGED, SIMD
 
@@ -162,7 +163,8 @@ EVERY_PACKET = np.empty(0, np.int8)
 
 def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
                       offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
-                      counters, limits, choices, record, visits=None, only=None, per_packet=False):
+                      counters, limits, choices, record, visits=None, only=None, per_packet=False, book=None,
+                      signature=None):
     """``walk_packets`` by AUTO: each packet walked by the strategy ``choose_batch`` gives it
     under limits f64[N_LIMITS] (packet by packet when the sample is split and ``per_packet``);
     choices i8[K] receives each packet's strategy. only: None (every packet), or i8[K] and only
@@ -171,20 +173,31 @@ def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs
     The batch is chosen first (``choose_batch``); then the kernel of each strategy some packet
     got walks the packets given to it, so AUTO compiles no walk of its own. A batch given whole
     to one strategy is walked by its kernel without the per-packet filter. Choosing and walking
-    packet by packet unpacked the walk's arguments once per packet (see the module doc)."""
-    chosen_counts, whole = choose_batch(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices, only,
+    packet by packet unpacked the walk's arguments once per packet (see the module doc).
+
+    book: an ``engine.packet.auto_trial.TrialBook`` (with the batch's ``signature``), or None. A
+    batch chosen packet by packet then has its groups tried, timed, or walked by the verdicts the
+    book holds for its signature (``engine.packet.auto_trial.tried_walk``); a counting or
+    recording walk only applies verdicts already held."""
+    _, whole = choose_batch(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices, only,
                                         per_packet)
     if whole >= 0 and only is None:
         walk_packets(whole, bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax, offsets,
                      planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v, counters, record,
                      None, visits)
         return
-    # A strategy no packet chose costs no parallel pass (a launch and each worker's scratch).
-    for strategy in (RANGED, PARTITION, MASKED):
-        if chosen_counts[strategy] > 0:
-            walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
-                         offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
-                         counters, record, choices, visits)
+
+    def walk(strategy, chosen):
+        walk_packets(strategy, bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax, offsets,
+                     planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v, counters, record, chosen,
+                     visits)
+
+    if book is not None and only is None and whole < 0:
+        if counters is None and record is None:
+            tried_walk(walk, choices, book, signature)
+            return
+        apply_verdicts(choices, book.verdicts(signature) or {})
+    walk_by_strategy(walk, choices)
 
 
 def choose_batch(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices, only=None, per_packet=False):
