@@ -82,6 +82,8 @@ LIVE_EDGES = (0.0, 0.25, 0.5, 0.75, 0.9, 1.0)
 MIN_CELL_PACKETS = 64
 #: A footprint threshold above every packet's footprint.
 EVERY = 1e9
+#: The auto variants a measurement replays (``measure``).
+AUTOS = ("auto", "auto/packet", "auto/rule")
 
 
 # -- rays ----------------------------------------------------------------------------------
@@ -289,13 +291,16 @@ def collect(scenes, packets, sizes, repeat, log, threads=0):
 
 def measure(frames, limits, repeat, log):
     """{(scene, packet, kind): {traversal: median seconds per frame, "paired": {auto: (median,
-    low, high)}}} of replaying each frame's batches with ranged, partition, auto (``limits``) and
+    low, high)}}} of replaying each frame's batches with ranged, partition, auto (``limits``),
     "auto/packet" (the same limits, every batch whose sample is split chosen packet by packet:
-    ``split_min_packets = 0``), interleaved, where "paired" is each auto's ``paired_ratio``
+    ``split_min_packets = 0``) and "auto/rule" (the same limits, no timed trials:
+    ``engine.packet.auto_trial``), interleaved, where "paired" is each auto's ``paired_ratio``
     against the better of ranged and partition; and {(scene, packet, kind): auto's packets per
-    strategy}. Both autos' answers must equal Partition's."""
-    names = ("ranged", "partition", "auto", "auto/packet")
-    options = {"auto": limits, "auto/packet": {**limits, "split_min_packets": 0}}
+    strategy}. Every auto's answers must equal Partition's. The first, untimed repetition is
+    where the autos make their trials (a renderer's first frame)."""
+    names = ("ranged", "partition") + AUTOS
+    options = {"auto": limits, "auto/packet": {**limits, "split_min_packets": 0},
+               "auto/rule": {**limits, "trials": False}}
     out, counts = {}, {}
     for (name, n), (renderer, batches) in frames.items():
         plugins = {t: make_traversal(t.split("/")[0], options.get(t)) for t in names}
@@ -312,7 +317,7 @@ def measure(frames, limits, repeat, log):
                     runs[t].append(dict(tally.seconds))
                 else:
                     answers[t] = got
-        for auto in ("auto", "auto/packet"):
+        for auto in AUTOS:
             for a, b, (kind, query, _, _) in zip(answers[auto], answers["partition"], batches):
                 same = np.array_equal(a, b) if query == "occluded" else all(
                     np.array_equal(x, y) for x, y in zip(a, b))
@@ -323,7 +328,7 @@ def measure(frames, limits, repeat, log):
             per_rep = {t: np.array([r[kind] for r in runs[t]]) for t in names}
             best = "ranged" if row["ranged"] <= row["partition"] else "partition"
             # Each auto against the better strategy's time in the same repetition.
-            row["paired"] = {t: paired_ratio(per_rep[t], per_rep[best]) for t in ("auto", "auto/packet")}
+            row["paired"] = {t: paired_ratio(per_rep[t], per_rep[best]) for t in AUTOS}
             out[(name, n, kind)] = row
         tally = Tally(count=True)  # one counting replay: auto's choices per kind
         for kind, query, rays, pk in batches:
@@ -389,13 +394,16 @@ def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds, 
               "`verdict` says whether that interval lies below 1 (auto faster than both), above 1 (slower) "
               "or around it (the same within the run's noise). `choices` are "
               "auto's packets walked by Masked / Ranged / Partition. `auto by packet` is auto with "
-              "`split_min_packets = 0` (every batch whose sample is split chosen packet by packet).", "",
+              "`split_min_packets = 0` (every batch whose sample is split chosen packet by packet). "
+              "`rule alone` is auto without its timed trials (`trials = false`: the rule's choice on "
+              "the batches it splits, unchecked), with its paired ratio and verdict.", "",
               *([f"![auto over the better of Ranged and Partition per row]({plot.name})", ""] if plot else []),
               "| scene | packet | kind | ranged | partition | auto | auto/best | paired [95%] | verdict | "
-              "choices M/R/P | auto by packet | by packet/best |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "choices M/R/P | auto by packet | by packet/best | rule alone | rule paired [95%] | rule verdict |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     verdicts = {"faster": 0, "same": 0, "slower": 0}
-    sums = {t: 0.0 for t in ("ranged", "partition", "auto", "auto/packet", "best")}
+    rule_verdicts = {"faster": 0, "same": 0, "slower": 0}
+    sums = {t: 0.0 for t in ("ranged", "partition", "auto", "auto/packet", "auto/rule", "best")}
     for (scene, n, kind) in sorted(timing, key=lambda k: (k[0], k[1], RAY_KINDS.index(k[2]))):
         t = timing[(scene, n, kind)]
         best = min(t["ranged"], t["partition"])
@@ -406,25 +414,35 @@ def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds, 
         by_packet = t.get("auto/packet", np.nan)
         sums["auto/packet"] += by_packet
         sums["best"] += best
-        paired = t.get("paired", {}).get("auto")
-        if paired is None:  # a timing without repetitions kept (an older caller)
-            paired_cell, row_verdict = "–", "–"
-        else:
-            row_verdict = verdict(paired[1], paired[2])
-            verdicts[row_verdict] += 1
-            paired_cell = f"{paired[0]:.3f} [{paired[1]:.3f}, {paired[2]:.3f}]"
+        rule = t.get("auto/rule", np.nan)
+        sums["auto/rule"] += rule
+        paired_cell, row_verdict = _paired_cells(t.get("paired", {}).get("auto"), verdicts)
+        rule_cell, rule_verdict = _paired_cells(t.get("paired", {}).get("auto/rule"), rule_verdicts)
         lines.append(f"| {scene} | {n} | {kind} | {1e3 * t['ranged']:.2f} | {1e3 * t['partition']:.2f} | "
                      f"{1e3 * t['auto']:.2f} | {t['auto'] / best:.3f} | {paired_cell} | {row_verdict} | "
                      + "/".join(str(c.get(x, 0)) for x in CHOSEN_NAMES)
-                     + f" | {1e3 * by_packet:.2f} | {by_packet / best:.3f} |")
+                     + f" | {1e3 * by_packet:.2f} | {by_packet / best:.3f} | {1e3 * rule:.2f} | {rule_cell} | "
+                     f"{rule_verdict} |")
     lines += [f"| **all** | | | {1e3 * sums['ranged']:.1f} | {1e3 * sums['partition']:.1f} | "
               f"{1e3 * sums['auto']:.1f} | {sums['auto'] / sums['best']:.3f} (vs per-row best) | | | | "
-              f"{1e3 * sums['auto/packet']:.1f} | {sums['auto/packet'] / sums['best']:.3f} |", ""]
-    if sum(verdicts.values()):
-        lines += [f"Paired verdicts over {sum(verdicts.values())} rows: auto faster than both in "
-                  f"{verdicts['faster']}, the same as the better within the noise in {verdicts['same']}, "
-                  f"slower than the better in {verdicts['slower']}.", ""]
+              f"{1e3 * sums['auto/packet']:.1f} | {sums['auto/packet'] / sums['best']:.3f} | "
+              f"{1e3 * sums['auto/rule']:.1f} | {sums['auto/rule'] / sums['best']:.3f} | |", ""]
+    for label, counted in (("auto", verdicts), ("the rule alone (no trials)", rule_verdicts)):
+        if sum(counted.values()):
+            lines += [f"Paired verdicts over {sum(counted.values())} rows, {label}: faster than both in "
+                      f"{counted['faster']}, the same as the better within the noise in {counted['same']}, "
+                      f"slower than the better in {counted['slower']}.", ""]
     return "\n".join(lines) + "\n"
+
+
+def _paired_cells(paired, counted) -> tuple:
+    """(the table's paired cell, the verdict) of a (median, low, high) paired ratio, counting the
+    verdict into ``counted``; ("–", "–") where the timing kept no repetitions (an older caller)."""
+    if paired is None:
+        return "–", "–"
+    row_verdict = verdict(paired[1], paired[2])
+    counted[row_verdict] += 1
+    return f"{paired[0]:.3f} [{paired[1]:.3f}, {paired[2]:.3f}]", row_verdict
 
 
 def figure(timing, counts, path):
