@@ -482,7 +482,11 @@ def test_the_report_gives_each_row_its_paired_interval_and_counts_the_verdicts()
               "invalid_frustum": "partition"}
     args = {"date": "today", "scenes": ["erw6"], "sizes": [64], "packets": [8], "repeat": 1, "threads": 2,
             "measure_repeat": 3, "command": "fit", "machine": "here", "fitted": False}
-    text = report(args, limits, 2.0, cells, np.array([0.5]), timing, {}, 1.0)
+    trial = {"kind": "shadow", "packets": 4096, "group": "partition", "tried_packets": 170, "own_seconds": 2e-3,
+             "other_seconds": 1e-3, "walked_by": "ranged"}
+    counts = {("erw6", 8, "shadow"): {"masked": 0, "ranged": 4096, "partition": 0, "trials": [trial]}}
+    text = report(args, limits, 2.0, cells, np.array([0.5]), timing, counts, 1.0)
+    assert "| erw6 | 8 | shadow | 4096 | partition | 170 | 2.00 | 1.00 | ranged |" in text  # the trials' table
     assert "given with `--limits`" in text
     assert "| 0.900 [0.850, 0.950] | faster |" in text and "| 1.200 [1.100, 1.300] | slower |" in text
     assert "rows, auto: faster than both in 1, the same as the better within the noise in 0, slower than the " \

@@ -334,7 +334,7 @@ def measure(frames, limits, repeat, log):
         for kind, query, rays, pk in batches:
             tracers["auto"].trace(kind, query, rays, pk, tally)
         for kind, stats in tally.stats.items():
-            counts[(name, n, kind)] = stats.extra["auto"]["packets"]
+            counts[(name, n, kind)] = {**stats.extra["auto"]["packets"], "trials": stats.extra["auto"].get("trials", [])}
         log(f"measured {name} {n}x{n}")
     return out, counts
 
@@ -432,6 +432,19 @@ def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds, 
             lines += [f"Paired verdicts over {sum(counted.values())} rows, {label}: faster than both in "
                       f"{counted['faster']}, the same as the better within the noise in {counted['same']}, "
                       f"slower than the better in {counted['slower']}.", ""]
+    tried = [(key, trial) for key in sorted(counts, key=lambda k: (k[0], k[1], RAY_KINDS.index(k[2])))
+             for trial in counts[key].get("trials", [])]
+    if tried:
+        lines += ["## auto's trials", "",
+                  "Each group of a batch the rule split packet by packet, as auto's first (untimed) repetition "
+                  "tried it (`engine.packet.auto_trial`): its own strategy's and the other's time on an eighth "
+                  "of the group's packets each, and the strategy that walked the rest from then on.", "",
+                  "| scene | packet | kind | batch packets | group | tried packets | own ms | other ms | walked by |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        lines += [f"| {scene} | {n} | {kind} | {t['packets']} | {t['group']} | {t['tried_packets']} | "
+                  f"{1e3 * t['own_seconds']:.2f} | {1e3 * t['other_seconds']:.2f} | {t['walked_by']} |"
+                  for (scene, n, kind), t in tried]
+        lines.append("")
     return "\n".join(lines) + "\n"
 
 
