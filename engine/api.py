@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 from numba import njit, prange
 
-from engine.core.errors import ConfigError
+from engine.core.errors import ConfigError, memory_errors_as
 from engine.core.threads import numba_threads
 from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch, Triangles, empty_hits
 from engine.packet.compact import inverse_component
@@ -398,14 +398,15 @@ def incoherent_batch(kind: str, org, dirs, tmin, tmax, n: int):
 
 # -- the tracer ------------------------------------------------------------------------------
 def _scene_from(mesh_or_scene):
-    from engine.core.scene import Scene, SceneBuilder
+    from engine.core.scene import Scene, SceneBuilder, check_triangles
 
     if isinstance(mesh_or_scene, Scene):
         return mesh_or_scene
     builder = SceneBuilder("mesh", source="RayTracer")
     if isinstance(mesh_or_scene, Triangles):  # one default material for every triangle
+        tris = check_triangles(mesh_or_scene, "RayTracer Triangles")
         builder.add_material(_default_material())
-        builder.add_triangles(mesh_or_scene._replace(material=np.zeros_like(mesh_or_scene.material)))
+        builder.add_triangles(tris._replace(material=np.zeros_like(tris.material)))
         return builder.build()
     if hasattr(mesh_or_scene, "vertices") and hasattr(mesh_or_scene, "faces"):  # trimesh.Trimesh
         vertices, faces = mesh_or_scene.vertices, mesh_or_scene.faces
@@ -531,6 +532,7 @@ class RayTracer:
             return None
         return incoherent_batch(kind, org, dirs, lo, hi, self.packet)
 
+    @memory_errors_as(RayInputError)
     def intersect(self, origins, directions, tmin=None, tmax=None) -> Hits:
         """Closest hit of every ray.
 
@@ -549,6 +551,7 @@ class RayTracer:
             hits = self.tracer.trace("reflection", "intersect", rays, packets)
             return Hits(*answers_in_input_order(lane, *hits))
 
+    @memory_errors_as(RayInputError)
     def occluded(self, origins, directions, tmin=None, tmax=None) -> np.ndarray:
         """bool (n,): does ray i hit anything with tmin <= t <= tmax (any hit, early exit).
         With ``device="cuda"``, device-array rays get a u8 (n,) device array (1 = occluded)."""

@@ -26,6 +26,7 @@ import difflib
 import json
 import sys
 import warnings
+from pathlib import Path
 from dataclasses import replace
 
 from engine.core import atomic, checked
@@ -191,6 +192,7 @@ def cmd_animate(args) -> int:
     from engine.render.config import validate
 
     config = _config_from(args)
+    _check_outputs(("--stats", args.stats))
     if args.accel is not None:
         config = validate(replace(config, accel=replace(config.accel, update=args.accel)))
     return run_animation(config, args.output, frames=args.frames, fps=args.fps, start=args.start, end=args.end,
@@ -211,7 +213,7 @@ def cmd_show(args) -> int:
     from engine.debug.show import PICTURE_SIZE, write_show
     from engine.render.config import parse_size
 
-    size = parse_size(args.picture) if getattr(args, "picture", None) else PICTURE_SIZE
+    size = parse_size(args.picture, "--picture") if getattr(args, "picture", None) else PICTURE_SIZE
     if not (64 <= size[0] <= 4096 and 64 <= size[1] <= 4096):
         raise ConfigError(f"--picture must be between 64x64 and 4096x4096, got {size[0]}x{size[1]}")
     config = _cpu_only(_config_from(args), "show")
@@ -287,7 +289,10 @@ def cmd_audit(args) -> int:
     config = _config_from(args)
     _check_outputs(("--json", args.json))
     if args.report:
+        from validation.report import REPORT_FILES
+
         atomic.output_folder(args.report, "--report")
+        _check_outputs(*(("--report", Path(args.report) / name) for name in REPORT_FILES))
     scene = _load_scene(config, args.strict)
     tiled = None
     if args.scheduler is not None:  # bands of rows as Dask tasks, merged into one report

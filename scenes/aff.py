@@ -76,6 +76,10 @@ from engine.core.errors import ConfigError, SceneError
 from engine.core import checked
 from engine.core.scene import Camera, Material, SceneBuilder
 
+#: An 'a' line's times must lie within a day, as ``--time`` (engine.render.config.MAX_TIME), and its
+#: frame count within ``packetrt animate``'s limit (engine.render.animation.MAX_FRAMES).
+ANIMATION_TIME_LIMIT = 86400.0
+ANIMATION_FRAME_LIMIT = 100_000
 _COMMENT = re.compile(r"[#%][^\n]*")
 
 DIRECTIVES = ("v", "b", "l", "am", "fm", "f", "m", "p", "pp", "tt", "ttp", "s", "c", "xs", "x", "k",
@@ -170,23 +174,30 @@ class Tokens:
         return checked.array(values, lambda k: f"{self.path}:{self.line(start + k)}: {what}", error=SceneError)
 
     def integers(self, n: int, what: str) -> np.ndarray:
-        """i64[n] from the next n words (decimal integers only)."""
+        """i64[n] from the next n words (decimal integers only, within int64)."""
         start, words = self._block(n, what, "integer")
         try:
             return np.array(words, dtype=np.int64)
-        except ValueError:
+        except (ValueError, OverflowError):
             for k, w in enumerate(words):
                 try:
-                    int(w)
+                    value = int(w)
                 except ValueError:
                     raise self.error(f"expected an integer for {what}, got {w!r}", start + k) from None
+                if not -2 ** 63 <= value < 2 ** 63:
+                    raise self.error(f"expected an integer for {what}, got {w!r}, which is too large",
+                                     start + k) from None
             raise  # pragma: no cover
 
     def number(self, what: str) -> float:
         return float(self.numbers(1, what)[0])
 
     def count(self, what: str) -> int:
-        return int(self.integers(1, what)[0])
+        """A count (a non-negative integer) from the next word."""
+        value = int(self.integers(1, what)[0])
+        if value < 0:
+            raise self.error(f"expected a non-negative count for {what}, got {value}", self.pos - 1)
+        return value
 
     def next_is_number(self) -> bool:
         word = self.peek()
@@ -594,6 +605,15 @@ class Parser:
 
     def _animation(self, line):
         start, end, frames = self.tok.numbers(3, "'a' (start time, end time, frame count)")
+        where = f"{self.path}:{line}: 'a'"
+        for value, what in ((start, "start time"), (end, "end time")):
+            if not -ANIMATION_TIME_LIMIT <= value <= ANIMATION_TIME_LIMIT:
+                raise SceneError(f"{where} {what} must be within +-{ANIMATION_TIME_LIMIT:g} s, got {value:g}")
+        if end < start:
+            raise SceneError(f"{where} end time {end:g} is before the start time {start:g}")
+        if frames != int(frames) or not 1 <= frames <= ANIMATION_FRAME_LIMIT:
+            raise SceneError(f"{where} frame count must be a whole number in 1..{ANIMATION_FRAME_LIMIT:,}, "
+                             f"got {frames:g}")
         self.ops.append(("animation", (float(start), float(end), int(frames))))
 
     # -- materials -----------------------------------------------------------------------
@@ -863,7 +883,7 @@ class Loader:
             try:
                 with Image.open(path) as image:
                     self.textures[path] = np.asarray(image.convert("RGB"), np.float32) / 255.0
-            except (OSError, ValueError) as exc:
+            except (OSError, ValueError, Image.DecompressionBombError) as exc:
                 raise SceneError(f"{path}: cannot read texture: {exc}") from None
         return self.textures[path]
 
@@ -951,6 +971,6 @@ def check_params(params: dict) -> tuple:
     if lights == "all" and isinstance(lights, str):
         lights = None
     elif isinstance(lights, bool) or not isinstance(lights, int) or lights < 0:
-        raise ConfigError(f"lights must be \"all\" or an integer >= 0 (keep the first N point lights in "
-                          f"file order), got {lights!r}")
+        raise ConfigError(f"scene parameter lights must be \"all\" or an integer >= 0 (keep the first N point "
+                          f"lights in file order), got {lights!r}")
     return tessellation, camera, lights

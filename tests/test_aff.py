@@ -396,7 +396,7 @@ def test_lights_beyond_the_file_names_its_count(tmp_path):
 
 @pytest.mark.parametrize("bad", [-1, 1.5, True, "two", "ALL", [1]])
 def test_bad_lights_values_are_one_line_config_errors(tmp_path, bad):
-    with pytest.raises(ConfigError, match=r"^lights must be \"all\" or an integer >= 0 .*got ") as caught:
+    with pytest.raises(ConfigError, match=r"^scene parameter lights must be \"all\" or an integer >= 0 .*got ") as caught:
         load(tmp_path, TRIANGLE_MESH, lights=bad)
     assert "\n" not in str(caught.value)
 

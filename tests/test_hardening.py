@@ -308,3 +308,241 @@ def test_an_output_that_cannot_be_written_stops_the_command_before_its_work(tmp_
     option = {"render": "--stats", "render-audit": "--stats", "show": "-o", "audit": "--json"}[command]
     one_error(argv, capsys, option)
     assert not image.exists()
+
+
+AFF_HEAD = ("v from 0 0 5 at 0 0 0 up 0 1 0 angle 45 hither 0.01 resolution 16 16\nl 0 5 5\n"
+            "fm 0.1 0.1 0.1 0.7 0.7 0.7 0 0 0 1 0 1\n")
+
+
+@pytest.mark.parametrize("body,fragment", [
+    ("m vertices 99999999999999999999 0 0 0 triangles 0\n", ":4: expected an integer for the vertex count"),
+    ("m vertices -3 triangles 0\n", ":4: expected a non-negative count for the vertex count, got -3"),
+    ("s 0 0 0 1\na 0 1e29 3\n", ":5: 'a' end time must be within +-86400 s"),
+    ("s 0 0 0 1\na 0 2 2.5\n", ":5: 'a' frame count must be a whole number in 1..100,000, got 2.5"),
+    ("s 0 0 0 1\na 0 2 -3\n", ":5: 'a' frame count must be a whole number"),
+    ("s 0 0 0 1\na 2 0 3\n", ":5: 'a' end time 0 is before the start time 2"),
+])
+def test_bad_aff_counts_and_animation_lines_are_one_line(tmp_path, capsys, body, fragment):
+    """Before: a count past int64 was an OverflowError traceback, a negative one was reported as
+    3 times itself, and an 'a' line's times and frame count were taken unchecked (1e29 seconds
+    failed in the preview after every frame; 2.5 frames became 2)."""
+    scene = obj(tmp_path, AFF_HEAD + body, "s.aff")
+    one_error(["render", "--scene", scene, *TINY, "-o", tmp_path / "x.png"], capsys, fragment)
+
+
+def test_a_decompression_bomb_texture_in_an_aff_is_one_line(tmp_path, capsys):
+    """A PPM whose header claims 20000 x 20000 pixels: Pillow refuses it (DecompressionBombError),
+    which was a traceback on the .aff path (the MTL path already caught it)."""
+    (tmp_path / "bomb.ppm").write_bytes(b"P6 20000 20000 255\n" + bytes(30))
+    scene = obj(tmp_path, AFF_HEAD + "tt bomb.ppm 0 0 0 0 0 1 0 0 1 0 0 1 0 0 1\n", "s.aff")
+    one_error(["render", "--scene", scene, *TINY, "-o", tmp_path / "x.png"], capsys, "bomb.ppm: cannot read texture")
+
+
+MATRIX = ('name = "{name}"\nrepeat = 1\nembree = false\n[axes]\nscene = ["whitted"]\nresolution = [{res}]\n'
+          'traversal = ["single"]\nfrustum = ["none"]\npacket = [4]\nrecursion = ["shadows"]\n')
+
+
+@pytest.mark.parametrize("name,res,fragment", [
+    ("t", '"\u00b2x\u00b2"', "resolution"),     # '²' passes str.isdigit() but not int(): a traceback before
+    ("a\\u0000b", "16", "name: must be 1-100 letters"),  # a NUL byte: mkdir's ValueError before
+    ("../x y", "16", "name: must be 1-100 letters"),
+])
+def test_matrix_names_and_numbers_are_checked_before_use(tmp_path, capsys, name, res, fragment):
+    matrix = obj(tmp_path, MATRIX.format(name=name, res=res), "m.toml")
+    one_error(["bench", matrix], capsys, "m.toml", fragment)
+
+
+def test_a_paired_variant_with_unicode_digits_is_one_line(tmp_path, capsys):
+    matrix = obj(tmp_path, MATRIX.format(name="t", res="16") + '[paired]\nvariants = ["single/none/4", "single/none/\u00b2"]\n', "m.toml")
+    one_error(["bench", matrix, "--out", tmp_path / "o"], capsys, "expected TRAVERSAL/FRUSTUM/PACKET")
+
+
+@pytest.mark.parametrize("text,fragment", [
+    ('kind = "trimesh"\nmesh = 5\n', "[[mesh]]"),
+    ('kind = "trimesh"\nqueries = 5\n[[mesh]]\nscene = "whitted"\n', "queries must be a list"),
+    ('kind = "trimesh"\n[[mesh]]\nscene = "whitted"\nlabel = ["x"]\n', "mesh[0].label must be a string"),
+])
+def test_trimesh_matrix_types_are_checked_before_any_query(tmp_path, capsys, text, fragment):
+    """Before: a TypeError traceback (mesh = 5, queries = 5), or every query run and then a
+    TypeError formatting the table (a list as the label)."""
+    one_error(["bench", obj(tmp_path, text, "tm.toml"), "--out", tmp_path / "o"], capsys, "tm.toml", fragment)
+
+
+def test_a_damaged_bench_record_is_measured_again_not_a_traceback(tmp_path):
+    """A record whose id is a cell's but whose fields the tables cannot read (edited by hand) is
+    skipped when read, so --resume runs its cell again; before, the report raised TypeError."""
+    from engine.bench import results
+
+    path = tmp_path / results.RESULTS
+    path.write_text(json.dumps({"id": "abc", "seconds": "x"}) + "\n" + json.dumps({"id": "d", "kind": "dynamic"})
+                    + "\n")
+    records, complete = results.read_results(path)
+    assert [r["id"] for r in records] == ["d"] and complete == path.stat().st_size
+
+
+def test_damaged_frame_records_are_rendered_again_on_resume(tmp_path, capsys):
+    """frames.json with records that are not what a frame writes (hand-edited): those frames are
+    rendered again; before, a TypeError in the path summary."""
+    scene = obj(tmp_path, AFF_HEAD + "a 0 1 2\nk m { transl 2 0 0 0 0 0 0 0 1 1 0 0 0 0 0 }\nx m { s 0 0 0 1 }\n", "moving.aff")
+    out = tmp_path / "anim"
+    argv = ["animate", "--scene", scene, *TINY, "-o", out]
+    assert run(argv, capsys)[0] == 0
+    document = json.loads((out / "frames.json").read_text())
+    assert sorted(document["frames"]) == ["0", "1"]
+    document["frames"] = {"0": "notadict", "1": 5}
+    (out / "frames.json").write_text(json.dumps(document))
+    code, _ = run(argv + ["--resume", "--stats", tmp_path / "s.json"], capsys)
+    assert code == 0
+    stats = json.loads((tmp_path / "s.json").read_text())
+    assert stats["frames_rendered"] == 2 and stats["frames_resumed"] == 0
+
+
+# Python API inputs the kernels would trust (session 31's audit) --------------------------------
+def test_mesh_faces_past_the_vertices_are_a_query_input_error():
+    import trimesh
+    from engine import RayMeshIntersector
+    from engine.query.errors import QueryInputError
+
+    mesh = trimesh.Trimesh(np.eye(3).tolist() + [[0, 0, 0]], [[0, 1, 2]], process=False)
+    intersector = RayMeshIntersector(mesh)
+    mesh.faces = np.array([[0, 1, 9]])  # before: IndexError inside the structure's build
+    with pytest.raises(QueryInputError, match=r"mesh.faces\[0\] = \[0, 1, 9\] refers to a vertex"):
+        intersector.intersects_first([[0.2, 0.2, 5]], [[0, 0, -1]])
+
+
+def test_max_hits_beyond_int64_means_no_limit():
+    import trimesh
+    from engine import RayMeshIntersector
+
+    intersector = RayMeshIntersector(trimesh.creation.box())
+    tri, ray = intersector.intersects_id([[0, 0, 5]], [[0, 0, -1]], max_hits=2 ** 70)  # before: OverflowError
+    assert len(tri) == 2 and (ray == 0).all()
+
+
+def good_triangles():
+    from engine.core.scene import make_triangles
+
+    return make_triangles(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float), [[0, 1, 2]], 0)
+
+
+@pytest.mark.parametrize("field,value,fragment", [
+    ("v0", np.zeros((2, 3), np.float32), "Triangles.e1 must be float32 of shape (2, 3)"),  # rows differ
+    ("v0", np.zeros((1, 2), np.float32), "Triangles.v0 must be float32 of shape (1, 3), got float32 (1, 2)"),
+    ("v1", np.zeros((1, 3), np.float64), "Triangles.v1 must be float32"),
+    ("v2", np.full((1, 3), np.nan, np.float32), "Triangles.v2 holds non-finite numbers"),
+    ("normals", np.zeros((2, 3, 3), np.float32), "Triangles.normals must be float32 of shape (1, 3, 3) or (0, 3, 3)"),
+    ("uvs", np.zeros((5, 3, 2), np.float32), "Triangles.uvs"),
+])
+def test_triangles_handed_to_the_api_keep_their_contract(field, value, fragment):
+    """Before: mismatched rows were read past their ends (garbage hits), float64 fields a numba
+    TypingError, shapes an IndexError, NaN corners a misleading camera error."""
+    from engine import RayTracer
+    from engine.core.errors import SceneError
+
+    tris = good_triangles()
+    if field == "v0" and value.shape[0] == 2:
+        tris = tris._replace(v0=value, material=np.zeros(2, np.int32))
+    else:
+        tris = tris._replace(**{field: value})
+    with pytest.raises(SceneError) as caught:
+        RayTracer(tris)
+    assert fragment in str(caught.value) and isinstance(caught.value, ValueError)
+
+
+def test_a_material_index_past_the_table_is_one_error():
+    from engine.core.errors import SceneError
+    from engine.core.scene import Material, SceneBuilder
+
+    for index in (7, -3):  # before: a Scene that rendered, reading past the material table
+        builder = SceneBuilder("t")
+        builder.add_material(Material())
+        builder.add_mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], index)
+        with pytest.raises(SceneError, match=f"material index {index} does not exist"):
+            builder.build()
+
+
+def test_misshapen_normals_and_uvs_name_their_shape():
+    from engine.core.errors import SceneError
+    from engine.core.scene import make_triangles
+
+    corners, faces = np.eye(3), [[0, 1, 2]]
+    with pytest.raises(SceneError, match=r"normals must have shape \(3, 3\) per vertex or \(1, 3, 3\) per corner"):
+        make_triangles(corners, faces, 0, normals=np.zeros((2, 3)))  # before: IndexError
+    with pytest.raises(SceneError, match="texture coordinates .* are not finite"):
+        make_triangles(corners, faces, 0, uvs=np.full((3, 2), np.nan))  # before: taken silently
+
+
+def test_a_nan_texture_coordinate_in_an_obj_is_one_line(tmp_path, capsys):
+    """A textured OBJ whose 'vt' is NaN: before, taken silently (the texel index became -2**63)."""
+    from PIL import Image
+
+    Image.new("RGB", (2, 2), (200, 10, 10)).save(tmp_path / "t.png")
+    (tmp_path / "m.mtl").write_text("newmtl red\nKd 1 1 1\nmap_Kd t.png\n")
+    scene = obj(tmp_path, "mtllib m.mtl\nusemtl red\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt nan nan\nvt 1 0\nvt 0 1\n"
+                          "f 1/1 2/2 3/3\n")
+    one_error(["render", "--scene", scene, *TINY, "-o", tmp_path / "x.png"], capsys, "m.obj", "not finite")
+
+
+def test_running_out_of_memory_in_a_query_is_an_input_error(monkeypatch):
+    """numpy's MemoryError for too many rays (3e9 rays, say) becomes the API's input error."""
+    import trimesh
+    from engine import RayMeshIntersector, RayTracer
+    from engine.api import RayInputError
+    from engine.query import intersector as module
+    from engine.query.errors import QueryInputError
+
+    mesh = trimesh.creation.box()
+
+    def no_memory(*args, **kwargs):
+        raise MemoryError("Unable to allocate 67.1 GiB")
+
+    intersector = RayMeshIntersector(mesh)
+    monkeypatch.setattr(module, "_points", no_memory)
+    with pytest.raises(QueryInputError, match="contains_points: not enough free memory"):
+        intersector.contains_points([[0, 0, 0]])
+    tracer = RayTracer(mesh)
+    monkeypatch.setattr(tracer, "_batch", no_memory)
+    with pytest.raises(RayInputError, match="intersect: not enough free memory"):
+        tracer.intersects_first([[0, 0, 5]], [[0, 0, -1]])
+
+
+# Outputs checked before the work (session 31's audit) -----------------------------------------
+def test_a_character_device_output_is_written_into(tmp_path, capsys):
+    node = tmp_path / "null"
+    try:
+        os.mknod(node, 0o020666, os.makedev(1, 3))
+    except (PermissionError, OSError):
+        pytest.skip("cannot make a device node here (needs root)")
+    code, _ = run(["render", *TINY, "-o", node, "--stats", node], capsys)
+    assert code == 0 and node.is_char_device()  # before: replaced by a PNG file
+
+
+def test_animation_and_audit_outputs_in_the_way_stop_before_the_work(tmp_path, capsys):
+    (tmp_path / "stats").mkdir()
+    scene = obj(tmp_path, AFF_HEAD + "a 0 1 2\nk m { transl 2 0 0 0 0 0 0 0 1 1 0 0 0 0 0 }\nx m { s 0 0 0 1 }\n",
+                "moving.aff")
+    one_error(["animate", "--scene", scene, *TINY, "-o", tmp_path / "a", "--stats", tmp_path / "stats"], capsys,
+              "--stats", "folder")
+    (tmp_path / "b" / "path.png").mkdir(parents=True)
+    one_error(["animate", "--scene", scene, *TINY, "-o", tmp_path / "b"], capsys, "path.png", "folder")
+    (tmp_path / "rep" / "audit.json").mkdir(parents=True)
+    one_error(["audit", *TINY, "--report", tmp_path / "rep"], capsys, "--report", "audit.json", "folder")
+    assert not (tmp_path / "a").exists() or not any((tmp_path / "a").glob("frame_*"))
+
+
+def test_a_folder_in_place_of_results_jsonl_stops_the_bench_before_its_cells(tmp_path, capsys):
+    (tmp_path / "results.jsonl").mkdir()
+    one_error(["bench", SMOKE, "--out", tmp_path, "--resume"], capsys, "results.jsonl", "folder")
+
+
+def test_a_bad_face_index_is_named_itself():
+    """Before: the message named the largest index (vertex 1 for a face '0 1 -1')."""
+    from engine.core.errors import SceneError
+    from engine.core.scene import make_triangles
+
+    with pytest.raises(SceneError, match=r"face 1 refers to vertex -1, but the vertices are 0\.\.2"):
+        make_triangles(np.eye(3), [[0, 1, 2], [0, 1, -1]], 0)
+
+
+def test_a_folder_given_as_the_config_is_named_a_folder(tmp_path, capsys):
+    one_error(["render", tmp_path, *TINY], capsys, "is a folder, not a file")

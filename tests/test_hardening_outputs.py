@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import ast
 import json
+import os
+import stat
 from pathlib import Path
 
 import pytest
@@ -106,3 +108,37 @@ def test_a_folder_in_the_way_is_one_error(tmp_path):
 def test_write_json_is_strict_json(tmp_path):
     atomic.write_json(tmp_path / "x.json", {"nan": float("nan"), "t": (1, 2)})
     assert json.loads((tmp_path / "x.json").read_text()) == {"nan": None, "t": [1, 2]}
+
+
+def test_a_pipe_at_an_output_path_is_one_error_before_any_write(tmp_path):
+    fifo = tmp_path / "image.png"
+    os.mkfifo(fifo)
+    for check in (lambda: atomic.output_file(fifo, "-o"), lambda: atomic.write_text(fifo, "x")):
+        with pytest.raises(PacketrtError, match="it is a pipe"):
+            check()
+    assert stat.S_ISFIFO(fifo.stat().st_mode)  # the node is left alone
+
+
+def test_a_link_at_an_output_path_is_followed_and_kept(tmp_path):
+    real = tmp_path / "real.json"
+    real.write_text("earlier")
+    link = tmp_path / "link.json"
+    link.symlink_to(real)
+    atomic.output_file(link, "--stats")
+    atomic.write_json(link, {"a": 1})
+    assert link.is_symlink() and json.loads(real.read_text()) == {"a": 1}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.json", "real.json"]
+
+
+def test_a_character_device_is_written_into_not_replaced(tmp_path):
+    """``-o /dev/null`` discards the image; before, the rename replaced the device node by a
+    regular file (as root). Tested on a device node of our own, where the system allows one."""
+    node = tmp_path / "null"
+    try:
+        os.mknod(node, stat.S_IFCHR | 0o666, os.makedev(1, 3))
+    except (PermissionError, OSError):
+        pytest.skip("cannot make a device node here (needs root)")
+    atomic.output_file(node, "-o")
+    atomic.write_text(node, "discarded")
+    assert stat.S_ISCHR(node.stat().st_mode)
+    assert [p.name for p in tmp_path.iterdir()] == ["null"]

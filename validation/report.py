@@ -15,6 +15,10 @@ from engine.core.atomic import json_text, write_text
 from engine.render.image import save_png
 
 
+#: The files a report folder gets (the CLI checks each can be written before the audit runs).
+REPORT_FILES = ("audit.json", "render.png", "mismatches.png")
+
+
 def write_report(folder: str, report: dict, image: np.ndarray, bad_pixels, width: int, height: int) -> None:
     target = Path(folder)
     try:

@@ -21,7 +21,7 @@ import numpy as np
 
 from engine.animate.plot import plot_path
 from engine.animate.preview import keep_for_preview, preview_format, shrink, write_preview
-from engine.core.atomic import output_folder, write_json
+from engine.core.atomic import output_file, output_folder, write_json
 from engine.core.errors import PacketrtError
 from engine.gpu.choose import new_renderer
 from engine.render.animation import AnimationRenderer, path_summary, plan_times
@@ -42,7 +42,8 @@ def _identity(config, times: list) -> dict:
 
 def _load_records(out: Path, identity: dict, resume: bool) -> dict:
     """{frame index: record} of an earlier run to carry on (``resume``), else {}; a folder that
-    holds another run, or a run without ``resume``, is an error naming it."""
+    holds another run, or a run without ``resume``, is an error naming it. A frame whose image is
+    gone or whose record is malformed is left out (rendered again)."""
     file = out / RECORDS
     if not file.exists():
         return {}
@@ -58,7 +59,18 @@ def _load_records(out: Path, identity: dict, resume: bool) -> dict:
     if earlier != json.loads(json.dumps(identity)):
         raise PacketrtError(f"{out} holds frames of a different animation (config or frame times differ); "
                             f"choose another folder")
-    return {i: r for i, r in frames.items() if (out / FRAME_NAME.format(i)).is_file()}
+    return {i: r for i, r in frames.items() if _well_formed(r) and (out / FRAME_NAME.format(i)).is_file()}
+
+
+def _well_formed(record) -> bool:
+    """Whether an earlier frame's record has what the path summary reads (numeric seconds per
+    phase, an accel policy); a frame whose record does not is rendered again."""
+    if not isinstance(record, dict):
+        return False
+    seconds, accel = record.get("seconds"), record.get("accel")
+    return (isinstance(seconds, dict) and isinstance(accel, dict) and isinstance(accel.get("policy"), str)
+            and all(isinstance(seconds.get(phase), (int, float)) and not isinstance(seconds.get(phase), bool)
+                    for phase in ("total", "scene", "accel", "trace", "shade")))
 
 
 def _save_records(out: Path, identity: dict, records: dict) -> None:
@@ -104,6 +116,8 @@ def run_animation(config, out: str, *, frames=None, fps=None, start=None, end=No
     times = plan_times(path, frames, fps, start, end)
     folder = Path(out)
     output_folder(folder, "output")
+    for name in (RECORDS, f"preview.{preview_format()}", "path.png"):  # before the frames, not after
+        output_file(folder / name, "output")
     identity = _identity(config, times)
     records = _load_records(folder, identity, resume)
     todo = [i for i in range(len(times)) if i not in records]

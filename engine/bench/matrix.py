@@ -42,6 +42,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -97,6 +98,10 @@ RECURSION = {
 }
 
 AXES = ("scene", "traversal", "frustum", "packet", "recursion", "resolution")
+#: ASCII digits only: str.isdigit() also takes '²', which int() refuses.
+_DECIMAL = re.compile(r"[0-9]+")
+#: A matrix name: it names the default output folder (out/bench-NAME).
+_FOLDER_NAME = re.compile(r"[A-Za-z0-9._-]{1,100}")
 TOP_KEYS = ("name", "description", "repeat", "threads", "embree", "open3d", "plot", "axes", "group", "options",
             "paired")
 #: Repetitions of a ``[paired]`` measurement when the table gives none (``engine.bench.paired_frames``).
@@ -253,7 +258,7 @@ def parse_variant(text, source: str, where: str) -> tuple:
     from engine.packet.layout import PACKET_SIZES
 
     parts = text.split("/") if isinstance(text, str) else []
-    if len(parts) != 3 or not parts[2].isdigit() or int(parts[2]) not in PACKET_SIZES:
+    if len(parts) != 3 or not _DECIMAL.fullmatch(parts[2]) or int(parts[2]) not in PACKET_SIZES:
         _fail(source, where, f"expected TRAVERSAL/FRUSTUM/PACKET with a packet size in "
                              f"{', '.join(map(str, PACKET_SIZES))}, got {text!r}")
     return _plugin(source, where, parts[0], "traversal"), _plugin(source, where, parts[1], "frustum"), int(parts[2])
@@ -310,7 +315,7 @@ def _resolution(source, where, value) -> tuple:
         return tuple(value)
     if isinstance(value, str):
         w, sep, h = value.lower().partition("x")
-        if sep and w.isdigit() and h.isdigit():
+        if sep and _DECIMAL.fullmatch(w) and _DECIMAL.fullmatch(h):
             return int(w), int(h)
     _fail(source, where, f"must be {allowed}, got {value!r} ({_type_name(value)})")
 
@@ -367,6 +372,9 @@ def parse_matrix(data: dict, source: str = "<matrix>", repeat: int | None = None
     for key, value in (("name", name), ("description", description)):
         if not isinstance(value, str):
             _fail(source, key, f"must be a string, got {value!r}")
+    if not _FOLDER_NAME.fullmatch(name):  # it names the default output folder
+        _fail(source, "name", f"must be 1-100 letters, digits, '.', '-' or '_' (it names the output folder), "
+                              f"got {name!r}")
     if repeat is None:
         repeat = _int(source, "repeat", data.get("repeat", DEFAULT_REPEAT), f"1..{MAX_REPEAT}")
         where = "repeat"

@@ -53,7 +53,8 @@ SCHEMA = 1
 
 
 def read_results(path: Path) -> tuple[list, int]:
-    """(records, bytes of complete lines) of a results.jsonl; a torn or unreadable line is skipped."""
+    """(records, bytes of complete lines) of a results.jsonl; a torn or unreadable line, or a record
+    the tables cannot read (``_readable``), is skipped."""
     if not path.is_file():
         return [], 0
     data = path.read_bytes()
@@ -66,9 +67,22 @@ def read_results(path: Path) -> tuple[list, int]:
             record = json.loads(line)
         except ValueError:
             continue
-        if isinstance(record, dict) and "id" in record:
+        if isinstance(record, dict) and "id" in record and _readable(record):
             records.append(record)
     return records, complete
+
+
+def _readable(record: dict) -> bool:
+    """Whether a cell's record has what the tables read (``csv_row`` takes it): a record edited
+    or damaged by hand is skipped, so ``--resume`` measures its cell again rather than failing in
+    the reports. Dynamic-path records (``engine.bench.dynamic``) have their own reader."""
+    if record.get("kind") == "dynamic":
+        return True
+    try:
+        csv_row(record)
+    except (KeyError, TypeError, AttributeError, ValueError, IndexError):
+        return False
+    return True
 
 
 def repair(path: Path) -> None:

@@ -52,7 +52,7 @@ from engine.bench.cell_scenes import SceneCache, cell_scene
 from engine.bench.matrix import Cell, Matrix, load_matrix
 from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require_open3d
 from engine.bench.yardstick import replay_once
-from engine.core.atomic import output_folder
+from engine.core.atomic import output_file, output_folder
 from engine.core.errors import ConfigError
 from engine.core.threads import numba_threads
 from engine.core.types import RAY_KINDS, copied_batch
@@ -485,6 +485,7 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
 
     output_folder(out, "--out")
     path = out / results_io.RESULTS
+    output_file(path, "--out")  # a folder in its place is one line now, not after the first cell
     if resume:
         results_io.repair(path)
     elif path.is_file() and path.stat().st_size:

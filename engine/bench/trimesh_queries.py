@@ -71,11 +71,21 @@ def parse(data: dict, source: str, repeat: int | None = None) -> dict:
     for key in ("render_path", "one_thread"):
         if not isinstance(spec[key], bool):
             raise ConfigError(f"{source}: {key} must be true or false, got {spec[key]!r}")
+    for key in ("name", "description"):
+        if not isinstance(spec[key], str):
+            raise ConfigError(f"{source}: {key} must be a string, got {spec[key]!r}")
+    if not isinstance(spec["queries"], list) or not all(isinstance(q, str) for q in spec["queries"]):
+        raise ConfigError(f"{source}: queries must be a list of names ({', '.join(QUERIES)}), "
+                          f"got {spec['queries']!r}")
     bad = [q for q in spec["queries"] if q not in QUERIES]
     if bad or not spec["queries"]:
         raise ConfigError(f"{source}: queries {bad} unknown; allowed: {', '.join(QUERIES)}")
-    if not spec["mesh"] or not all(isinstance(m, dict) and isinstance(m.get("scene"), str) for m in spec["mesh"]):
+    if (not isinstance(spec["mesh"], list) or not spec["mesh"]
+            or not all(isinstance(m, dict) and isinstance(m.get("scene"), str) for m in spec["mesh"])):
         raise ConfigError(f"{source}: give at least one [[mesh]] table with scene = \"<catalog name>\"")
+    for k, entry in enumerate(spec["mesh"]):
+        if not isinstance(entry.get("label", ""), str):
+            raise ConfigError(f"{source}: mesh[{k}].label must be a string, got {entry['label']!r}")
     return spec
 
 

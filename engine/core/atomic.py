@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import stat
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -28,14 +29,43 @@ def _sync(path: Path) -> None:
         os.close(fd)
 
 
+def _special_target(target: Path) -> bool:
+    """Whether ``target`` (links already followed) is a character device (``/dev/null``), which
+    is written straight into, as a rename would replace the device node by a file. A folder,
+    FIFO, socket or block device is a PacketrtError: no file can be written whole there."""
+    try:
+        mode = target.stat().st_mode
+    except FileNotFoundError:
+        return False
+    except OSError as exc:
+        raise PacketrtError(f"cannot write {str(target)!r}: {exc.strerror or exc}") from None
+    if stat.S_ISREG(mode):
+        return False
+    if stat.S_ISCHR(mode):
+        return True
+    what = "a folder" if stat.S_ISDIR(mode) else "a pipe" if stat.S_ISFIFO(mode) else \
+        "a socket" if stat.S_ISSOCK(mode) else "a block device" if stat.S_ISBLK(mode) else "not a regular file"
+    raise PacketrtError(f"cannot write {str(target)!r}: it is {what}, not a file")
+
+
+def _followed(path) -> Path:
+    """``path`` with a symbolic link at its end followed: writing to a link writes the file it
+    points to and leaves the link in place (a rename would replace the link itself)."""
+    target = Path(path)
+    return Path(os.path.realpath(target)) if target.is_symlink() else target
+
+
 @contextmanager
 def replacing(path) -> Path:
     """``with replacing(target) as tmp: write tmp`` -- then tmp is synced and renamed over
     ``target`` (folders created). The temporary name keeps the suffix, so format sniffing
-    still works. A target that is a folder is an error, not a rename into it."""
-    target = Path(path)
-    if target.is_dir():
-        raise PacketrtError(f"cannot write {str(target)!r}: it is a folder, not a file")
+    still works. A target that is a folder, pipe, socket or block device is an error, not a
+    rename over it; a symbolic link is followed (its file is replaced, the link kept); a
+    character device such as ``/dev/null`` is written straight into."""
+    target = _followed(path)
+    if _special_target(target):
+        yield target
+        return
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = target.with_name(f".{target.stem}.{os.getpid()}.tmp{target.suffix}")
     try:
@@ -116,9 +146,16 @@ def output_file(path, what: str) -> Path:
     folder that exists or can be made, and is writable (the folder is made now). Otherwise one
     PacketrtError naming ``what`` (e.g. "--stats") and the path, so a long render never ends in
     an output it cannot write."""
-    target = Path(path)
+    target = _followed(path)
     if target.is_dir():
-        raise PacketrtError(f"{what} {str(target)!r} is a folder; give a file")
+        raise PacketrtError(f"{what} {str(path)!r} is a folder; give a file")
+    try:
+        if _special_target(target):  # /dev/null and the like: writable or not, no file to make
+            if not os.access(target, os.W_OK):
+                raise PacketrtError(f"cannot write {what} {str(path)!r}: permission denied")
+            return Path(path)
+    except PacketrtError as exc:
+        raise PacketrtError(f"{what}: {exc}") from None
     folder = output_folder(target.parent, what)
     # A real file made and removed: permission bits do not tell for root, or on /proc and
     # read-only mounts.

@@ -24,3 +24,21 @@ class ConfigError(PacketrtError):
 
 class ConfigTypeError(ConfigError, TypeError):
     """A config or parameter value has the wrong type (a string where a number belongs)."""
+
+
+def memory_errors_as(error_type):
+    """Decorator: a MemoryError inside the call (numpy's, for a query of more rays than the
+    memory that is free) becomes ``error_type`` (a ValueError: the input was too large), one
+    line naming the call; the API's callers then catch one kind of error for every bad input."""
+    import functools
+
+    def wrap(method):
+        @functools.wraps(method)
+        def call(*args, **kwargs):
+            try:
+                return method(*args, **kwargs)
+            except MemoryError as exc:
+                raise error_type(f"{method.__name__}: not enough free memory for this input ({exc}); "
+                                 f"split it into smaller calls") from None
+        return call
+    return wrap

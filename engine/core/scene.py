@@ -119,8 +119,11 @@ def checked_vertices(vertices, faces: np.ndarray, source: str) -> np.ndarray:
         raise SceneError(f"{source}: vertex {i} ({vertices[i].tolist()}) is beyond the supported "
                          f"+-{COORDINATE_LIMIT:.0e} (float32 cannot hold it)")
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
-        raise SceneError(f"{source}: a face refers to vertex {int(faces.max())} but there are "
-                         f"only {len(vertices)} vertices")
+        outside = (faces < 0) | (faces >= len(vertices))
+        row = int(np.flatnonzero(outside.any(axis=1))[0])
+        index = int(faces[row][outside[row]][0])
+        raise SceneError(f"{source}: face {row} refers to vertex {index}, but the vertices are "
+                         f"0..{len(vertices) - 1}")
     return vertices
 
 
@@ -146,16 +149,58 @@ def make_triangles(vertices, faces, material, normals=None, uvs=None, *, source=
 
     corner_normals = np.zeros((0, 3, 3), np.float32)
     if normals is not None:
-        normals = np.asarray(normals, np.float32)
-        corner_normals = normals[faces] if normals.ndim == 2 else normals.reshape(n, 3, 3)
-        corner_normals = np.nan_to_num(corner_normals, nan=0.0, posinf=0.0, neginf=0.0)
+        normals = _per_corner(normals, faces, len(vertices), 3, "normals", source)
+        corner_normals = np.nan_to_num(normals, nan=0.0, posinf=0.0, neginf=0.0)
     corner_uvs = np.zeros((0, 3, 2), np.float32)
     if uvs is not None:
-        uvs = np.asarray(uvs, np.float32)
-        corner_uvs = uvs[faces] if uvs.ndim == 2 else uvs.reshape(n, 3, 2)
+        corner_uvs = _per_corner(uvs, faces, len(vertices), 2, "uvs", source)
+        if not np.isfinite(corner_uvs).all():  # a NaN uv would index the texture at -2**63
+            row = int(np.flatnonzero(~np.isfinite(corner_uvs).reshape(n, -1).all(axis=1))[0])
+            raise SceneError(f"{source}: triangle {row}'s texture coordinates {corner_uvs[row].tolist()} are not "
+                             f"finite numbers")
     return Triangles(v0, np.ascontiguousarray(e1), np.ascontiguousarray(e2), np.ascontiguousarray(ng),
                      v1, v2, mat, np.ascontiguousarray(corner_normals, np.float32),
                      np.ascontiguousarray(corner_uvs, np.float32))
+
+
+def _per_corner(values, faces, n_vertices: int, width: int, what: str, source: str) -> np.ndarray:
+    """f32[T,3,width] per-corner ``values`` from per-vertex f[V,width] or per-corner f[T,3,width];
+    any other shape is a SceneError naming ``what``."""
+    try:
+        values = np.asarray(values, np.float32)
+    except (TypeError, ValueError):
+        raise SceneError(f"{source}: {what} must be numbers, got {type(values).__name__}") from None
+    if values.shape == (n_vertices, width):
+        return values[faces]
+    if values.shape == (len(faces), 3, width):
+        return values
+    raise SceneError(f"{source}: {what} must have shape ({n_vertices}, {width}) per vertex or "
+                     f"({len(faces)}, 3, {width}) per corner, got {values.shape}")
+
+
+def check_triangles(tris, source: str) -> Triangles:
+    """``tris`` if it keeps the ``Triangles`` contract (``engine.core.types``): every per-triangle
+    array float32 of T rows (T > 0) and the right width, finite corners, normals and uvs of T
+    rows or none, materials int32 of T rows; else one SceneError naming ``source`` and the
+    field. Triangles a user hands over are read by kernels that trust these shapes."""
+    if not isinstance(tris, Triangles):
+        raise SceneError(f"{source}: expected packetrt Triangles, got {type(tris).__name__}")
+    n = np.shape(tris.v0)[0] if np.ndim(tris.v0) == 2 else -1
+    if n <= 0:
+        raise SceneError(f"{source}: Triangles.v0 must have shape (T, 3) with T > 0, got {np.shape(tris.v0)}")
+    expected = {"v0": (n, 3), "e1": (n, 3), "e2": (n, 3), "ng": (n, 3), "v1": (n, 3), "v2": (n, 3),
+                "material": (n,), "normals": ((n, 3, 3), (0, 3, 3)), "uvs": ((n, 3, 2), (0, 3, 2))}
+    for name, shapes in expected.items():
+        value = getattr(tris, name)
+        shapes = shapes if isinstance(shapes[0], tuple) else (shapes,)
+        dtype = np.int32 if name == "material" else np.float32
+        if not isinstance(value, np.ndarray) or value.dtype != dtype or value.shape not in shapes:
+            got = f"{value.dtype} {value.shape}" if isinstance(value, np.ndarray) else type(value).__name__
+            raise SceneError(f"{source}: Triangles.{name} must be {np.dtype(dtype).name} of shape "
+                             f"{' or '.join(map(str, shapes))}, got {got}")
+        if name != "material" and not np.isfinite(value).all():
+            raise SceneError(f"{source}: Triangles.{name} holds non-finite numbers")
+    return Triangles(*(np.ascontiguousarray(a) for a in tris))
 
 
 def concat_triangles(parts: list) -> Triangles:
@@ -267,6 +312,12 @@ class SceneBuilder:
             raise SceneError(f"{self.source}: the scene has no triangles")
         if not self.materials:
             self.add_material(Material())
+        for kind, part in self._parts:
+            used = np.asarray(part[2] if kind == "mesh" else part.material)
+            if used.size and (used.min() < 0 or used.max() >= len(self.materials)):
+                bad = int(used.min() if used.min() < 0 else used.max())
+                raise SceneError(f"{part[5] if kind == 'mesh' else self.source}: material index {bad} does not exist "
+                                 f"(the scene has {len(self.materials)} material(s): 0..{len(self.materials) - 1})")
         offset = self._offset()
         shift = (lambda p: p) if offset is None else (lambda p: tuple(np.asarray(p, np.float64) - offset))
         parts = [p if kind == "tris" else

@@ -46,6 +46,7 @@ import numpy as np
 
 from engine.core.bvh import build_bvh
 from engine.core.bvh_refit import refit_bvh
+from engine.core.errors import memory_errors_as
 from engine.core.scratch import Scratch
 from engine.core.scene import make_triangles
 from engine.core.threads import at_own_threads
@@ -129,7 +130,7 @@ def _max_hits(value) -> int:
         raise QueryTypeError(f"max_hits must be a positive integer or None, got {value!r}")
     if value < 1:
         raise QueryInputError(f"max_hits must be >= 1 (or None for no limit), got {value}")
-    return int(value)
+    return int(min(value, np.iinfo(np.int64).max))  # beyond int64 is no limit, as None
 
 
 def _mesh_arrays(mesh):
@@ -142,6 +143,10 @@ def _mesh_arrays(mesh):
     if len(faces) == 0:
         raise QueryInputError("mesh.faces is empty: the mesh has no triangles to intersect")
     vertices = _points("mesh.vertices", mesh.vertices)
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        row = int(np.flatnonzero(((faces < 0) | (faces >= len(vertices))).any(axis=1))[0])
+        raise QueryInputError(f"mesh.faces[{row}] = {faces[row].tolist()} refers to a vertex that does not exist "
+                              f"(the mesh has {len(vertices)} vertices)")
     return vertices, faces.astype(np.int64)
 
 
@@ -324,6 +329,7 @@ class RayMeshIntersector:
         return index_ray, index_tri, u, v
 
     # -- trimesh's interface -------------------------------------------------------------
+    @memory_errors_as(QueryInputError)
     @at_own_threads  # numba's count for this call only (``engine.core.threads``)
     def intersects_id(self, ray_origins, ray_directions, multiple_hits: bool = True,
                       max_hits: int | None = DEFAULT_MAX_HITS, return_locations: bool = False):
@@ -360,6 +366,7 @@ class RayMeshIntersector:
                                                              max_hits, True)
         return locations, index_ray, index_tri
 
+    @memory_errors_as(QueryInputError)
     @at_own_threads
     def intersects_first(self, ray_origins, ray_directions):
         """int32 (n,): the first triangle each ray hits, -1 for a miss (or a bad ray)."""
@@ -368,6 +375,7 @@ class RayMeshIntersector:
         with self._buffers() as allocate:
             return self._first(s, rays, False, allocate)[0].astype(np.int32)
 
+    @memory_errors_as(QueryInputError)
     @at_own_threads
     def intersects_any(self, ray_origins, ray_directions):
         """bool (n,): whether each ray hits the surface (any hit, early exit)."""
@@ -376,6 +384,7 @@ class RayMeshIntersector:
         with self._buffers() as allocate:
             return self._first(s, rays, True, allocate)[0] >= 0
 
+    @memory_errors_as(QueryInputError)
     @at_own_threads
     def contains_points(self, points):
         """bool (n,): whether each point (n, 3) is inside the mesh, by the parity of the surface

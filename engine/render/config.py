@@ -283,7 +283,9 @@ def read_toml(path: str, what: str) -> dict:
     (``what``: "config", "matrix", ... for the message)."""
     file = Path(path)
     if not file.is_file():
-        raise ConfigError(f"{what} file {path!r} does not exist")
+        state = "is a folder, not a file" if file.is_dir() else \
+            "is not a regular file" if file.exists() else "does not exist"
+        raise ConfigError(f"{what} file {path!r} {state}")
     try:
         return tomllib.loads(file.read_bytes().decode("utf-8"))
     except UnicodeDecodeError as exc:
@@ -335,10 +337,10 @@ def with_overrides(config: Config, *, scene=None, traversal=(), frustum=(), pack
     return validate(replace(config, render=render, scene=scene_config, **changes))
 
 
-def parse_size(text: str) -> tuple[int, int]:
-    """"WxH" -> (W, H); anything else is a ConfigError."""
+def parse_size(text: str, option: str = "--size") -> tuple[int, int]:
+    """"WxH" -> (W, H); anything else is a ConfigError naming ``option``."""
     try:
         w, h = text.lower().split("x")
         return int(w), int(h)
     except ValueError:
-        raise ConfigError(f"--size must look like 512x512, got {text!r}") from None
+        raise ConfigError(f"{option} must look like 512x512, got {text!r}") from None
