@@ -471,27 +471,27 @@ def test_the_report_gives_each_row_its_paired_interval_and_counts_the_verdicts()
              "lb": np.array([len(LIVE_EDGES) - 1] * 2), "valid": np.array([True, True]),
              "seconds": np.array([[3.0, 1.0, 2.0], [3.0, 2.0, 1.0]])}
     timing = {("erw6", 8, "primary"): {"ranged": 1e-3, "partition": 2e-3, "auto": 0.9e-3, "auto/packet": 1e-3,
-                                       "auto/rule": 1e-3,
+                                       "auto/trials": 1e-3,
                                        "paired": {"auto": (0.9, 0.85, 0.95), "auto/packet": (1.0, 0.9, 1.1),
-                                                  "auto/rule": (1.0, 0.97, 1.02)}},
+                                                  "auto/trials": (1.0, 0.97, 1.02)}},
               ("erw6", 8, "shadow"): {"ranged": 2e-3, "partition": 1e-3, "auto": 1.2e-3, "auto/packet": 1e-3,
-                                      "auto/rule": 1.3e-3,
+                                      "auto/trials": 1.3e-3,
                                       "paired": {"auto": (1.2, 1.1, 1.3), "auto/packet": (1.0, 0.9, 1.1),
-                                                 "auto/rule": (1.3, 1.25, 1.4)}}}
+                                                 "auto/trials": (1.3, 1.25, 1.4)}}}
     limits = {"ranged_max_footprint": 0.5, "masked_max_footprint": -1.0, "min_live": LIVE_EDGES[-1],
               "invalid_frustum": "partition"}
     args = {"date": "today", "scenes": ["erw6"], "sizes": [64], "packets": [8], "repeat": 1, "threads": 2,
             "measure_repeat": 3, "command": "fit", "machine": "here", "fitted": False}
-    trial = {"kind": "shadow", "packets": 4096, "group": "partition", "tried_packets": 170, "own_seconds": 2e-3,
-             "other_seconds": 1e-3, "walked_by": "ranged"}
+    trial = {"kind": "shadow", "packets": 4096, "group": "partition", "larger": False, "tried_packets": 170,
+             "own_seconds": 2e-3, "own_packets": 85, "other_seconds": 1e-3, "other_packets": 85, "walked_by": "ranged"}
     counts = {("erw6", 8, "shadow"): {"masked": 0, "ranged": 4096, "partition": 0, "trials": [trial]}}
     text = report(args, limits, 2.0, cells, np.array([0.5]), timing, counts, 1.0)
-    assert "| erw6 | 8 | shadow | 4096 | partition | 170 | 2.00 | 1.00 | ranged |" in text  # the trials' table
+    assert "| erw6 | 8 | shadow | 4096 | partition | no | 2.00 (85) | 1.00 (85) | ranged |" in text  # the trials' table
     assert "given with `--limits`" in text
     assert "| 0.900 [0.850, 0.950] | faster |" in text and "| 1.200 [1.100, 1.300] | slower |" in text
     assert "rows, auto: faster than both in 1, the same as the better within the noise in 0, slower than the " \
            "better in 1" in text
-    # The rule alone (no trials), paired against the same better strategy, has its own column and count.
+    # auto with trials, paired against the same better strategy, has its own column and count.
     assert "| 1.30 | 1.300 [1.250, 1.400] | slower |" in text
-    assert "the rule alone (no trials): faster than both in 0, the same as the better within the noise in 1, " \
+    assert "auto with trials: faster than both in 0, the same as the better within the noise in 1, " \
            "slower than the better in 1" in text

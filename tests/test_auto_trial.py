@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from engine.core.types import Frusta, empty_hits, new_stats
-from engine.packet.auto_trial import (MARGIN, PASS_SIDES, TRIAL_MIN_PACKETS, TRIAL_PERIOD, TrialBook,
-                                      trial_labels, tried_walk, winner)
+from engine.packet.auto_trial import (MARGIN, PASS_SIDES, SPLIT_MARGIN, TRIAL_MIN_PACKETS, TRIAL_PERIOD,
+                                      TRIAL_RUN, TrialBook, trial_labels, tried_walk, winner)
 from engine.packet.strategies import PARTITION, RANGED
 from engine.render.plugins import make_frustum, make_traversal
 from packet_raysets import scene_rays
@@ -32,19 +32,27 @@ class FakeClock:
         return self.now
 
 
-def test_a_groups_ranks_are_dealt_to_the_four_passes_and_the_rest():
-    choices = np.array([RANGED, PARTITION] * 10 + [RANGED] * 5, np.int8)
+def test_a_groups_packets_are_dealt_to_the_four_passes_and_the_rest_in_runs():
+    """Runs of TRIAL_RUN consecutive packets of the group, so a pass's packets spread over every
+    deck (thread) and bring their own answer pages, not packets of one residue."""
+    choices = np.array([PARTITION] * 7 + [RANGED] * 600 + [PARTITION] * 50, np.int8)
     labels = trial_labels(choices, RANGED)
     members = np.flatnonzero(choices == RANGED)
     assert (labels[choices != RANGED] == -1).all()
-    np.testing.assert_array_equal(labels[members], [min(r % TRIAL_PERIOD, 4) for r in range(members.size)])
+    expected = [min((r // TRIAL_RUN) % TRIAL_PERIOD, 4) for r in range(members.size)]
+    np.testing.assert_array_equal(labels[members], expected)
+    for trial_pass in range(4):  # each pass holds whole runs, dealt to every deck the group reaches
+        ranks = np.flatnonzero(labels[members] == trial_pass)
+        assert set(members[ranks] % 8) == set(range(8))
 
 
-def test_the_other_strategy_must_win_by_the_margin():
-    assert winner(RANGED, 1.0, (1 - MARGIN) * 0.999) == PARTITION
-    assert winner(RANGED, 1.0, 1 - MARGIN) == RANGED
-    assert winner(PARTITION, 1.0, 0.5) == RANGED
-    assert winner(PARTITION, 0.5, 1.0) == PARTITION
+def test_the_larger_group_changes_by_the_margin_and_the_smaller_keeps_a_split_by_more():
+    assert winner(RANGED, 1.0, (1 - MARGIN) * 0.999, larger=True) == PARTITION
+    assert winner(RANGED, 1.0, 1 - MARGIN, larger=True) == RANGED
+    assert winner(PARTITION, 0.5, 1.0, larger=True) == PARTITION
+    # The smaller group keeps its own strategy (and the batch its split) only by SPLIT_MARGIN.
+    assert winner(PARTITION, (1 - SPLIT_MARGIN) * 0.999, 1.0, larger=False) == PARTITION
+    assert winner(PARTITION, (1 - SPLIT_MARGIN) * 1.001, 1.0, larger=False) == RANGED
 
 
 def record_walks():
@@ -74,16 +82,17 @@ def test_a_trial_walks_every_packet_once_and_gives_the_rest_to_the_faster_side()
     for strategy, packets in walks:
         by[packets] = strategy
     np.testing.assert_array_equal(choices, by)  # choices say who walked each packet
-    ranged_group = np.flatnonzero(rule == RANGED)
     passes = [s for s, _ in walks[:4]]
     assert passes == [RANGED, PARTITION, PARTITION, RANGED]
-    rank = np.arange(ranged_group.size) % TRIAL_PERIOD
-    assert (by[ranged_group[rank >= 4]] == PARTITION).all()
-    assert (by[ranged_group[(rank == 0) | (rank == 3)]] == RANGED).all()
-    assert (by[rule == PARTITION][np.arange((rule == PARTITION).sum()) % TRIAL_PERIOD >= 4] == PARTITION).all()
+    labels = trial_labels(rule, RANGED)
+    assert (by[labels == 4] == PARTITION).all()
+    assert (by[(labels == 0) | (labels == 3)] == RANGED).all()
+    assert (by[trial_labels(rule, PARTITION) == 4] == PARTITION).all()
     assert book.verdicts(signature) == {RANGED: PARTITION, PARTITION: PARTITION}
-    assert [t["walked_by"] for t in book.trials_of(signature)] == ["partition", "partition"]
-    assert book.trials_of(signature)[0]["own_seconds"] == 20.0
+    trials = book.trials_of(signature)
+    assert [(t["group"], t["larger"], t["walked_by"]) for t in trials] == [("ranged", True, "partition"),
+                                                                              ("partition", False, "partition")]
+    assert trials[0]["own_seconds"] == 20.0 and trials[0]["own_packets"] == np.count_nonzero((labels == 0) | (labels == 3))
 
     walks, walk = record_walks()
     again = rule.copy()
@@ -100,7 +109,7 @@ def test_a_group_too_small_to_try_keeps_the_rules_choice_and_is_not_tried_again(
     walks, walk = record_walks()
     choices = rule.copy()
     tried_walk(walk, choices, book, signature)
-    assert (choices[:20] == PARTITION).all() and (choices[20:][np.arange(n - 20) % TRIAL_PERIOD >= 4] == PARTITION).all()
+    assert (choices[:20] == PARTITION).all() and (choices[trial_labels(rule, RANGED) == 4] == PARTITION).all()
     assert book.verdicts(signature) == {RANGED: PARTITION}
     walks, walk = record_walks()
     again = rule.copy()
@@ -130,7 +139,7 @@ def test_tried_batches_answer_as_the_plain_traversals_and_report_their_trials(al
     """The first walk (timed, no counters: as a render's frames) tries both groups; the second,
     counting (as the ``--stats`` pass), walks them by the verdicts and reports the trials."""
     rs, rays, packets, frusta, options = alternating_batch
-    plugin = make_traversal("auto", options)
+    plugin = make_traversal("auto", {**options, "trials": True})
     # Ranged's group looks slow, Partition's fast: Ranged's rest goes to Partition.
     plugin.book = TrialBook(FakeClock([10.0 if s == 0 else 1.0 for s in PASS_SIDES]
                                       + [1.0 if s == 0 else 10.0 for s in PASS_SIDES]))
@@ -155,12 +164,15 @@ def test_tried_batches_answer_as_the_plain_traversals_and_report_their_trials(al
     assert stats.extra["auto"]["per_batch"] == [{"masked": 0, "ranged": 0, "partition": n_packets}]
     trials = stats.extra["auto"]["trials"]
     assert [(t["group"], t["walked_by"]) for t in trials] == [("ranged", "partition"), ("partition", "partition")]
-    assert all(t["tried_packets"] == n_packets // 4 for t in trials)
+    for t, group in zip(trials, (RANGED, PARTITION)):
+        labels = trial_labels(np.where(frusta.valid, RANGED, PARTITION).astype(np.int8),
+                              group)
+        assert t["tried_packets"] == np.count_nonzero((labels >= 0) & (labels < 4))
     assert plugin.choose(rs.bvh, rays, packets, frusta).tolist() == [PARTITION] * n_packets
 
 
-def test_trials_can_be_switched_off_and_are_checked():
-    assert make_traversal("auto", {"trials": False}).book is None
+def test_trials_are_off_unless_asked_for_and_are_checked():
+    assert make_traversal("auto", {}).book is None and make_traversal("auto", {"trials": True}).book is not None
     with pytest.raises(ValueError, match="trials must be true or false"):
         make_traversal("auto", {"trials": "yes"})
 

@@ -17,13 +17,13 @@ packet than whole by the sample's majority (Ranged) (see the README). The packet
 the chosen strategy's own copy of the one packet walk (``engine.packet.walk``), so their hits are
 the other traversals' hits, bit for bit.
 
-A batch chosen packet by packet is also checked by timing (``engine.packet.auto_trial``): the
-first time the plugin walks it, each group of at least 256 packets (those the rule gave Ranged,
-those it gave Partition) has an eighth of its packets walked by each strategy in four
-interleaved timed passes, and the rest of the group goes to the faster one. The verdicts are kept
-by batch signature (ray kind, packets, rays), so the same batch of the next frame is walked by
-them without a trial. The rule's measures do not tell the kitchen's 1024x1024 shadow packets
-from spd-rings' of the same footprint; the trial does.
+With ``trials = true`` a batch chosen packet by packet is also checked by timing
+(``engine.packet.auto_trial``): the first time the plugin walks it, each group of at least 256
+packets (those the rule gave Ranged, those it gave Partition) has about an eighth of its packets
+walked by each strategy in four interleaved timed passes, and the rest of the group goes to the
+faster one; the verdicts are kept by batch signature (ray kind, packets, rays) for the next
+frame. It is off by default: measured on the 1024x1024 frames it left ``auto`` slower than the
+better strategy in more rows than the rule alone (the module doc has the numbers).
 
 Options (``[options.auto]``), each defaulting to the fitted value in
 ``engine/packet/auto_thresholds.json`` (``tools/fit_auto.py``):
@@ -35,7 +35,8 @@ Options (``[options.auto]``), each defaulting to the fitted value in
 - ``invalid_frustum``: the strategy for packets without a frustum;
 - ``split_min_packets``: the fewest packets a batch whose sample is split must have to be chosen
   packet by packet (0: every such batch; a huge number: never), default SPLIT_MIN_PACKETS;
-- ``trials``: check the per-packet choice by timed trials (default true; false: the rule alone).
+- ``trials``: check the per-packet choice by timed trials (default false: measured slower than
+  the rule alone, see ``engine.packet.auto_trial``).
 
 Statistics (``--stats``: ``extra.plugins.KIND.auto``): ``packets``, the packets walked by each
 strategy, ``per_batch``, the same for every batch traced, in order, and ``trials``, for each batch
@@ -67,9 +68,9 @@ class AutoTraversal(PacketTraversal):
 
     strategy = AUTO
     OPTIONS = {**dict.fromkeys(LIMIT_NAMES), "split_min_packets": SPLIT_MIN_PACKETS,
-               "trials": True}  # a limit None: fitted
+               "trials": False}  # a limit None: fitted
 
-    def __init__(self, split_min_packets=SPLIT_MIN_PACKETS, trials=True, **limits):
+    def __init__(self, split_min_packets=SPLIT_MIN_PACKETS, trials=False, **limits):
         if isinstance(split_min_packets, bool) or not isinstance(split_min_packets, int) or split_min_packets < 0:
             raise ConfigError(f"options.auto.split_min_packets must be an integer >= 0, got {split_min_packets!r}")
         if not isinstance(trials, bool):

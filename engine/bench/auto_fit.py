@@ -83,7 +83,7 @@ MIN_CELL_PACKETS = 64
 #: A footprint threshold above every packet's footprint.
 EVERY = 1e9
 #: The auto variants a measurement replays (``measure``).
-AUTOS = ("auto", "auto/packet", "auto/rule")
+AUTOS = ("auto", "auto/packet", "auto/trials")
 
 
 # -- rays ----------------------------------------------------------------------------------
@@ -293,14 +293,14 @@ def measure(frames, limits, repeat, log):
     """{(scene, packet, kind): {traversal: median seconds per frame, "paired": {auto: (median,
     low, high)}}} of replaying each frame's batches with ranged, partition, auto (``limits``),
     "auto/packet" (the same limits, every batch whose sample is split chosen packet by packet:
-    ``split_min_packets = 0``) and "auto/rule" (the same limits, no timed trials:
-    ``engine.packet.auto_trial``), interleaved, where "paired" is each auto's ``paired_ratio``
+    ``split_min_packets = 0``) and "auto/trials" (the same limits with timed trials on the batches
+    it splits: ``engine.packet.auto_trial``), interleaved, where "paired" is each auto's ``paired_ratio``
     against the better of ranged and partition; and {(scene, packet, kind): auto's packets per
-    strategy}. Every auto's answers must equal Partition's. The first, untimed repetition is
-    where the autos make their trials (a renderer's first frame)."""
+    strategy, with auto/trials' trials}. Every auto's answers must equal Partition's. The first,
+    untimed repetition is where auto/trials makes its trials (a renderer's first frame)."""
     names = ("ranged", "partition") + AUTOS
     options = {"auto": limits, "auto/packet": {**limits, "split_min_packets": 0},
-               "auto/rule": {**limits, "trials": False}}
+               "auto/trials": {**limits, "trials": True}}
     out, counts = {}, {}
     for (name, n), (renderer, batches) in frames.items():
         plugins = {t: make_traversal(t.split("/")[0], options.get(t)) for t in names}
@@ -330,11 +330,13 @@ def measure(frames, limits, repeat, log):
             # Each auto against the better strategy's time in the same repetition.
             row["paired"] = {t: paired_ratio(per_rep[t], per_rep[best]) for t in AUTOS}
             out[(name, n, kind)] = row
-        tally = Tally(count=True)  # one counting replay: auto's choices per kind
+        tally, tried = Tally(count=True), Tally(count=True)  # counting replays: auto's choices, the trials
         for kind, query, rays, pk in batches:
             tracers["auto"].trace(kind, query, rays, pk, tally)
+            tracers["auto/trials"].trace(kind, query, rays, pk, tried)
         for kind, stats in tally.stats.items():
-            counts[(name, n, kind)] = {**stats.extra["auto"]["packets"], "trials": stats.extra["auto"].get("trials", [])}
+            counts[(name, n, kind)] = {**stats.extra["auto"]["packets"],
+                                       "trials": tried.stats[kind].extra["auto"].get("trials", [])}
         log(f"measured {name} {n}x{n}")
     return out, counts
 
@@ -395,15 +397,15 @@ def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds, 
               "or around it (the same within the run's noise). `choices` are "
               "auto's packets walked by Masked / Ranged / Partition. `auto by packet` is auto with "
               "`split_min_packets = 0` (every batch whose sample is split chosen packet by packet). "
-              "`rule alone` is auto without its timed trials (`trials = false`: the rule's choice on "
-              "the batches it splits, unchecked), with its paired ratio and verdict.", "",
+              "`with trials` is auto with timed trials on the batches it splits (`trials = true`, "
+              "`engine.packet.auto_trial`), with its paired ratio and verdict.", "",
               *([f"![auto over the better of Ranged and Partition per row]({plot.name})", ""] if plot else []),
               "| scene | packet | kind | ranged | partition | auto | auto/best | paired [95%] | verdict | "
-              "choices M/R/P | auto by packet | by packet/best | rule alone | rule paired [95%] | rule verdict |",
+              "choices M/R/P | auto by packet | by packet/best | with trials | trials paired [95%] | trials verdict |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     verdicts = {"faster": 0, "same": 0, "slower": 0}
-    rule_verdicts = {"faster": 0, "same": 0, "slower": 0}
-    sums = {t: 0.0 for t in ("ranged", "partition", "auto", "auto/packet", "auto/rule", "best")}
+    trial_verdicts = {"faster": 0, "same": 0, "slower": 0}
+    sums = {t: 0.0 for t in ("ranged", "partition", "auto", "auto/packet", "auto/trials", "best")}
     for (scene, n, kind) in sorted(timing, key=lambda k: (k[0], k[1], RAY_KINDS.index(k[2]))):
         t = timing[(scene, n, kind)]
         best = min(t["ranged"], t["partition"])
@@ -414,20 +416,20 @@ def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds, 
         by_packet = t.get("auto/packet", np.nan)
         sums["auto/packet"] += by_packet
         sums["best"] += best
-        rule = t.get("auto/rule", np.nan)
-        sums["auto/rule"] += rule
+        tried = t.get("auto/trials", np.nan)
+        sums["auto/trials"] += tried
         paired_cell, row_verdict = _paired_cells(t.get("paired", {}).get("auto"), verdicts)
-        rule_cell, rule_verdict = _paired_cells(t.get("paired", {}).get("auto/rule"), rule_verdicts)
+        tried_cell, tried_verdict = _paired_cells(t.get("paired", {}).get("auto/trials"), trial_verdicts)
         lines.append(f"| {scene} | {n} | {kind} | {1e3 * t['ranged']:.2f} | {1e3 * t['partition']:.2f} | "
                      f"{1e3 * t['auto']:.2f} | {t['auto'] / best:.3f} | {paired_cell} | {row_verdict} | "
                      + "/".join(str(c.get(x, 0)) for x in CHOSEN_NAMES)
-                     + f" | {1e3 * by_packet:.2f} | {by_packet / best:.3f} | {1e3 * rule:.2f} | {rule_cell} | "
-                     f"{rule_verdict} |")
+                     + f" | {1e3 * by_packet:.2f} | {by_packet / best:.3f} | {1e3 * tried:.2f} | {tried_cell} | "
+                     f"{tried_verdict} |")
     lines += [f"| **all** | | | {1e3 * sums['ranged']:.1f} | {1e3 * sums['partition']:.1f} | "
               f"{1e3 * sums['auto']:.1f} | {sums['auto'] / sums['best']:.3f} (vs per-row best) | | | | "
               f"{1e3 * sums['auto/packet']:.1f} | {sums['auto/packet'] / sums['best']:.3f} | "
-              f"{1e3 * sums['auto/rule']:.1f} | {sums['auto/rule'] / sums['best']:.3f} | |", ""]
-    for label, counted in (("auto", verdicts), ("the rule alone (no trials)", rule_verdicts)):
+              f"{1e3 * sums['auto/trials']:.1f} | {sums['auto/trials'] / sums['best']:.3f} | |", ""]
+    for label, counted in (("auto", verdicts), ("auto with trials", trial_verdicts)):
         if sum(counted.values()):
             lines += [f"Paired verdicts over {sum(counted.values())} rows, {label}: faster than both in "
                       f"{counted['faster']}, the same as the better within the noise in {counted['same']}, "
@@ -436,13 +438,15 @@ def report(args, limits, fitted_total, cells, f_edges, timing, counts, seconds, 
              for trial in counts[key].get("trials", [])]
     if tried:
         lines += ["## auto's trials", "",
-                  "Each group of a batch the rule split packet by packet, as auto's first (untimed) repetition "
-                  "tried it (`engine.packet.auto_trial`): its own strategy's and the other's time on an eighth "
-                  "of the group's packets each, and the strategy that walked the rest from then on.", "",
-                  "| scene | packet | kind | batch packets | group | tried packets | own ms | other ms | walked by |",
+                  "Each group of a batch the rule split packet by packet, as auto with trials' first "
+                  "(untimed) repetition tried it (`engine.packet.auto_trial`): its own strategy's and the other's time on about an "
+                  "eighth of the group's packets each (packets in brackets), whether it is the batch's larger "
+                  "group, and the strategy that walked the rest from then on.", "",
+                  "| scene | packet | kind | batch packets | group | larger | own ms | other ms | walked by |",
                   "|---|---|---|---|---|---|---|---|---|"]
-        lines += [f"| {scene} | {n} | {kind} | {t['packets']} | {t['group']} | {t['tried_packets']} | "
-                  f"{1e3 * t['own_seconds']:.2f} | {1e3 * t['other_seconds']:.2f} | {t['walked_by']} |"
+        lines += [f"| {scene} | {n} | {kind} | {t['packets']} | {t['group']} | {'yes' if t.get('larger') else 'no'} | "
+                  f"{1e3 * t['own_seconds']:.2f} ({t.get('own_packets', '?')}) | "
+                  f"{1e3 * t['other_seconds']:.2f} ({t.get('other_packets', '?')}) | {t['walked_by']} |"
                   for (scene, n, kind), t in tried]
         lines.append("")
     return "\n".join(lines) + "\n"

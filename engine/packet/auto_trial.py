@@ -10,19 +10,47 @@ disagrees with itself.
 
 When a batch is chosen packet by packet (its sample split, and at least ``split_min_packets``
 packets), each of its two groups -- the packets the rule gave Ranged, those it gave Partition --
-with at least ``TRIAL_MIN_PACKETS`` packets is tried. In packet order, the group's packets of
-rank 8i and 8i + 3 are walked by the group's own strategy and those of rank 8i + 1 and 8i + 2 by
-the other one, as four timed parallel passes in the order own, other, other, own, so that the
-host's drift and the caches warming over the four passes fall on both sides alike. The rest of
-the group (half of it) is walked by the side that took less time, the group's own strategy
-unless the other took under ``1 - MARGIN`` of its time. Every packet is walked exactly once, so
-the answers are the plain traversals' answers (all strategies find the same hits).
+with at least ``TRIAL_MIN_PACKETS`` packets is tried. The group's packets, in packet order, are
+dealt in runs of ``TRIAL_RUN``: of every ``TRIAL_PERIOD`` runs, run 0 and run 3 are walked by the
+group's own strategy and runs 1 and 2 by the other one, as four timed parallel passes in the
+order own, other, other, own, so that the host's drift and the caches warming over the four
+passes fall on both sides alike. Runs of consecutive packets, not single packets: the walk deals
+packet k to deck k % decks, so packets of one residue would all go to one thread, and neighbouring
+packets share the pages of the answer arrays, whose first touch (a page fault) would all fall on
+the first pass. The rest of the group (half of it) is walked by the side whose packets took less
+time each. Every packet is walked exactly once, so the answers are the plain traversals' answers
+(all strategies find the same hits).
+
+Splitting a batch has a cost of its own that a trial of separate packets does not see: each
+strategy's pass walks packets farther apart, which share fewer tree nodes in the caches (the
+kitchen's 1024x1024 shadow batch walked 7% slower split than whole by Ranged, although its
+Partition packets each walked 8% faster by Partition in the trial). So the larger group needs the
+other strategy to be ``MARGIN`` faster to change, and the smaller group keeps its own strategy,
+and with it the split, only when that is ``SPLIT_MARGIN`` faster than the larger group's.
 
 The verdicts are kept in a ``TrialBook`` under the batch's signature (ray kind, packet count, ray
 count): the same batch of the next frame of a static scene has the same signature, and its
 groups are walked by their verdicts at once, with no trial and no extra pass. A batch not seen
 before (a new frame of an animation, another resolution) is tried afresh. The book belongs to one
 ``auto`` plugin instance (one renderer or query), so nothing is shared between renders.
+
+**Off by default** (``[options.auto] trials = true`` turns them on): measured, they make ``auto``
+slower. ``tools/fit_auto.py`` at 1024x1024 (16x16 packets, erw6, museum, kitchen, spd-rings, 21
+paired repetitions, the shipped thresholds; session 31, ``docs/auto-fit-1024-trials.md``):
+
+- packets dealt one by one (ranks mod 8), no split margin: with trials slower than the better
+  strategy in 3 of 16 rows, faster than both in 1; the rule alone slower in 1;
+- runs of 16 packets, times per packet, the split margin (as here): with trials slower in 7 rows;
+  the rule alone slower in 1 and faster than both in 1 (museum reflections, 0.909 [0.855, 0.982]).
+
+Two reasons, both measured. The first timed pass of a process reads far slower than the same work
+later: erw6's 1024x1024 reflection batch, its Ranged group tried by a fresh plugin four times in
+one process, read 14.4 / 5.8 / 5.5 / 6.0 ms for its own passes against 9.6 / 9.3 / 9.0 / 9.2 for
+the other's, so the first trial sent the group to Partition, which walks that batch 1.3x slower.
+And a subset's time does not predict the batch's: the museum's reflection batch, its Partition
+group walked faster by Ranged in the trial (6.3 against 8.1 ms), walked 9% faster split, as the
+rule had it, than whole by Ranged. A measure of whole batches (the same batch walked by each
+choice over successive frames) would see what the split costs; it was not built.
 
 Unlike the shadow order (``engine.render.shadow_order``, which counts node visits so that a
 scene always gets the same choice), these verdicts come from timings: walking a packet by
@@ -42,11 +70,15 @@ from engine.packet.strategies import CHOSEN_NAMES, MASKED, PARTITION, RANGED
 
 #: A group of fewer packets than this is not tried (each timed pass would hold an eighth of it).
 TRIAL_MIN_PACKETS = 256
-#: Ranks within a group: in every run of TRIAL_PERIOD packets, the first four go to the trial's
-#: passes 0..3 (own, other, other, own), the rest to the winner.
+#: A group's packets are dealt in runs of TRIAL_RUN consecutive ones; of every TRIAL_PERIOD runs,
+#: the first four go to the trial's passes 0..3 (own, other, other, own), the rest to the winner.
+TRIAL_RUN = 16
 TRIAL_PERIOD = 8
-#: The other strategy wins a group when it took under (1 - MARGIN) of the group's own time.
+#: The larger group goes to the other strategy when its packets took under (1 - MARGIN) of the
+#: time each that the group's own took; the smaller group keeps its own strategy (a split batch)
+#: only when that took under (1 - SPLIT_MARGIN) of the larger group's strategy's time.
 MARGIN = 0.03
+SPLIT_MARGIN = 0.10
 #: Verdicts a book keeps (the oldest are dropped first): an animation brings new signatures.
 BOOK_CAPACITY = 256
 #: The side each of the four timed passes walks: 0 = the group's own strategy, 1 = the other.
@@ -60,18 +92,22 @@ def other_strategy(strategy: int) -> int:
 
 def trial_labels(choices: np.ndarray, group: int) -> np.ndarray:
     """i8[K]: for each packet k with choices[k] == group, the trial pass (0..3) that walks it,
-    or 4 for the rest of the group, by its rank r within the group (r % TRIAL_PERIOD, 4 when
-    that is 4 or more); -1 for every other packet."""
+    or 4 for the rest of the group, by its rank r within the group: run r // TRIAL_RUN, and of
+    the runs, (run % TRIAL_PERIOD), 4 when that is 4 or more; -1 for every other packet."""
     labels = np.full(choices.shape[0], -1, np.int8)
     members = np.flatnonzero(choices == group)
-    labels[members] = np.minimum(np.arange(members.size) % TRIAL_PERIOD, 4)
+    labels[members] = np.minimum((np.arange(members.size) // TRIAL_RUN) % TRIAL_PERIOD, 4)
     return labels
 
 
-def winner(group: int, own_seconds: float, other_seconds: float, margin: float = MARGIN) -> int:
-    """The strategy the rest of ``group`` is walked by: the other one when it took under
-    (1 - margin) of the group's own strategy's time on the trial's packets, else ``group``."""
-    return other_strategy(group) if other_seconds < (1.0 - margin) * own_seconds else group
+def winner(group: int, own_each: float, other_each: float, larger: bool) -> int:
+    """The strategy the rest of ``group`` is walked by, from the trial's seconds per packet of
+    the group's own strategy and of the other: for the larger group, the other one when it took
+    under (1 - MARGIN) of the own one's time; for the smaller, its own one only when that took
+    under (1 - SPLIT_MARGIN) of the other's (else the batch is walked whole, see the module doc)."""
+    if larger:
+        return other_strategy(group) if other_each < (1.0 - MARGIN) * own_each else group
+    return group if own_each < (1.0 - SPLIT_MARGIN) * other_each else other_strategy(group)
 
 
 class TrialBook:
@@ -106,18 +142,25 @@ class TrialBook:
 
     def trials_of(self, signature) -> list:
         """The trials that decided ``signature``'s verdicts, one dict per group tried: kind,
-        packets, group, tried_packets, own_seconds, other_seconds, walked_by."""
+        packets, group, larger, tried_packets, own_seconds, own_packets, other_seconds,
+        other_packets, walked_by."""
         return list(self._trials.get(signature, ()))
 
-    def decide(self, signature, group: int, own_seconds: float, other_seconds: float, n_tried: int) -> int:
-        """Record the trial of ``group`` in batch ``signature`` and return its winner."""
-        chosen = winner(group, own_seconds, other_seconds)
+    def decide(self, signature, group: int, own: tuple, other: tuple, larger: bool) -> int:
+        """Record the trial of ``group`` in batch ``signature`` -- (seconds, packets) walked by
+        its own strategy and by the other; ``larger``: the larger of the batch's two groups --
+        and return its winner."""
+        (own_seconds, own_packets), (other_seconds, other_packets) = own, other
+        chosen = winner(group, own_seconds / max(own_packets, 1), other_seconds / max(other_packets, 1), larger)
+        n_tried = own_packets + other_packets
         if signature not in self._verdicts:
             self.open(signature)
         self._verdicts[signature][group] = chosen
         self._trials[signature].append({"kind": signature[0], "packets": signature[1], "group": CHOSEN_NAMES[group],
-                                        "tried_packets": int(n_tried), "own_seconds": float(own_seconds),
-                                        "other_seconds": float(other_seconds), "walked_by": CHOSEN_NAMES[chosen]})
+                                        "larger": bool(larger), "tried_packets": int(n_tried),
+                                        "own_seconds": float(own_seconds), "own_packets": int(own_packets),
+                                        "other_seconds": float(other_seconds), "other_packets": int(other_packets),
+                                        "walked_by": CHOSEN_NAMES[chosen]})
         return chosen
 
 
@@ -140,20 +183,24 @@ def tried_walk(walk, choices: np.ndarray, book: TrialBook, signature) -> None:
         return
     walked = choices.copy()  # the strategy that walks each packet, as it is decided
     book.open(signature)
+    sizes = {group: int(np.count_nonzero(choices == group)) for group in (RANGED, PARTITION)}
     for group in (RANGED, PARTITION):
         labels = trial_labels(choices, group)
         tried = (labels >= 0) & (labels < 4)
-        if np.count_nonzero(labels >= 0) < TRIAL_MIN_PACKETS:
+        if sizes[group] < TRIAL_MIN_PACKETS:
             continue
         sides = (group, other_strategy(group))
-        seconds = [0.0, 0.0]
+        seconds, packets = [0.0, 0.0], [0, 0]
         for trial_pass, side in enumerate(PASS_SIDES):
             strategy = sides[side]
             start = book.clock()
             walk(strategy, np.where(labels == trial_pass, strategy, -1).astype(np.int8))
             seconds[side] += book.clock() - start
+            packets[side] += int(np.count_nonzero(labels == trial_pass))
             walked[labels == trial_pass] = strategy
-        walked[labels == 4] = book.decide(signature, group, seconds[0], seconds[1], np.count_nonzero(tried))
+        larger = sizes[group] >= sizes[other_strategy(group)]
+        walked[labels == 4] = book.decide(signature, group, (seconds[0], packets[0]), (seconds[1], packets[1]),
+                                          larger)
         choices[tried] = -1  # walked by the trial: not again
     choices[choices >= 0] = walked[choices >= 0]
     walk_by_strategy(walk, choices)
