@@ -253,7 +253,8 @@ def test_a_batch_is_walked_by_its_samples_majority_or_packet_by_packet(rayset, p
     assert n_packets > SAMPLED_PACKETS and len(outside) >= 2
     odd = [outside[0], outside[-1]] + ([sampled[len(sampled) // 2]] if split else [])
     rays, packets, frusta, options = batch_with_odd_packets(rayset, odd)
-    plugin = make_traversal("auto", {**options, "split_min_packets": n_packets + (per == "batch")})
+    plugin = make_traversal("auto", {**options, "split_min_packets": n_packets + (per == "batch"),
+                                     "split_min_share": 0.0})  # any share split (the share rule: below)
     expected = np.full(n_packets, RANGED, np.int8)
     if split and per == "packet":
         expected[odd] = MASKED
@@ -495,3 +496,33 @@ def test_the_report_gives_each_row_its_paired_interval_and_counts_the_verdicts()
     assert "| 1.30 | 1.300 [1.250, 1.400] | slower |" in text
     assert "auto with trials: faster than both in 0, the same as the better within the noise in 1, " \
            "slower than the better in 1" in text
+
+
+@pytest.mark.parametrize("share,split", [(0.0, True), (0.03, True), (0.05, False), (0.25, False)])
+def test_a_split_with_too_few_packets_of_the_minority_is_walked_whole(rayset, share, split):
+    """3 of the 36 packets (8.3%) are Masked by the rule, the others Ranged, and the sample is split
+    (1 of its 32 packets Masked, 3.1%): the batch is chosen packet by packet and keeps its split
+    only when both shares reach ``split_min_share``; otherwise every packet goes to Ranged, with no
+    per-packet pass when the sample's share is already short. The answers are Ranged's either way."""
+    n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, 8)[1].offsets) - 1
+    sampled = sampled_packets(n_packets)
+    outside = sorted(set(range(n_packets)) - set(sampled))
+    odd = [outside[0], outside[-1], sampled[len(sampled) // 2]]
+    rays, packets, frusta, options = batch_with_odd_packets(rayset, odd)
+    plugin = make_traversal("auto", {**options, "split_min_packets": 0, "split_min_share": share})
+    expected = np.full(n_packets, RANGED, np.int8)
+    if split:
+        expected[odd] = MASKED
+    np.testing.assert_array_equal(plugin.choose(rayset.bvh, rays, packets, frusta), expected)
+    stats = new_stats(numba.get_num_threads())
+    hits, ref = empty_hits(rays.org.shape[0]), empty_hits(rays.org.shape[0])
+    plugin.intersect(rayset.bvh, rayset.tris, rays, packets, frusta, hits, stats)
+    assert stats.extra["auto"]["packets"]["masked"] == (3 if split else 0)
+    make_traversal("ranged").intersect(rayset.bvh, rayset.tris, rays, packets, frusta, ref, None)
+    for field in ("prim", "t", "u", "v"):
+        np.testing.assert_array_equal(getattr(hits, field), getattr(ref, field))
+
+
+def test_split_min_share_is_checked():
+    with pytest.raises(ValueError, match="split_min_share must be a number in 0..0.5"):
+        make_traversal("auto", {"split_min_share": 0.7})

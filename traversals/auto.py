@@ -35,6 +35,9 @@ Options (``[options.auto]``), each defaulting to the fitted value in
 - ``invalid_frustum``: the strategy for packets without a frustum;
 - ``split_min_packets``: the fewest packets a batch whose sample is split must have to be chosen
   packet by packet (0: every such batch; a huge number: never), default SPLIT_MIN_PACKETS;
+- ``split_min_share``: a batch chosen packet by packet is walked split only when the packets the
+  smaller strategies got hold at least this share of it, else whole by the strategy most got
+  (0: always split), default SPLIT_MIN_SHARE;
 - ``trials``: check the per-packet choice by timed trials (default false: measured slower than
   the rule alone, see ``engine.packet.auto_trial``).
 
@@ -60,6 +63,13 @@ from engine.packet.walk import choose_batch
 #: the 256x256 frames (at most 1,024 packets) walked faster whole, and the kitchen's 1024x1024
 #: reflection batch (1,710 16x16 packets) walked 17% faster chosen packet by packet.
 SPLIT_MIN_PACKETS = 1536
+#: ``split_min_share``'s default, set between measurements, not fitted (1024x1024, 16x16 packets,
+#: session 31, docs/auto-measurements.md): split, the kitchen's shadow batch (17% of its packets
+#: Partition's) and erw6's reflections (7%) walked 4-7% slower than whole by Ranged, while the
+#: museum's reflections (37%) walked 9% faster than both whole ways, and the kitchen's
+#: reflections (44%) about as fast as the better. Splitting costs a second pass and packets
+#: farther apart in each, which only a large enough share repays.
+SPLIT_MIN_SHARE = 0.25
 
 
 @register_traversal("auto")
@@ -68,11 +78,16 @@ class AutoTraversal(PacketTraversal):
 
     strategy = AUTO
     OPTIONS = {**dict.fromkeys(LIMIT_NAMES), "split_min_packets": SPLIT_MIN_PACKETS,
-               "trials": False}  # a limit None: fitted
+               "split_min_share": SPLIT_MIN_SHARE, "trials": False}  # a limit None: fitted
 
-    def __init__(self, split_min_packets=SPLIT_MIN_PACKETS, trials=False, **limits):
+    def __init__(self, split_min_packets=SPLIT_MIN_PACKETS, split_min_share=SPLIT_MIN_SHARE, trials=False,
+                 **limits):
         if isinstance(split_min_packets, bool) or not isinstance(split_min_packets, int) or split_min_packets < 0:
             raise ConfigError(f"options.auto.split_min_packets must be an integer >= 0, got {split_min_packets!r}")
+        if (isinstance(split_min_share, bool) or not isinstance(split_min_share, (int, float))
+                or not 0.0 <= split_min_share <= 0.5):
+            raise ConfigError(f"options.auto.split_min_share must be a number in 0..0.5, got {split_min_share!r}")
+        self.split_min_share = float(split_min_share)
         if not isinstance(trials, bool):
             raise ConfigError(f"options.auto.trials must be true or false, got {trials!r}")
         self.split_min_packets = split_min_packets
@@ -96,21 +111,24 @@ class AutoTraversal(PacketTraversal):
         valid = np.zeros(n_packets, np.bool_) if frusta is None else np.ascontiguousarray(frusta.valid, np.bool_)
         out = np.empty(n_packets, np.int8)
         _, whole = choose_batch(bvh.bmin, bvh.bmax, rays.org, rays.dir, rays.tmin, rays.tmax, offsets, valid,
-                                self._limits, out, per_packet=self._per_packet(packets))
+                                self._limits, out, per_packet=self._per_packet(packets),
+                                min_share=self.split_min_share)
         if whole < 0 and self.book is not None:
             apply_verdicts(out, self.book.verdicts(self.book.signature(rays.kind, n_packets, rays.org.shape[0])) or {})
         return out
 
     def walk_recorded(self, bvh, tris, rays, packets, frusta, any_hit, hits, record):
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, any_hit, hits.t, hits.prim, hits.u, hits.v,
-                   record=record, limits=self._limits, per_packet=self._per_packet(packets), book=self.book)
+                   record=record, limits=self._limits, per_packet=self._per_packet(packets), book=self.book,
+                   min_share=self.split_min_share)
 
     def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats,
              from_end=False):
         choices = np.empty(len(packets.offsets) - 1, np.int8)
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
                    None if stats is None else stats.counters, limits=self._limits, choices=choices,
-                   from_end=from_end, per_packet=self._per_packet(packets), book=self.book)
+                   from_end=from_end, per_packet=self._per_packet(packets), book=self.book,
+                   min_share=self.split_min_share)
         if stats is not None:
             trials = [] if self.book is None else self.book.trials_of(
                 self.book.signature(rays.kind, len(packets.offsets) - 1, rays.org.shape[0]))
@@ -121,7 +139,7 @@ class AutoTraversal(PacketTraversal):
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, True, any_hit.t, any_hit.prim, any_hit.u, any_hit.v,
                    None if stats is None else stats.counters, limits=self._limits, choices=choices,
                    from_end=from_end, chosen=chosen, visits=visits,
-                   per_packet=self._per_packet(packets))
+                   per_packet=self._per_packet(packets), min_share=self.split_min_share)
         if stats is not None:
             add_choices(stats, choices[chosen >= 0])
 

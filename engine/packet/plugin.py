@@ -77,7 +77,7 @@ def deck_count(n_packets: int) -> int:
 
 def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
                counters=None, record=None, kernel=None, limits=None, choices=None, from_end=False, chosen=None,
-               visits=None, per_packet=False, book=None):
+               visits=None, per_packet=False, book=None, min_share=0.0):
     """Walk every packet of ``rays`` (in ``packets``) through ``bvh`` by ``strategy``, with its
     frustum from ``frusta`` (None: no culling), writing the best (any_hit: first) hits into
     out_t, out_prim, out_u, out_v (f32/i32[R]). counters: i64[threads,3,D] or None; record: a
@@ -93,6 +93,8 @@ def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_p
     chosen: None (every packet), or i8[K] and only packets k with chosen[k] == strategy are
     walked (with AUTO: packets k with chosen[k] >= 0, each by the strategy it chooses).
     visits: i64[threads] that receives the nodes visited (added to), or None.
+    min_share: AUTO only, a batch chosen packet by packet whose smaller strategies' packets hold
+    under this share of it is walked whole by the strategy most got (``choose_batch``).
     book: AUTO only, an ``engine.packet.auto_trial.TrialBook`` whose verdicts (and, when none is
     held for this batch, timed trials) correct the per-packet choice, or None."""
     check_answer_arrays(rays.org.shape[0], out_t, out_prim, out_u, out_v)
@@ -129,7 +131,7 @@ def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_p
     elif choices.shape != (n_packets,) or choices.dtype != np.int8:
         raise ValueError(f"auto choices must be i8[{n_packets}], got {choices.dtype}{list(choices.shape)}")
     signature = None if book is None else book.signature(rays.kind, n_packets, rays.org.shape[0])
-    walk_packets_auto(*args, limits, choices, record, visits, chosen, per_packet, book, signature)
+    walk_packets_auto(*args, limits, choices, record, visits, chosen, per_packet, book, signature, min_share)
 
 
 class PacketTraversal:

@@ -164,9 +164,10 @@ EVERY_PACKET = np.empty(0, np.int8)
 def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax,
                       offsets, planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v,
                       counters, limits, choices, record, visits=None, only=None, per_packet=False, book=None,
-                      signature=None):
+                      signature=None, min_share=0.0):
     """``walk_packets`` by AUTO: each packet walked by the strategy ``choose_batch`` gives it
-    under limits f64[N_LIMITS] (packet by packet when the sample is split and ``per_packet``);
+    under limits f64[N_LIMITS] (packet by packet when the sample is split and ``per_packet``, unless
+    the smaller strategies' packets hold under ``min_share`` of the batch);
     choices i8[K] receives each packet's strategy. only: None (every packet), or i8[K] and only
     packets k with only[k] >= 0 are walked (their choices; the others' choices are -1).
 
@@ -180,7 +181,7 @@ def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs
     book holds for its signature (``engine.packet.auto_trial.tried_walk``); a counting or
     recording walk only applies verdicts already held."""
     _, whole = choose_batch(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices, only,
-                                        per_packet)
+                            per_packet, min_share)
     if whole >= 0 and only is None:
         walk_packets(whole, bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs, tmin, tmax, offsets,
                      planes, valid, order, n_chunks, any_hit, out_t, out_prim, out_u, out_v, counters, record,
@@ -200,7 +201,8 @@ def walk_packets_auto(bmin, bmax, first, count, prim, v0, v1, v2, org, inv, dirs
     walk_by_strategy(walk, choices)
 
 
-def choose_batch(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices, only=None, per_packet=False):
+def choose_batch(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choices, only=None, per_packet=False,
+                 min_share=0.0):
     """Fill choices i8[K] with the strategy AUTO walks each packet of a batch with (rays org,
     dirs f32[R,3], tmin, tmax f32[R] in packets offsets i32[K+1], frusta valid bool[K]) under
     limits f64[N_LIMITS], in a scene of BVH boxes bmin, bmax f32[N,3]; only: None, or i8[K] and
@@ -210,10 +212,12 @@ def choose_batch(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choi
     ``engine.packet.choose.batch_choice`` asks the rule for a sample of the packets; a sample
     that agrees gives the whole batch its strategy. A split one gives the whole batch the
     strategy most sampled packets got (a tie to the lower strategy number), or, when
-    ``per_packet``, has every packet chosen by the rule (``choose_packets``, in parallel). See
-    ``engine.packet.choose``."""
+    ``per_packet``, has every packet chosen by the rule (``choose_packets``, in parallel). A split
+    whose smaller strategies hold under ``min_share`` -- of the sample (then no per-packet pass
+    is made), or of the packets -- gives the whole batch the strategy most got (splitting has a
+    cost of its own: see the ``auto`` plugin's ``split_min_share``). See ``engine.packet.choose``."""
     whole, given = batch_choice(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits,
-                                EVERY_PACKET if only is None else only, per_packet, choices)
+                                EVERY_PACKET if only is None else only, per_packet, choices, min_share)
     if whole >= 0:
         counts = np.zeros(N_STRATEGIES, np.int64)
         counts[whole] = given
@@ -222,6 +226,13 @@ def choose_batch(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, choi
     if only is not None:  # the packets left out are not walked: count the others only
         choices[only < 0] = -1
         counts = np.bincount(choices[choices >= 0], minlength=N_STRATEGIES).astype(np.int64)
+    total = int(counts.sum())
+    top = int(np.argmax(counts))  # the first of equals: the lower strategy number, as batch_choice's ties
+    if total and total - counts[top] < min_share * total:
+        choices[choices >= 0] = top
+        counts = np.zeros(N_STRATEGIES, np.int64)
+        counts[top] = total
+        return counts, top
     return counts, whole
 
 
