@@ -451,6 +451,9 @@ def main(argv=None) -> int:
         # One line instead of argparse's usage block; SystemExit(2) as argparse itself would.
         print(f"packetrt: error: {exc}{_nearest_option(parser, argv, str(exc))}", file=sys.stderr)
         raise SystemExit(EXIT_USAGE) from None
+    # numba's note that this machine's TBB is too old for its TBB threading layer (it uses another)
+    # is about numba's set-up, not the command: Open3D loads that TBB (``audit --oracle open3d``).
+    warnings.filterwarnings("ignore", message=".*TBB threading layer.*")
     try:
         return args.run(args)
     except PacketrtError as exc:

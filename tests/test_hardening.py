@@ -257,7 +257,7 @@ def test_bench_out_that_is_a_file_is_one_line(tmp_path, capsys):
 def test_every_earlier_run_keeps_its_results(tmp_path, monkeypatch, capsys):
     from engine.bench import runner
 
-    def stop(todo):
+    def stop(todo, source=None):
         raise PacketrtError("stopped before any work")
 
     monkeypatch.setattr(runner, "preflight", stop)
@@ -546,3 +546,25 @@ def test_a_bad_face_index_is_named_itself():
 
 def test_a_folder_given_as_the_config_is_named_a_folder(tmp_path, capsys):
     one_error(["render", tmp_path, *TINY], capsys, "is a folder, not a file")
+
+
+def test_a_bad_scene_parameter_in_a_matrix_names_the_file_and_scene_first(tmp_path, capsys):
+    """Before: the loader's message alone, after the 'N cells to run' line."""
+    text = MATRIX.format(name="t", res="16").replace('scene = ["whitted"]', 'scene = [{name = "whitted", checks = 0}]')
+    code, lines = run(["bench", obj(tmp_path, text, "m.toml"), "--out", tmp_path / "o"], capsys)
+    assert code == 2 and len(lines) == 1, lines
+    assert "m.toml" in lines[0] and "scene 'whitted' (checks = 0)" in lines[0], lines[0]
+
+
+def test_an_open3d_audit_prints_nothing_on_stderr(tmp_path):
+    """Open3D loads a TBB older than numba's TBB layer wants, and numba said so in two lines on
+    stderr of an otherwise clean audit."""
+    pytest.importorskip("open3d")
+    done = subprocess.run([sys.executable, "-m", "engine.cli", "audit", *TINY, "--oracle", "open3d"],
+                          capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert done.returncode == 0 and done.stderr == "", done.stderr
+
+
+def test_a_camera_looking_at_its_own_eye_names_the_file(tmp_path, capsys):
+    scene = obj(tmp_path, AFF_HEAD.replace("from 0 0 5", "from 0 0 0") + "s 0 0 -3 1\n", "s.aff")
+    one_error(["render", "--scene", scene, *TINY, "-o", tmp_path / "x.png"], capsys, "s.aff", "coincide")

@@ -53,7 +53,7 @@ from engine.bench.matrix import Cell, Matrix, load_matrix
 from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require_open3d
 from engine.bench.yardstick import replay_once
 from engine.core.atomic import output_file, output_folder
-from engine.core.errors import ConfigError
+from engine.core.errors import ConfigError, PacketrtError
 from engine.core.threads import numba_threads
 from engine.core.types import RAY_KINDS, copied_batch
 from engine.render.config import read_toml
@@ -370,16 +370,22 @@ def _cost(cell: Cell, scene: tuple, repeat: int) -> float:
     return cell.width * cell.height * kinds * generations * slow * (2 + 3 * repeat) / 1e6
 
 
-def preflight(cells) -> dict:
+def preflight(cells, source: str = "<matrix>") -> dict:
     """Load every distinct scene once before any measurement (a loader's own parameter checks
-    fail here, not halfway through): {(name, params, time): (lights, triangles)}."""
+    fail here, not halfway through, as one error naming the matrix file ``source`` and the
+    scene): {(name, params, time): (lights, triangles)}."""
     from scenes.catalog import load_named
 
     found = {}
     for cell in cells:
         key = (cell.scene.name, cell.scene.params, cell.scene.time)
         if key not in found:
-            scene = load_named(cell.scene.name, dict(cell.scene.params), cell.scene.time)
+            try:
+                scene = load_named(cell.scene.name, dict(cell.scene.params), cell.scene.time)
+            except PacketrtError as exc:
+                params = ", ".join(f"{k} = {v!r}" for k, v in cell.scene.params)
+                raise type(exc)(f"{source}: scene {cell.scene.name!r}"
+                                f"{' (' + params + ')' if params else ''}: {exc}") from None
             found[key] = (len(scene.lights), scene.n_triangles)
     return found
 
@@ -497,6 +503,7 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
             (out / stale).unlink(missing_ok=True)
     done = {r["id"] for r in results_io.read_results(path)[0]}
     todo = [c for c in matrix.cells if c.key not in done]
+    scenes = preflight(todo, matrix.source) if todo else {}  # a bad scene parameter: one line, before any
     print(f"{matrix.name}: {len(matrix.cells)} cells, {len(matrix.cells) - len(todo)} already done, "
           f"{len(todo)} to run, {matrix.repeat} repeats -> {out}", file=sys.stderr)
     ran, interrupted = 0, False
@@ -504,7 +511,6 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
         if todo:
             if any(c.open3d for c in todo):
                 require_open3d(matrix.source)
-            scenes = preflight(todo)
             here = todo
             if scheduler is not None:
                 ran = _run_on_dask(matrix, todo, path, scheduler, workers, run if run is not run_cell else None)

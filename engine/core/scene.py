@@ -342,11 +342,13 @@ class SceneBuilder:
 
 
 def checked_camera(camera: Camera, source: str) -> Camera:
-    """``camera`` if its points are finite numbers within float32's reach and its field of view
-    is in (0, 180) degrees; else a SceneError naming ``source``."""
+    """``camera`` if its points are finite numbers within float32's reach, its eye and look_at
+    differ and its field of view is in (0, 180) degrees; else a SceneError naming ``source``."""
     for name in ("eye", "look_at", "up"):
         checked.vector(getattr(camera, name), f"{source}: camera {name}", error=SceneError)
     checked.to_float(camera.fov, f"{source}: camera fov (degrees)", 0.001, 179.9, error=SceneError)
+    if np.array_equal(np.asarray(camera.eye, np.float64), np.asarray(camera.look_at, np.float64)):
+        raise SceneError(f"{source}: camera eye and look_at coincide ({list(camera.eye)}): the camera looks nowhere")
     return camera
 
 
