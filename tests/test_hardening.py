@@ -568,3 +568,16 @@ def test_an_open3d_audit_prints_nothing_on_stderr(tmp_path):
 def test_a_camera_looking_at_its_own_eye_names_the_file(tmp_path, capsys):
     scene = obj(tmp_path, AFF_HEAD.replace("from 0 0 5", "from 0 0 0") + "s 0 0 -3 1\n", "s.aff")
     one_error(["render", "--scene", scene, *TINY, "-o", tmp_path / "x.png"], capsys, "s.aff", "coincide")
+
+
+def test_nan_vertices_name_the_first_bad_one():
+    """Before: the check ran after the move to the mesh's frame, where every vertex reads NaN, so
+    it named vertex 0 (finite) and counted 4 of 3."""
+    import trimesh
+    from engine import RayMeshIntersector
+    from engine.query.errors import QueryInputError
+
+    vertices = np.array([[0, 0, 0], [np.nan, 0, 0], [0, np.nan, 0], [0, 0, np.nan]])
+    mesh = trimesh.Trimesh(vertices, [[0, 1, 2], [0, 2, 3]], process=False)
+    with pytest.raises(QueryInputError, match=r"mesh.vertices\[1\] = \[nan, 0.0, 0.0\] is not finite \(3 such"):
+        RayMeshIntersector(mesh).intersects_first([[0, 0, 5]], [[0, 0, -1]])

@@ -143,6 +143,11 @@ def _mesh_arrays(mesh):
     if len(faces) == 0:
         raise QueryInputError("mesh.faces is empty: the mesh has no triangles to intersect")
     vertices = _points("mesh.vertices", mesh.vertices)
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():  # checked here: after the move to the mesh's frame every vertex would read NaN
+        row = int(np.flatnonzero(bad)[0])
+        raise QueryInputError(f"mesh.vertices[{row}] = {vertices[row].tolist()} is not finite "
+                              f"({int(bad.sum())} such vertices)")
     if faces.min() < 0 or faces.max() >= len(vertices):
         row = int(np.flatnonzero(((faces < 0) | (faces >= len(vertices))).any(axis=1))[0])
         raise QueryInputError(f"mesh.faces[{row}] = {faces[row].tolist()} refers to a vertex that does not exist "
