@@ -114,7 +114,7 @@ class AutoTraversal(PacketTraversal):
                                 self._limits, out, per_packet=self._per_packet(packets),
                                 min_share=self.split_min_share)
         if whole < 0 and self.book is not None:
-            apply_verdicts(out, self.book.verdicts(self.book.signature(rays.kind, n_packets, rays.org.shape[0])) or {})
+            apply_verdicts(out, self.book.verdicts(self.book.signature_of(rays, packets)) or {})
         return out
 
     def walk_recorded(self, bvh, tris, rays, packets, frusta, any_hit, hits, record):
@@ -130,8 +130,7 @@ class AutoTraversal(PacketTraversal):
                    from_end=from_end, per_packet=self._per_packet(packets), book=self.book,
                    min_share=self.split_min_share)
         if stats is not None:
-            trials = [] if self.book is None else self.book.trials_of(
-                self.book.signature(rays.kind, len(packets.offsets) - 1, rays.org.shape[0]))
+            trials = [] if self.book is None else self.book.trials_of(self.book.signature_of(rays, packets))
             add_choices(stats, choices, trials)
 
     def _walk_group(self, bvh, tris, rays, packets, frusta, any_hit, stats, from_end, chosen, visits):

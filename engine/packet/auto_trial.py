@@ -126,6 +126,11 @@ class TrialBook:
         """A batch's signature: the same batch of the next frame of a static scene has the same."""
         return (kind, int(n_packets), int(n_rays))
 
+    @staticmethod
+    def signature_of(rays, packets) -> tuple:
+        """``signature`` of a RayBatch in its Packets."""
+        return TrialBook.signature(rays.kind, len(packets.offsets) - 1, rays.org.shape[0])
+
     def open(self, signature) -> None:
         """Mark ``signature`` as seen (its verdicts, possibly none, follow): a batch whose groups
         are too small to try is not tried again."""

@@ -130,7 +130,7 @@ def walk_batch(strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_p
         choices = np.empty(n_packets, np.int8)
     elif choices.shape != (n_packets,) or choices.dtype != np.int8:
         raise ValueError(f"auto choices must be i8[{n_packets}], got {choices.dtype}{list(choices.shape)}")
-    signature = None if book is None else book.signature(rays.kind, n_packets, rays.org.shape[0])
+    signature = None if book is None else book.signature_of(rays, packets)
     walk_packets_auto(*args, limits, choices, record, visits, chosen, per_packet, book, signature, min_share)
 
 
