@@ -14,7 +14,7 @@ import pytest
 from engine.core.errors import ConfigError
 from engine.core.types import Frusta, empty_hits, new_stats
 from engine.packet.auto_limits import fitted_limits, limits_array
-from engine.packet.choose import LIMIT_NAMES, SAMPLED_LANES, SAMPLED_PACKETS, measure_packets
+from engine.packet.choose import LIMIT_NAMES, SAMPLED_LANES, SAMPLED_PACKETS, measure_packets, sampled_packet
 from engine.packet.layout import make_batch
 from engine.packet.plugin import walk_batch
 from engine.packet.walk import choose_batch
@@ -221,16 +221,55 @@ def test_a_packet_given_to_a_strategy_is_walked_exactly_as_that_strategy_walks_i
     assert stats.extra["auto"]["packets"] == {n: (2 * n_packets if n == name else 0) for n in CHOSEN_NAMES}
 
 
+#: Packets of the batches the sample tests use: 4x4 gives the 48x48 ray set 144 packets, more
+#: than SAMPLED_PACKETS, so that some packets are left out of the sample.
+SAMPLE_TEST_PACKET = 4
+
+
 def sampled_packets(n_packets):
     """The packets ``engine.packet.choose.batch_choice`` asks the rule for, by its doc."""
     n = min(n_packets, SAMPLED_PACKETS)
-    return sorted({(j * n_packets) // n for j in range(n)})
+    return sorted({sampled_packet(j, n, n_packets) for j in range(n)})
+
+
+@pytest.mark.parametrize("n_packets", [1, 5, 63, 64, 65, 1000, 4096])
+def test_the_sample_takes_one_packet_in_each_equal_run_of_the_batch(n_packets):
+    n = min(n_packets, SAMPLED_PACKETS)
+    sample = [sampled_packet(j, n, n_packets) for j in range(n)]
+    for j, k in enumerate(sample):
+        assert j * n_packets // n <= k < (j + 1) * n_packets // n
+    assert len(set(sample)) == n
+
+
+def test_the_sample_of_an_image_batch_spreads_over_its_columns():
+    """A 1024x1024 frame in 16x16 packets: 64 tiles a row, 4,096 packets, row by row. The first
+    packet of every run (the sample until session 32) was a tile of the left column each time,
+    and that column decided the batch."""
+    columns = {sampled_packet(j, SAMPLED_PACKETS, 4096) % 64 for j in range(SAMPLED_PACKETS)}
+    assert len(columns) >= SAMPLED_PACKETS // 2
+    rows = [sampled_packet(j, SAMPLED_PACKETS, 4096) // 64 for j in range(SAMPLED_PACKETS)]
+    assert rows == sorted(rows) and rows[-1] - rows[0] >= 60
+
+
+def test_a_batch_is_not_decided_by_one_column_of_its_tiles(rayset):
+    """The primary batch's packets in two columns of tiles are Masked by the rule, the rest
+    Ranged: the sample's majority is Ranged, as the batch's is."""
+    rays, packets = rayset.rays["primary"].batch(rayset.width, rayset.height, SAMPLE_TEST_PACKET)
+    per_row = rayset.width // SAMPLE_TEST_PACKET
+    n_packets = len(packets.offsets) - 1
+    assert per_row >= 8 and n_packets > SAMPLED_PACKETS
+    odd = [k for k in range(n_packets) if k % per_row in (0, per_row // 2)]
+    rays, packets, frusta, options = batch_with_odd_packets(rayset, odd)
+    chosen = make_traversal("auto", {**options, "split_min_packets": n_packets + 1}).choose(
+        rayset.bvh, rays, packets, frusta)
+    assert (chosen == RANGED).all()
 
 
 def batch_with_odd_packets(rayset, odd):
-    """The primary batch of 8x8 packets with pinhole frusta, the packets ``odd`` without one; and
+    """The primary batch of SAMPLE_TEST_PACKET-square packets (more than SAMPLED_PACKETS of them)
+    with pinhole frusta, the packets ``odd`` without one; and
     an auto plugin's options under which a packet is Ranged with a frustum and Masked without."""
-    rays, packets = rayset.rays["primary"].batch(rayset.width, rayset.height, 8)
+    rays, packets = rayset.rays["primary"].batch(rayset.width, rayset.height, SAMPLE_TEST_PACKET)
     frusta = make_frustum("pinhole").build(rays, packets, rayset.bounds)
     valid = frusta.valid.copy()
     assert valid.all()
@@ -247,7 +286,7 @@ def test_a_batch_is_walked_by_its_samples_majority_or_packet_by_packet(rayset, p
     Masked packets outside it) gives Ranged to every packet. A split sample (one of them inside
     it): a batch of fewer than ``split_min_packets`` packets goes whole to the sample's majority
     (Ranged), a batch of as many is chosen packet by packet. All answer as Ranged does."""
-    n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, 8)[1].offsets) - 1
+    n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, SAMPLE_TEST_PACKET)[1].offsets) - 1
     sampled = sampled_packets(n_packets)
     outside = sorted(set(range(n_packets)) - set(sampled))
     assert n_packets > SAMPLED_PACKETS and len(outside) >= 2
@@ -270,7 +309,7 @@ def test_a_batch_is_walked_by_its_samples_majority_or_packet_by_packet(rayset, p
 
 
 def test_a_tie_in_the_sample_goes_to_the_lower_strategy_number(rayset):
-    n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, 8)[1].offsets) - 1
+    n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, SAMPLE_TEST_PACKET)[1].offsets) - 1
     sampled = sampled_packets(n_packets)
     rays, packets, frusta, options = batch_with_odd_packets(rayset, sampled[::2])
     assert 2 * len(sampled[::2]) == len(sampled)
@@ -280,7 +319,7 @@ def test_a_tie_in_the_sample_goes_to_the_lower_strategy_number(rayset):
 def test_packets_left_out_of_a_walk_are_left_out_of_its_sample(rayset):
     """A shadow-order trial walks some packets only (``only``): a sampled packet outside them
     does not split the sample, and gets no choice."""
-    n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, 8)[1].offsets) - 1
+    n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, SAMPLE_TEST_PACKET)[1].offsets) - 1
     odd = sampled_packets(n_packets)[3]
     rays, packets, frusta, options = batch_with_odd_packets(rayset, [odd])
     limits = make_traversal("auto", options)._limits
@@ -498,16 +537,19 @@ def test_the_report_gives_each_row_its_paired_interval_and_counts_the_verdicts()
            "slower than the better in 1" in text
 
 
-@pytest.mark.parametrize("share,split", [(0.0, True), (0.03, True), (0.05, False), (0.25, False)])
-def test_a_split_with_too_few_packets_of_the_minority_is_walked_whole(rayset, share, split):
-    """3 of the 36 packets (8.3%) are Masked by the rule, the others Ranged, and the sample is split
-    (1 of its 32 packets Masked, 3.1%): the batch is chosen packet by packet and keeps its split
-    only when both shares reach ``split_min_share``; otherwise every packet goes to Ranged, with no
-    per-packet pass when the sample's share is already short. The answers are Ranged's either way."""
-    n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, 8)[1].offsets) - 1
+@pytest.mark.parametrize("share,in_sample,split", [(0.0, 1, True), (0.015, 1, True), (0.02, 1, False),
+                                                    (0.25, 1, False), (0.02, 2, False)])
+def test_a_split_with_too_few_packets_of_the_minority_is_walked_whole(rayset, share, in_sample, split):
+    """3 of the 144 packets (2.1%) are Masked by the rule, the others Ranged, and the sample is
+    split (1 of its 64 packets Masked, 1.6%): the batch is chosen packet by packet and keeps its
+    split only when both shares reach ``split_min_share``; otherwise every packet goes to Ranged,
+    with no per-packet pass when the sample's share is already short. With 2 sampled packets the
+    only Masked ones (3.1% of the sample, 1.4% of the packets), a 2% share passes the sample but
+    not the per-packet count: whole. The answers are Ranged's either way."""
+    n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, SAMPLE_TEST_PACKET)[1].offsets) - 1
     sampled = sampled_packets(n_packets)
     outside = sorted(set(range(n_packets)) - set(sampled))
-    odd = [outside[0], outside[-1], sampled[len(sampled) // 2]]
+    odd = [outside[0], outside[-1], sampled[len(sampled) // 2]] if in_sample == 1 else sampled[10:12]
     rays, packets, frusta, options = batch_with_odd_packets(rayset, odd)
     plugin = make_traversal("auto", {**options, "split_min_packets": 0, "split_min_share": share})
     expected = np.full(n_packets, RANGED, np.int8)
@@ -517,7 +559,7 @@ def test_a_split_with_too_few_packets_of_the_minority_is_walked_whole(rayset, sh
     stats = new_stats(numba.get_num_threads())
     hits, ref = empty_hits(rays.org.shape[0]), empty_hits(rays.org.shape[0])
     plugin.intersect(rayset.bvh, rayset.tris, rays, packets, frusta, hits, stats)
-    assert stats.extra["auto"]["packets"]["masked"] == (3 if split else 0)
+    assert stats.extra["auto"]["packets"]["masked"] == (len(odd) if split else 0)
     make_traversal("ranged").intersect(rayset.bvh, rayset.tris, rays, packets, frusta, ref, None)
     for field in ("prim", "t", "u", "v"):
         np.testing.assert_array_equal(getattr(hits, field), getattr(ref, field))

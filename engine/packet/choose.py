@@ -36,7 +36,8 @@ The rule (``choose_packet``), with the thresholds of ``LIMITS`` (fitted by
 limits: f64[N_LIMITS] indexed by RANGED_MAX, MASKED_MAX, MIN_LIVE, INVALID_CHOICE.
 
 A batch is chosen from a sample (``engine.packet.walk.choose_batch``): ``batch_choice`` asks the
-rule for SAMPLED_PACKETS packets spread evenly over the batch, serially (about 0.1 us a packet).
+rule for SAMPLED_PACKETS packets, one in each of SAMPLED_PACKETS equal runs of the batch's packets
+(``sampled_packet``), serially (about 0.1 us a packet).
 A sample that agrees gives the whole batch its strategy. A split sample either gives the whole
 batch the strategy most sampled packets got or has every packet chosen by the rule in a parallel
 pass (``per_packet``; the ``auto`` plugin chooses per packet only in batches of at least its
@@ -61,8 +62,15 @@ N_LIMITS = 4
 #: Lanes of a packet the measures look at (see the module doc): 16 is the diagonal of a 16 x 16
 #: packet (a stride of 17) and every lane of a 4 x 4 one.
 SAMPLED_LANES = 16
-#: Packets ``batch_choice`` asks the rule for in a batch (every packet of a smaller batch).
-SAMPLED_PACKETS = 32
+#: Packets ``batch_choice`` asks the rule for in a batch (every packet of a smaller batch). 64
+#: rather than 32 (session 32): on the 1024x1024 frames of the fit's four scenes (16x16 packets,
+#: 30 batches of 2,388-4,096 packets), a sample of 32 at ``sampled_packet``'s offsets read two
+#: batches that a 25% share splits (the kitchen's reflections and refractions: 32% and 31% of
+#: their packets not the majority's) as 19% each, so they went whole; 64 read every such batch
+#: above 25% (``docs/auto-measurements.md``).
+SAMPLED_PACKETS = 64
+#: The golden ratio's fractional part: the offset of run j's sampled packet inside its run.
+GOLDEN_FRACTION = (math.sqrt(5.0) - 1.0) / 2.0
 #: A direction whose squared length is within this of 1 is taken as unit (float32 unit vectors
 #: are within a few 1e-7): the measure then skips its square root and division.
 UNIT_SLACK = 1e-6
@@ -164,12 +172,29 @@ def measure_packets(bmin, bmax, org, dirs, tmin, tmax, offsets, live_out, footpr
                                                         scales)
 
 
+@njit(cache=True, inline="always")
+def sampled_packet(j, n_sampled, n_packets):
+    """The packet ``batch_choice`` asks the rule for as its j-th of ``n_sampled`` (<= n_packets):
+    one in run j of the n_sampled runs that split the packets evenly (packets j K / n .. (j + 1)
+    K / n, rounded down), at the fraction frac((j + 1) x golden ratio) of the run.
+
+    Not the run's first packet, as until session 32: a batch's packets follow its camera tiles
+    row by row, and at 1024x1024 in 16x16 packets (64 tiles a row, 4,096 packets, 32 sampled)
+    the first packet of each run of 128 was a tile of the image's left column, which then decided
+    the whole batch (the museum's reflection batch: 71% of its packets Ranged's, 16% of that
+    sample). The golden ratio's multiples spread the sampled tiles over the columns as well as
+    the rows, and the same batch always gives the same sample."""
+    first = (j * n_packets) // n_sampled
+    run = ((j + 1) * n_packets) // n_sampled - first  # at least 1: n_sampled <= n_packets
+    return first + int((((j + 1) * GOLDEN_FRACTION) % 1.0) * run)
+
+
 @njit(cache=True)
 def batch_choice(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, only, per_packet, choices,
                  min_share=0.0):
     """The strategy a whole batch is given, from ``choose_packet``'s answers for SAMPLED_PACKETS
-    packets spread evenly over it (offsets i32[K+1], frusta valid bool[K]; every packet when K
-    is smaller): the one most of them got (a tie to the lower strategy number), or, when
+    packets spread over it (``sampled_packet``; offsets i32[K+1], frusta valid bool[K]; every
+    packet when K is smaller): the one most of them got (a tie to the lower strategy number), or, when
     ``per_packet``, the one all of them got, or at least all but a share under ``min_share`` (a
     split too thin to pay for itself needs no per-packet pass: 0.87 ms for the kitchen's 4,096
     16x16 shadow packets, 2.5% of their walk). Returns (that strategy, the packets given it), with
@@ -183,7 +208,7 @@ def batch_choice(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, only
     n_sampled = min(n_packets, SAMPLED_PACKETS)
     votes = np.zeros(3, np.int64)  # by strategy number: MASKED, RANGED, PARTITION
     for j in range(n_sampled):
-        k = (j * n_packets) // n_sampled
+        k = sampled_packet(j, n_sampled, n_packets)
         if only.shape[0] > 0 and only[k] < 0:
             continue
         start = offsets[k]
