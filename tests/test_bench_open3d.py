@@ -170,3 +170,27 @@ def test_missing_open3d_stops_the_run_before_any_work(tmp_path, monkeypatch, cap
     assert main(["bench", str(path), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert "libusb-1.0.so.0" in err and "open3d = false" in err and str(path) in err
+
+
+def test_timed_replays_answer_into_the_same_arrays_each_time(recorded):
+    """Replays trace into arrays made once, before the timing (as a frame's renderer keeps its
+    answers), and answer what a replay into new arrays answers; stale values are overwritten."""
+    renderer, recorder, _ = recorded
+    fresh = bench.replay(recorder.batches, renderer.tracer)[1]
+    kept = bench.answer_arrays(recorder.batches)
+    for answer in kept:  # stale answers that a replay must not leave behind
+        if isinstance(answer, np.ndarray):
+            answer.fill(True)
+        else:
+            answer.prim.fill(7)
+    _, first = bench.replay(recorder.batches, renderer.tracer, answers=kept)
+    _, second = bench.replay(recorder.batches, renderer.tracer, answers=kept)
+    for a, b, c, k in zip(fresh, first, second, kept):
+        assert b is k and c is k
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b)
+        else:
+            for field in ("t", "prim", "u", "v"):
+                np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    runs, answers = bench.timed_replays(recorder.batches, renderer.tracer, 2)
+    assert len(runs) == 2 and len(answers) == len(recorder.batches)

@@ -52,7 +52,7 @@ from engine.bench.machine import machine_info
 from engine.bench.matrix import Cell, PluginSpec, SceneSpec
 from engine.bench.cell_scenes import SceneCache, cell_scene
 from engine.bench.paired_stats import paired_ratio, verdict
-from engine.bench.runner import BatchRecorder
+from engine.bench.runner import BatchRecorder, answer_arrays
 from engine.core.atomic import write_json, write_text
 from engine.core.threads import numba_threads
 from engine.core.types import RAY_KINDS, Frusta, Packets, RayBatch, empty_hits
@@ -308,11 +308,17 @@ def measure(frames, limits, repeat, log):
                    for t, p in plugins.items()}
         runs = {t: [] for t in names}
         answers = {}
+        # Each traversal's timed replays answer into arrays of its own, made once (as a frame's
+        # renderer keeps its answers): new arrays inside the timing biased the pairs by their
+        # page faults (``engine.bench.runner.answer_arrays``).
+        kept = {t: answer_arrays(batches) for t in names}
         for rep in range(repeat + 1):
             order = names if rep % 2 else names[::-1]
             for t in order:
                 tally = Tally()
-                got = [tracers[t].trace(kind, query, rays, pk, tally) for kind, query, rays, pk in batches]
+                into = kept[t] if rep else [None] * len(batches)
+                got = [tracers[t].trace(kind, query, rays, pk, tally, answer)
+                       for (kind, query, rays, pk), answer in zip(batches, into)]
                 if rep:
                     runs[t].append(dict(tally.seconds))
                 else:

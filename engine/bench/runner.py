@@ -55,7 +55,7 @@ from engine.bench.yardstick import replay_once
 from engine.core.atomic import output_file, output_folder
 from engine.core.errors import ConfigError, PacketrtError
 from engine.core.threads import numba_threads
-from engine.core.types import RAY_KINDS, copied_batch
+from engine.core.types import RAY_KINDS, copied_batch, empty_hits
 from engine.render.config import read_toml
 from engine.render.plugins import make_traversal
 from engine.render.tracer import Tally
@@ -100,24 +100,48 @@ class BatchRecorder:
         return h.hexdigest()
 
 
-def replay(batches, tracer, from_end=None) -> tuple:
+def answer_arrays(batches) -> list:
+    """One answer per recorded batch, to trace into replay after replay: Hits (all misses) for
+    an intersect batch, bool[R] for an occlusion batch, every page already written.
+
+    A frame answers into arrays its renderer keeps (``engine.core.scratch``). Replays that made
+    new answer arrays inside the timing paid their first-touch page faults there, by an amount
+    that depended on what the allocator had freed before: a kitchen-paper frame's batches
+    replayed by one tracer took 181.4 ms with new arrays and 172.1 ms with kept ones (2 threads,
+    medians of 15, alternating; session 32), and in ``tools/fit_auto.py``'s replays the same
+    compiled Ranged walk read 5% faster as ``auto`` than as ``ranged`` on the kitchen."""
+    answers = []
+    for _, query, rays, _ in batches:
+        n = rays.org.shape[0]
+        if query == "intersect":
+            answers.append(empty_hits(n))  # np.full writes every page
+        else:
+            flags = np.empty(n, np.bool_)
+            flags.fill(False)  # np.zeros may map untouched zero pages
+            answers.append(flags)
+    return answers
+
+
+def replay(batches, tracer, from_end=None, answers=None) -> tuple:
     """({kind: seconds}, answers) of tracing the recorded batches again with ``tracer``, each
-    batch timed by the tracer as a render times it (frustum build + query + answer arrays);
-    answers[i] is batch i's Hits or bool[R]. from_end: per batch, the end to walk an occlusion
-    batch from (``BatchRecorder.from_end``; None: the usual order)."""
+    batch timed by the tracer as a render times it (frustum build + query); answers[i] is batch
+    i's Hits or bool[R], traced into ``answers`` (``answer_arrays``) when given, else into new
+    arrays made inside the timing. from_end: per batch, the end to walk an occlusion batch from
+    (``BatchRecorder.from_end``; None: the usual order)."""
     tally = Tally()
     ends = from_end if from_end is not None else [False] * len(batches)
-    answers = [tracer.trace(kind, query, rays, packets, tally, from_end=end)
-               for (kind, query, rays, packets), end in zip(batches, ends)]
+    into = answers if answers is not None else [None] * len(batches)
+    answers = [tracer.trace(kind, query, rays, packets, tally, answer, from_end=end)
+               for (kind, query, rays, packets), end, answer in zip(batches, ends, into)]
     return tally.seconds, answers
 
 
 def timed_replays(batches, tracer, repeat: int, from_end=None) -> tuple:
-    """([{kind: seconds}] of ``repeat`` replays, the last replay's answers)."""
-    seconds, answers = [], None
+    """([{kind: seconds}] of ``repeat`` replays, the last replay's answers), every replay
+    answering into the same arrays (``answer_arrays``, made before the first), as frames do."""
+    seconds, answers = [], answer_arrays(batches)
     for _ in range(repeat):
-        answers = None  # one set of answers alive at a time
-        run, answers = replay(batches, tracer, from_end)
+        run, answers = replay(batches, tracer, from_end, answers)
         seconds.append(run)
     return seconds, answers
 
