@@ -14,7 +14,8 @@ import pytest
 from engine.core.errors import ConfigError
 from engine.core.types import Frusta, empty_hits, new_stats
 from engine.packet.auto_limits import fitted_limits, limits_array
-from engine.packet.choose import LIMIT_NAMES, SAMPLED_LANES, SAMPLED_PACKETS, measure_packets, sampled_packet
+from engine.packet.choose import (LIMIT_NAMES, MAJORITY_SAMPLED_PACKETS, SAMPLED_LANES, SAMPLED_PACKETS,
+                                  measure_packets, sampled_packet)
 from engine.packet.layout import make_batch
 from engine.packet.plugin import walk_batch
 from engine.packet.walk import choose_batch
@@ -226,9 +227,10 @@ def test_a_packet_given_to_a_strategy_is_walked_exactly_as_that_strategy_walks_i
 SAMPLE_TEST_PACKET = 4
 
 
-def sampled_packets(n_packets):
-    """The packets ``engine.packet.choose.batch_choice`` asks the rule for, by its doc."""
-    n = min(n_packets, SAMPLED_PACKETS)
+def sampled_packets(n_packets, per_packet=True):
+    """The packets ``engine.packet.choose.batch_choice`` asks the rule for, by its doc: more in a
+    batch that may be split packet by packet (``per_packet``) than in one that goes whole."""
+    n = min(n_packets, SAMPLED_PACKETS if per_packet else MAJORITY_SAMPLED_PACKETS)
     return sorted({sampled_packet(j, n, n_packets) for j in range(n)})
 
 
@@ -287,7 +289,7 @@ def test_a_batch_is_walked_by_its_samples_majority_or_packet_by_packet(rayset, p
     it): a batch of fewer than ``split_min_packets`` packets goes whole to the sample's majority
     (Ranged), a batch of as many is chosen packet by packet. All answer as Ranged does."""
     n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, SAMPLE_TEST_PACKET)[1].offsets) - 1
-    sampled = sampled_packets(n_packets)
+    sampled = sampled_packets(n_packets, per == "packet")
     outside = sorted(set(range(n_packets)) - set(sampled))
     assert n_packets > SAMPLED_PACKETS and len(outside) >= 2
     odd = [outside[0], outside[-1]] + ([sampled[len(sampled) // 2]] if split else [])
@@ -310,7 +312,7 @@ def test_a_batch_is_walked_by_its_samples_majority_or_packet_by_packet(rayset, p
 
 def test_a_tie_in_the_sample_goes_to_the_lower_strategy_number(rayset):
     n_packets = len(rayset.rays["primary"].batch(rayset.width, rayset.height, SAMPLE_TEST_PACKET)[1].offsets) - 1
-    sampled = sampled_packets(n_packets)
+    sampled = sampled_packets(n_packets, per_packet=False)  # a batch under split_min_packets
     rays, packets, frusta, options = batch_with_odd_packets(rayset, sampled[::2])
     assert 2 * len(sampled[::2]) == len(sampled)
     assert (make_traversal("auto", options).choose(rayset.bvh, rays, packets, frusta) == MASKED).all()

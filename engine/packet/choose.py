@@ -36,8 +36,9 @@ The rule (``choose_packet``), with the thresholds of ``LIMITS`` (fitted by
 limits: f64[N_LIMITS] indexed by RANGED_MAX, MASKED_MAX, MIN_LIVE, INVALID_CHOICE.
 
 A batch is chosen from a sample (``engine.packet.walk.choose_batch``): ``batch_choice`` asks the
-rule for SAMPLED_PACKETS packets, one in each of SAMPLED_PACKETS equal runs of the batch's packets
-(``sampled_packet``), serially (about 0.1 us a packet).
+rule for SAMPLED_PACKETS packets (MAJORITY_SAMPLED_PACKETS when the batch is not to be split, see
+``batch_choice``), one in each of as many equal runs of the batch's packets (``sampled_packet``),
+serially (about 0.3 us a 16x16 packet).
 A sample that agrees gives the whole batch its strategy. A split sample either gives the whole
 batch the strategy most sampled packets got or has every packet chosen by the rule in a parallel
 pass (``per_packet``; the ``auto`` plugin chooses per packet only in batches of at least its
@@ -69,6 +70,10 @@ SAMPLED_LANES = 16
 #: their packets not the majority's) as 19% each, so they went whole; 64 read every such batch
 #: above 25% (``docs/auto-measurements.md``).
 SAMPLED_PACKETS = 64
+#: Packets sampled in a batch that is not to be split (``batch_choice``'s per_packet False: it
+#: goes whole to its sample's majority, which 32 packets tell as well): 64 took 21 us a batch on
+#: erw6's 256x256 shadow batch of 256 16x16 packets (0.3 us a packet), 3% of its Ranged walk.
+MAJORITY_SAMPLED_PACKETS = 32
 #: The golden ratio's fractional part: the offset of run j's sampled packet inside its run.
 GOLDEN_FRACTION = (math.sqrt(5.0) - 1.0) / 2.0
 #: A direction whose squared length is within this of 1 is taken as unit (float32 unit vectors
@@ -193,8 +198,8 @@ def sampled_packet(j, n_sampled, n_packets):
 def batch_choice(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, only, per_packet, choices,
                  min_share=0.0):
     """The strategy a whole batch is given, from ``choose_packet``'s answers for SAMPLED_PACKETS
-    packets spread over it (``sampled_packet``; offsets i32[K+1], frusta valid bool[K]; every
-    packet when K is smaller): the one most of them got (a tie to the lower strategy number), or, when
+    packets spread over it, MAJORITY_SAMPLED_PACKETS unless ``per_packet`` (``sampled_packet``;
+    offsets i32[K+1], frusta valid bool[K]; every packet when K is smaller): the one most of them got (a tie to the lower strategy number), or, when
     ``per_packet``, the one all of them got, or at least all but a share under ``min_share`` (a
     split too thin to pay for itself needs no per-packet pass: 0.87 ms for the kitchen's 4,096
     16x16 shadow packets, 2.5% of their walk). Returns (that strategy, the packets given it), with
@@ -205,7 +210,7 @@ def batch_choice(bmin, bmax, org, dirs, tmin, tmax, offsets, valid, limits, only
     packets (3%), now 7 us."""
     n_packets = offsets.shape[0] - 1
     scales = scene_scales(bmin, bmax)
-    n_sampled = min(n_packets, SAMPLED_PACKETS)
+    n_sampled = min(n_packets, SAMPLED_PACKETS if per_packet else MAJORITY_SAMPLED_PACKETS)
     votes = np.zeros(3, np.int64)  # by strategy number: MASKED, RANGED, PARTITION
     for j in range(n_sampled):
         k = sampled_packet(j, n_sampled, n_packets)
