@@ -526,8 +526,13 @@ def test_the_report_gives_each_row_its_paired_interval_and_counts_the_verdicts()
             "measure_repeat": 3, "command": "fit", "machine": "here", "fitted": False}
     trial = {"kind": "shadow", "packets": 4096, "group": "partition", "larger": False, "tried_packets": 170,
              "own_seconds": 2e-3, "own_packets": 85, "other_seconds": 1e-3, "other_packets": 85, "walked_by": "ranged"}
-    counts = {("erw6", 8, "shadow"): {"masked": 0, "ranged": 4096, "partition": 0, "trials": [trial]}}
+    counts = {("erw6", 8, "shadow"): {"masked": 0, "ranged": 4096, "partition": 0, "trials": [trial]},
+              ("erw6", 8, "primary"): {"masked": 0, "ranged": 1024, "partition": 0}}
     text = report(args, limits, 2.0, cells, np.array([0.5]), timing, counts, 1.0)
+    # The primary row was walked entirely by Ranged, its better strategy: its verdict is no choice's.
+    # The shadow row, all Ranged too, is not: Partition was its better strategy.
+    assert "1 were walked entirely by the better strategy" in text and \
+           "faster in 1, the same in 0, slower in 0." in text
     assert "| erw6 | 8 | shadow | 4096 | partition | no | 2.00 (85) | 1.00 (85) | ranged |" in text  # the trials' table
     assert "given with `--limits`" in text
     assert "| 0.900 [0.850, 0.950] | faster |" in text and "| 1.200 [1.100, 1.300] | slower |" in text
