@@ -5,11 +5,11 @@ Partition on incoherent ones, and pick one per ray kind. ``auto`` asks a rule fo
 packet, from measures of 16 of its lanes taken before the walk (``engine.packet.choose``): the
 fraction of them that are live, its footprint (the spread of its origins plus the widening of its
 direction cone over its rays' reach, in the scene's typical leaf widths) and whether it has a
-frustum. It asks for 64 packets spread over each batch (``engine.packet.walk.choose_batch``). When
-they all get the same strategy, it walks the whole batch. When they do not, a batch of at least
-``split_min_packets`` packets is chosen packet by packet (a parallel pass asks the rule for every
-packet, then each strategy walks its own packets); a smaller one is walked whole by the strategy
-most of the 64 got. Small batches go whole because splitting them measured slower: on the small
+frustum. It asks for 64 packets spread over each batch, 32 over a batch under
+``split_min_packets`` (``engine.packet.walk.choose_batch``). When they all get the same strategy,
+it walks the whole batch. When they do not, a batch of at least ``split_min_packets`` packets is
+chosen packet by packet (a parallel pass asks the rule for every packet, then each strategy walks
+its own packets); a smaller one is walked whole by the strategy most of its 32 got. Small batches go whole because splitting them measured slower: on the small
 scenes at 256x256 a batch walked by two strategies in two passes lost to the better single
 strategy by up to 18%, where a packet's whole walk costs about a microsecond, while the
 kitchen's 1024x1024 reflection batch (1,710 16x16 packets) walked 17% faster chosen packet by
