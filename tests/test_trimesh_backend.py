@@ -474,6 +474,21 @@ def test_bad_rays_are_misses_beside_good_rays(sphere):
     assert not ours.contains_points([[np.nan, 0, 0]])[0]
 
 
+def test_an_origin_too_far_for_float32_is_a_miss_the_warning_names(sphere):
+    # 1e29 mesh sizes out float32 still answers; from 1e30 no hit distance keeps a digit of the
+    # mesh, so the ray is a miss, and the warning says why (it once blamed NaN/inf for it).
+    ours = RayMeshIntersector(sphere)
+    size = float(np.ptp(sphere.vertices, axis=0).max())
+    centre = sphere.bounds.mean(axis=0)
+    near = centre + [1e28 * size, 0, 0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert ours.intersects_any([near], [[-1.0, 0, 0]])[0]
+    far = centre + [1e31 * size, 0, 0]
+    with pytest.warns(BadRayWarning, match="1 of 2 rays .* origin 1e\\+30 mesh sizes"):
+        assert list(ours.intersects_any([far, near], [[-1.0, 0, 0]] * 2)) == [False, True]
+
+
 @pytest.mark.parametrize("call,error,words", [
     (lambda r: r.intersects_first(np.zeros((4, 2)), np.ones((4, 2))), QueryInputError, ["ray_origins", "(4, 2)"]),
     (lambda r: r.intersects_id(np.zeros((4, 3)), np.ones((5, 3))), QueryInputError, ["ray_directions", "(5, 3)"]),

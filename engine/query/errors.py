@@ -15,4 +15,5 @@ class QueryTypeError(QueryInputError, TypeError):
 
 
 class BadRayWarning(UserWarning):
-    """Some rays had a NaN/inf component or a zero direction; they were answered as misses."""
+    """Some rays had a NaN/inf component, a zero direction or an origin too far from the mesh for
+    float32 (``engine.query.frame.FAR_ORIGIN`` mesh sizes); they were answered as misses."""

@@ -15,6 +15,10 @@ import numpy as np
 from numba import njit
 
 F32_0, F32_1 = np.float32(0.0), np.float32(1.0)
+#: A ray whose origin lies this many mesh sizes (``MeshFrame.scale``) or more from the mesh's
+#: centre is a miss: float32 holds such an origin, but no hit distance along it keeps a digit of
+#: the mesh's size.
+FAR_ORIGIN = 1e30
 
 
 class MeshFrame(NamedTuple):
@@ -54,7 +58,7 @@ def local_ray(origins, directions, i, center, scale):
     lx = (origins[i, 0] - center[0]) / scale
     ly = (origins[i, 1] - center[1]) / scale
     lz = (origins[i, 2] - center[2]) / scale
-    ok = ok and abs(lx) < 1e30 and abs(ly) < 1e30 and abs(lz) < 1e30  # False for NaN too
+    ok = ok and abs(lx) < FAR_ORIGIN and abs(ly) < FAR_ORIGIN and abs(lz) < FAR_ORIGIN  # False for NaN too
     if not ok:
         return False, F32_0, F32_0, F32_0, F32_0, F32_0, F32_1
     return (True, np.float32(lx), np.float32(ly), np.float32(lz), np.float32(directions[i, 0] / norm),

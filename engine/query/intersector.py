@@ -56,7 +56,7 @@ from engine.packet.kernels import child_order_keys
 from engine.query.coherent import is_coherent, packet_first_hits, row_length, tiled_rows
 from engine.query.contains import DIRECTIONS, contains_kernel
 from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
-from engine.query.frame import MeshFrame, mesh_frame
+from engine.query.frame import FAR_ORIGIN, MeshFrame, mesh_frame
 from engine.query.hits import (collect_hits_kernel, compact_hits_kernel, count_hits_kernel, fill_hits_kernel,
                                first_hit_kernel)
 from engine.query.locations import locations_kernel
@@ -267,8 +267,9 @@ class RayMeshIntersector:
     def _warn_bad(ok: np.ndarray) -> None:
         bad = len(ok) - int(np.count_nonzero(ok))
         if bad:
-            warnings.warn(f"{bad} of {len(ok)} rays have a NaN/inf component or a zero direction; "
-                          f"answered as misses", BadRayWarning, stacklevel=4)
+            warnings.warn(f"{bad} of {len(ok)} rays have a NaN/inf component, a zero direction or an origin "
+                          f"{FAR_ORIGIN:.0e} mesh sizes or more from the mesh; answered as misses", BadRayWarning,
+                          stacklevel=4)
 
     @staticmethod
     def _tree(s: _Structure):

@@ -28,6 +28,7 @@ from numba.extending import intrinsic
 
 from engine.core.lanes8 import F64, I64, Lanes, check_arguments
 from engine.core.triangle import HUGE_INV
+from engine.query.frame import FAR_ORIGIN
 
 _NAMES = ("origins", "directions", "rows", "start", "center", "scale", "org", "dirs", "inv", "tmin", "tmax")
 
@@ -69,7 +70,7 @@ def local_rays8(typingctx, origins, directions, rows, start, center, scale, org,
                   for k in range(3)]
         local = [(o[k] - center[k]) / a["scale"] for k in range(3)]
         for k in range(3):
-            good = good & (lanes.fabs(local[k]) < 1e30)  # ordered: False for NaN too
+            good = good & (lanes.fabs(local[k]) < FAR_ORIGIN)  # ordered: False for NaN too
         good = good & ~padding
         origin = [lanes.where(good, lanes.to_f32(local[k]), 0.0) for k in range(3)]
         direction = [lanes.where(good, lanes.to_f32(d[k] / norm), 1.0 if k == 2 else 0.0) for k in range(3)]
