@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from engine.bench.trimesh_queries import _alternating_seconds, _paired_times, parse, run
+from engine.bench.trimesh_queries import _alternating_seconds, _paired_times, paired_speedup, parse, run
 from engine.core.errors import ConfigError
 from engine.render.config import read_toml
 
@@ -28,6 +28,9 @@ def test_a_tiny_matrix_runs_and_counts_agreement(tmp_path):
     for r in records:
         assert r["trimesh_mrays"] > 0 and r["packetrt_mrays"] > 0
         assert r["speedup_1thread"] > 0 and r["same_on_1thread"] is True, r
+        for key in ("speedup_paired", "speedup_1thread_paired"):
+            median, low, high = r[key]
+            assert 0 < low <= median <= high, r
         if r["query"] in ("first", "any", "all"):
             assert r["agree"] >= 0.99 * r["n"], r
     assert records[4]["render_path_mrays"] > 0
@@ -36,6 +39,7 @@ def test_a_tiny_matrix_runs_and_counts_agreement(tmp_path):
     assert [json.loads(line)["query"] for line in lines] == [r["query"] for r in records]
     assert "| whitted | primary | first |" in (tmp_path / "results.md").read_text()
     assert "speed-up, 1 thread each" in (tmp_path / "results.md").read_text()
+    assert "| speed-up, paired [95%] |" in (tmp_path / "results.md").read_text()
     # Each query's host probes, and the slow-down column they give.
     for r in records:
         assert all(r["host"][when]["compute_ms"] > 0 and r["host"][when]["stream_gbps"] > 0
@@ -70,12 +74,25 @@ def test_the_backends_are_timed_in_alternating_rounds():
             return [0.001 * (len(blocks))] * k, name
         return timed
 
-    (t_a, answer_a), (t_b, answer_b) = _alternating_seconds([side("a"), side("b")], 11, 3)
+    (t_a, answer_a, calls_a), (t_b, answer_b, calls_b) = _alternating_seconds([side("a"), side("b")], 11, 3)
     assert blocks == [("a", 4), ("b", 4), ("b", 4), ("a", 4), ("a", 3), ("b", 3)]
     assert (answer_a, answer_b) == ("a", "b") and t_a == pytest.approx(0.004) and t_b == pytest.approx(0.003)
+    assert calls_a == pytest.approx([0.001] * 4 + [0.004] * 4 + [0.005] * 3) and len(calls_b) == 11
     blocks.clear()
     _alternating_seconds([side("a"), side("b")], 2, 5)  # more rounds than repeats: a call a round
     assert blocks == [("a", 1), ("b", 1), ("b", 1), ("a", 1)]
+
+
+def test_the_paired_speed_up_divides_the_calls_of_the_same_round():
+    """A host that slows down over the rounds slows both calls of a round: the paired speed-up
+    stays the true 2x with a tight interval, while calls of different rounds paired scatter
+    from 1.2x to 3.4x."""
+    drift = [1.0, 1.5, 2.0, 1.2, 1.8, 1.1, 1.9, 1.3, 1.6, 1.4, 1.7]
+    theirs = [0.2 * d for d in drift]
+    ours = [0.1 * d for d in drift]
+    assert paired_speedup(theirs, ours) == pytest.approx((2.0, 2.0, 2.0))
+    median, low, high = paired_speedup(theirs, ours[::-1])
+    assert low == pytest.approx(1.6) and high == pytest.approx(2.5)  # the 2nd and 10th of 11 (1.18x .. 3.4x)
 
 
 @pytest.mark.parametrize("data,words", [

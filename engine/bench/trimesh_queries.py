@@ -29,7 +29,19 @@ about ``rays`` pixels: coherent). Points for ``contains``: uniform in the mesh's
 
 Agreement per query and ray: ``first``: the same triangle, or hits at the same distance (within
 1e-5 of the mesh's size: an edge shared by two triangles); ``any``: the same answer; ``all``: the
-same number of hits; ``contains``: the same answer. Results go to ``OUT/results.jsonl`` (one
+same number of hits; ``contains``: the same answer.
+
+Speed-ups come two ways. ``speedup`` is trimesh's median time over packetrt's. ``speedup_paired``
+(and ``speedup_1thread_paired``) pairs the k-th timed call of each backend, which lie in the same
+round, a second or so apart: the median of the per-pair speed-ups with its 95% interval, the sign
+test's (``engine.bench.paired_stats``), so that a speed-up near a target is read with the run's
+noise beside it. The calls stay in blocks, each after its own warm-up: one call of each backend a
+round, each backend warmed up once (session 33, 21 rounds), read packetrt 20-50% slower on the
+kitchen's queries than blocks did in the run right after (incoherent first hits 1.24x against
+2.04x, camera rays 1.27x against 2.61x; packetrt on one thread then beat it on two), as each
+call found the caches and the worker threads cold after the other backend's.
+
+Results go to ``OUT/results.jsonl`` (one
 record per mesh, ray set and query, with the host's speed just before and after it: ``host``,
 ``engine.bench.host_speed``) and ``OUT/results.md`` (the table, with a host slow-down column).
 """
@@ -43,6 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.bench import host_speed
+from engine.bench.paired_stats import paired_ratio
 from engine.bench.results import host_slowdown
 from engine.core.atomic import output_folder, plain_json, write_text
 from engine.core.errors import ConfigError
@@ -140,8 +153,9 @@ def _timed_calls(call, repeat: int):
 
 
 def _alternating_seconds(sides, repeat: int, rounds: int):
-    """[(median seconds, answer)] of each side, ``sides`` being callables ``timed(k) -> (list of
-    seconds, answer)`` that make k timed calls after their own warm-up. The ``repeat`` calls of
+    """[(median seconds, answer, seconds of every call in order)] of each side, ``sides`` being
+    callables ``timed(k) -> (list of seconds, answer)`` that make k timed calls (after their own
+    warm-up, the first time). The ``repeat`` calls of
     each side are made in ``rounds`` blocks, the sides' blocks alternating and the side that goes
     first changing from round to round, so that a drift of this host over the seconds a query
     takes lands on every side alike. Timed as one stretch per side, trimesh's then packetrt's,
@@ -155,7 +169,7 @@ def _alternating_seconds(sides, repeat: int, rounds: int):
         for k in order:
             seconds, answers[k] = sides[k](calls)
             times[k] += seconds
-    return [(float(np.median(t)), a) for t, a in zip(times, answers)]
+    return [(float(np.median(t)), a, t) for t, a in zip(times, answers)]
 
 
 def _plane_t(mesh, origins, directions, ray, tri):
@@ -232,11 +246,12 @@ def render_path_trace(scene, width: int):
 
 
 def _time_query(theirs, ours, ours_1, call, args, render_call, repeat: int, rounds: int):
-    """((seconds, answer) of trimesh's backend, of packetrt, of packetrt on one thread or (None,
-    None) without ``ours_1``; the render path's seconds per call, [] without ``render_call``):
-    method ``call`` of each intersector on ``args``, medians of ``repeat`` calls made in
-    ``rounds`` alternating blocks (``_alternating_seconds``). ``render_call``, the render path's
-    primary trace on the same camera, is timed interleaved with packetrt's calls."""
+    """((median seconds, answer, seconds of every call) of trimesh's backend, of packetrt, of
+    packetrt on one thread or (None, None, None) without ``ours_1``; the render path's seconds
+    per call, [] without ``render_call``): method ``call`` of each intersector on ``args``,
+    ``repeat`` calls made in ``rounds`` alternating blocks (``_alternating_seconds``), each block
+    after its own warm-up. ``render_call``, the render path's primary trace on the same camera,
+    is timed interleaved with packetrt's calls."""
     render_times = []
 
     def ask(intersector):
@@ -253,9 +268,15 @@ def _time_query(theirs, ours, ours_1, call, args, render_call, repeat: int, roun
     sides = [timed(theirs), ours_with_render if render_call is not None else timed(ours)]
     if ours_1 is not None:  # packetrt at the thread count of trimesh's embreex backend
         sides.append(timed(ours_1))
-    medians = _alternating_seconds(sides, repeat, rounds)
-    one = medians[2] if ours_1 is not None else (None, None)
-    return medians[0], medians[1], one, render_times
+    measured = _alternating_seconds(sides, repeat, rounds)
+    one = measured[2] if ours_1 is not None else (None, None, None)
+    return measured[0], measured[1], one, render_times
+
+
+def paired_speedup(theirs_seconds, ours_seconds):
+    """(median, low, high): trimesh's time over packetrt's, call k of each paired
+    (``engine.bench.paired_stats.paired_ratio``; the module doc)."""
+    return paired_ratio(theirs_seconds, ours_seconds)
 
 
 def run(spec: dict, out: Path, progress=print) -> list:
@@ -298,8 +319,8 @@ def run(spec: dict, out: Path, progress=print) -> list:
                         args, call = (points,), "contains_points"
                     render = render_call if set_name == "primary" and query == "first" else None
                     before = host_speed.measure()
-                    (t_theirs, a_theirs), (t_ours, a_ours), (t_one, a_one), render_times = _time_query(
-                        theirs, ours, ours_1, call, args, render, spec["repeat"], spec["rounds"])
+                    (t_theirs, a_theirs, s_theirs), (t_ours, a_ours, s_ours), (t_one, a_one, s_one), render_times = \
+                        _time_query(theirs, ours, ours_1, call, args, render, spec["repeat"], spec["rounds"])
                     host = {"before": before, "after": host_speed.measure()}
                     render_rate = render_rays / float(np.median(render_times)) / 1e6 if render_times else None
                     n = len(args[0])
@@ -310,15 +331,18 @@ def run(spec: dict, out: Path, progress=print) -> list:
                               "threads": threads,
                               "trimesh_seconds": t_theirs, "packetrt_seconds": t_ours,
                               "trimesh_mrays": n / t_theirs / 1e6, "packetrt_mrays": n / t_ours / 1e6,
-                              "speedup": t_theirs / t_ours, "agree": agree,
+                              "speedup": t_theirs / t_ours, "speedup_paired": paired_speedup(s_theirs, s_ours),
+                              "agree": agree,
                               "packetrt_1thread_seconds": t_one,
                               "same_on_1thread": _same_answers(a_ours, a_one) if t_one else None,
                               "speedup_1thread": t_theirs / t_one if t_one else None,
+                              "speedup_1thread_paired": paired_speedup(s_theirs, s_one) if t_one else None,
                               "render_path_mrays": render_rate, "host": host}
                     records.append(record)
                     one = f" (1 thread x{record['speedup_1thread']:.2f})" if t_one else ""
                     progress(f"{label:>14} {record['rays']:>10} {query:>8}: trimesh {record['trimesh_mrays']:6.2f}  "
-                             f"packetrt {record['packetrt_mrays']:6.2f} Mrays/s  x{record['speedup']:.2f}{one}  "
+                             f"packetrt {record['packetrt_mrays']:6.2f} Mrays/s  x{record['speedup']:.2f} "
+                             f"(paired {_interval(record['speedup_paired'])}){one}  "
                              f"agree {agree}/{n}")
     write_text(out / "results.jsonl", "".join(json_line(record) for record in records))
     write_text(out / "results.md", markdown_table(records, trimesh.__version__))
@@ -330,18 +354,28 @@ def markdown_table(records: list, trimesh_version: str) -> str:
     lines = [f"trimesh {trimesh_version} default backend (embreex, 1 thread) vs packetrt RayMeshIntersector "
              f"({first.get('threads', '?')} numba threads); medians of {first.get('repeat', '?')} in "
              f"{first.get('rounds', 1)} alternating rounds per backend",
+             "", "Speed-up: trimesh's median time over packetrt's. Paired: the k-th calls of the two backends "
+             "(the same round) paired, the median speed-up and its 95% interval (the sign test's); with as many "
+             "rounds as repeats the two calls of a pair are made one after the other, so the host's drift "
+             "cancels: a target speed-up is met where the interval lies above it.",
              "", "Host slow-down: how many times slower than the run's fastest moment the host ran around the "
              "query (engine.bench.host_speed); compare rows near 1.00.",
-             "", "| mesh | rays | query | n | trimesh Mrays/s | packetrt Mrays/s | speed-up | "
-             "speed-up, 1 thread each | agree | render path Mrays/s | host slow-down |",
-             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "", "| mesh | rays | query | n | trimesh Mrays/s | packetrt Mrays/s | speed-up | speed-up, paired [95%] | "
+             "speed-up, 1 thread each | 1 thread, paired [95%] | agree | render path Mrays/s | host slow-down |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r, slow in zip(records, host_slowdown(records)):
         render = f"{r['render_path_mrays']:.2f}" if r["render_path_mrays"] else ""
         one = f"{r['speedup_1thread']:.2f}" if r.get("speedup_1thread") else ""
         lines.append(f"| {r['mesh']} | {r['rays']} | {r['query']} | {r['n']:,} | {r['trimesh_mrays']:.2f} | "
-                     f"{r['packetrt_mrays']:.2f} | {r['speedup']:.2f} | {one} | {r['agree']:,}/{r['n']:,} | "
+                     f"{r['packetrt_mrays']:.2f} | {r['speedup']:.2f} | {_interval(r.get('speedup_paired'))} | "
+                     f"{one} | {_interval(r.get('speedup_1thread_paired'))} | {r['agree']:,}/{r['n']:,} | "
                      f"{render} | {'' if slow is None else f'{slow:.2f}'} |")
     return "\n".join(lines) + "\n"
+
+
+def _interval(paired) -> str:
+    """"m [lo, hi]" of a (median, low, high) paired speed-up; "" for None."""
+    return "" if not paired else f"{paired[0]:.2f} [{paired[1]:.2f}, {paired[2]:.2f}]"
 
 
 def cmd_trimesh_bench(args, data: dict) -> int:
