@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from engine.render.surface import SURFACE_FIELDS, eight_lanes_fit, new_surface, shade_surface
+from engine.render.surface_record import RECORD_FIELDS, RECORD_WIDTH, surface_records
 
 R = 1000
 T = 50
@@ -47,7 +48,9 @@ def scattered_elements(a):
     return block[..., 0]
 
 
-def run(seed, with_normals, with_uvs, wide, triangle_rows=np.ascontiguousarray):
+def run(seed, with_normals, with_uvs, wide, triangle_rows=np.ascontiguousarray, records=None):
+    """(image, {Surface field: array}) of one shade_surface call; ``records``: a function of the
+    triangle arrays giving the surface records to pass (default ``surface_records``)."""
     rng, corners, normals, uvs, material = scene_and_hits(seed, with_normals, with_uvs)
     v0, v1, v2 = (np.ascontiguousarray(corners[:, k]) for k in range(3))
     ng = np.cross(v1 - v0, v2 - v0)
@@ -79,10 +82,11 @@ def run(seed, with_normals, with_uvs, wide, triangle_rows=np.ascontiguousarray):
         block[:, :3] = a
         return block[:, :3]
 
+    make_records = records or surface_records
     surface = new_surface(R, lambda name, r, tail, dtype: rows(np.full((r,) + tail, 3, dtype)))
     shade_surface(OFFSETS, rows(dirs), pixel, rows(weight), prim, u, v, v0, v1, v2, ng, normals, uvs, material,
-                  corner_magnitude, ambient, texture_layout, texels, palette, ambient_light, background, image,
-                  *surface)
+                  corner_magnitude, make_records(v0, v1, v2, ng, normals, uvs, material, corner_magnitude),
+                  ambient, texture_layout, texels, palette, ambient_light, background, image, *surface)
     return image, {name: np.ascontiguousarray(a) for name, a in zip(SURFACE_FIELDS, surface)}
 
 
@@ -107,9 +111,9 @@ def test_eight_lane_surface_is_the_lane_by_lane_one(with_normals, with_uvs):
 
 @pytest.mark.parametrize("triangle_rows", [padded_rows, scattered_elements])
 def test_triangle_rows_apart_or_scattered_give_the_same_surface(triangle_rows):
-    # The eight-lane step loads each hit triangle's rows whole (``Lanes.gather_rows``): rows
-    # that lie apart are read at their own stride, and rows that are not contiguous go lane by
-    # lane. Both give the contiguous arrays' answer.
+    # The eight-lane step reads the triangles' surface records, made from the arrays whatever
+    # their strides; the lane-by-lane tail reads the arrays at their own strides. Both give the
+    # contiguous arrays' answer.
     image_1, surface_1 = run(7, True, True, wide=True)
     image_2, surface_2 = run(7, True, True, wide=True, triangle_rows=triangle_rows)
     assert np.array_equal(image_1, image_2)
@@ -139,7 +143,52 @@ def test_scenes_without_corner_normals_or_uvs_take_the_eight_lane_step(name):
     assert tris.normals.shape[0] == 0 or tris.uvs.shape[0] == 0
     lanes = new_surface(64)
     dirs = np.zeros((64, 3), np.float32)
-    args = (tris.v0, tris.v1, tris.v2, tris.ng, tris.normals, tris.uvs)
+    records = surface_records(tris.v0, tris.v1, tris.v2, tris.ng, tris.normals, tris.uvs, tris.material,
+                              np.ones(len(tris.v0), np.float32))
+    args = (records, len(tris.v0))
     assert eight_lanes_fit(dirs, lanes.point, lanes.view, lanes.normal, lanes.facing, lanes.leave, *args)
     apart = np.zeros((64, 4), np.float32)[:, :3]
     assert not eight_lanes_fit(apart, lanes.point, lanes.view, lanes.normal, lanes.facing, lanes.leave, *args)
+
+
+def test_a_surface_record_holds_its_triangle_s_arrays():
+    """Each field of a triangle's record (``RECORD_FIELDS``) is its row of the array it comes
+    from, bit for bit; the material as int32 bits; absent corner normals and uvs as zeros."""
+    _, corners, normals, uvs, material = scene_and_hits(3, True, True)
+    v0, v1, v2 = (np.ascontiguousarray(corners[:, k]) for k in range(3))
+    ng = np.ascontiguousarray(corners[:, 0] * 0.5)
+    magnitude = np.abs(corners).max(axis=(1, 2)).astype(np.float32)
+    records = surface_records(v0, v1, v2, ng, normals, uvs, material, magnitude)
+    assert records.shape == (T, RECORD_WIDTH) and records.dtype == np.float32
+
+    def field(name):
+        first, n = RECORD_FIELDS[name]
+        return records[:, first:first + n]
+
+    for name, source in (("v0", v0), ("v1", v1), ("v2", v2), ("ng", ng), ("normals", normals), ("uvs", uvs),
+                         ("magnitude", magnitude)):
+        assert np.array_equal(field(name).view(np.uint32), source.reshape(T, -1).view(np.uint32)), name
+    assert np.array_equal(field("material").view(np.int32)[:, 0], material)
+    bare = surface_records(v0, v1, v2, ng, np.zeros((0, 3, 3), np.float32), np.zeros((0, 3, 2), np.float32),
+                           material, magnitude)
+    assert (bare[:, 12:27] == 0).all()  # no corner normals, no uvs: zeros
+    with pytest.raises(ValueError, match="v2"):
+        surface_records(v0, v1, v2[:-1], ng, normals, uvs, material, magnitude)
+    with pytest.raises(ValueError, match="normals"):
+        surface_records(v0, v1, v2, ng, normals[:-1], uvs, material, magnitude)
+
+
+@pytest.mark.parametrize("bad_records", [
+    lambda *arrays: surface_records(*arrays)[:-1],                           # one triangle short
+    lambda *arrays: np.repeat(surface_records(*arrays), 2, axis=1)[:, ::2],  # rows not contiguous
+])
+def test_records_that_do_not_fit_the_triangles_send_the_pass_lane_by_lane(bad_records):
+    # Records of other triangles, or in rows the step cannot load whole, are never read: the
+    # pass goes lane by lane over the triangle arrays and gives the same surface.
+    image_1, surface_1 = run(7, True, True, wide=True)
+    image_2, surface_2 = run(7, True, True, wide=True, records=bad_records)
+    assert np.array_equal(image_1, image_2)
+    hit = surface_1["hit"]
+    for name in SURFACE_FIELDS:
+        rows = slice(None) if name in ("hit", "leave") else hit
+        assert np.array_equal(surface_2[name][rows].view(np.uint8), surface_1[name][rows].view(np.uint8)), name

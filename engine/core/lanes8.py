@@ -294,15 +294,39 @@ class Lanes:
         j of every lane's row in vector j. One n-element load per lane, then shuffles: a
         ``gather`` per element extracts the lane's index and inserts one scalar each time, three
         instructions an element (the surface pass spent three quarters of its code on them)."""
+        return self._deal(self._row_pieces(array, self.row_starts(array, row), 0, n), n)
+
+    def gather_record(self, array, starts: list, fields: dict) -> dict:
+        """{name: n vectors} of fields of the lanes' rows of an f32[N, C] array with contiguous
+        rows, ``starts`` being the rows' starts (``row_starts``) and ``fields`` giving each name
+        its (first column, n): ``gather_rows`` of several arrays in one, each lane's row start
+        computed once for all the fields, however many calls read them. A field of int32 bits
+        stored in the floats comes as floats: bitcast it (``as_i32``)."""
+        return {name: self._deal(self._row_pieces(array, starts, column, n), n) for name, (column, n) in fields.items()}
+
+    def as_i32(self, v: V) -> V:
+        """The bits of a float vector as int32 lanes."""
+        return V(self, self.builder.bitcast(v.value, self.vector_type(I32)))
+
+    def row_starts(self, array, row: V) -> list:
+        """Each lane's element index of the start of its row ``row`` (an i64 vector of valid row
+        indices) of an array: a list of WIDTH i64 values."""
         b = self.builder
         element = array.data.type.pointee
         row_elements = b.udiv(b.extract_value(array.strides, 0), ir.Constant(I64, self._element_size(element)))
-        piece = ir.VectorType(element, n)
-        pieces = []
-        for k in range(self.width):
-            start = b.mul(b.extract_element(row.value, ir.Constant(I32, k)), row_elements)
-            pieces.append(b.load(self._pointer(array, start, piece), align=4))
-        # Concatenate the lanes' rows pairwise into one <width * n> block, then deal it out.
+        return [b.mul(b.extract_element(row.value, ir.Constant(I32, k)), row_elements) for k in range(self.width)]
+
+    def _row_pieces(self, array, starts: list, column: int, n: int) -> list:
+        """Per lane the n elements from ``column`` of its row: one <n> load each."""
+        b = self.builder
+        piece = ir.VectorType(array.data.type.pointee, n)
+        return [b.load(self._pointer(array, b.add(start, ir.Constant(I64, column)), piece), align=4)
+                for start in starts]
+
+    def _deal(self, pieces: list, n: int) -> list:
+        """The lanes' <n> pieces as n vectors (element j of every lane's piece in vector j):
+        concatenated pairwise into one <width * n> block, then dealt out by shuffles."""
+        b = self.builder
         while len(pieces) > 1:
             size = pieces[0].type.count
             both = ir.Constant(ir.VectorType(I32, 2 * size), list(range(2 * size)))

@@ -24,6 +24,7 @@ from engine.core.lanes8 import rows_contiguous, rows_of_three
 from engine.core.offset import MIN_MAGNITUDE, OFFSET_SCALE
 from engine.packet.compact import new_array
 from engine.render.surface8 import surface8
+from engine.render.surface_record import RECORD_WIDTH
 
 
 class Surface(NamedTuple):
@@ -186,22 +187,21 @@ def fill_surface_row(j, pixel, prim, dirs, u, v, v0, v1, v2, ng, normals, uvs, t
 
 
 @njit(cache=True)
-def eight_lanes_fit(dirs, point, view, normal, facing, leave, v0, v1, v2, ng, normals, uvs):
+def eight_lanes_fit(dirs, point, view, normal, facing, leave, records, n_triangles):
     """Whether ``shade_surface`` may take a batch eight lanes at a time (``surface8``): its lane
-    rows (dirs .. leave) are 12 contiguous bytes each and the triangle rows it loads whole (v0,
-    v1, v2, ng, and normals and uvs when present) are contiguous. Absent corner normals or uvs
-    (shape (0, 3, k), strides 0) are never read: until session 20 their zero strides failed the
-    test, and the surface pass of every scene without them (the default scene, the Cornell box,
-    the bunny, ERW6) ran serially, lane by lane (ERW6 at 1024x1024: 17.8 -> 5.8 ms a frame)."""
+    rows (dirs .. leave) are 12 contiguous bytes each and ``records`` are the surface records of
+    the n_triangles triangles (``engine.render.surface_record``) with contiguous rows. (Until
+    session 33 the step read the triangle arrays themselves; until session 20 absent corner
+    normals or uvs, shape (0, 3, k) with strides 0, failed this test, and the surface pass of
+    every scene without them ran serially, lane by lane: ERW6 at 1024x1024 17.8 -> 5.8 ms.)"""
     return rows_of_three(dirs) and rows_of_three(point) and rows_of_three(view) and rows_of_three(normal) \
-        and rows_of_three(facing) and rows_of_three(leave) and rows_contiguous(v0) and rows_contiguous(v1) \
-        and rows_contiguous(v2) and rows_contiguous(ng) and (normals.shape[0] == 0 or rows_contiguous(normals)) \
-        and (uvs.shape[0] == 0 or rows_contiguous(uvs))
+        and rows_of_three(facing) and rows_of_three(leave) and records.shape[0] == n_triangles \
+        and records.shape[1] == RECORD_WIDTH and rows_contiguous(records)
 
 
 @njit(cache=True, parallel=True)
 def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
-                  v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
+                  v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude, records,
                   ambient, texture_layout, texels, palette, ambient_light, background, image,
                   hit, point, magnitude, view, normal, facing, entering, material, texel, color, leave,
                   texel_row):
@@ -211,7 +211,9 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
     Batch: packets offsets i32[K+1], dirs f32[R,3], pixel i32[R] (-1: padding), weight f32[R,3];
     its hits prim i32[R], u, v f32[R]. Triangles: corners v0, v1, v2, unit normals ng f32[T,3],
     corner normals f32[T,3,3] and uvs f32[T,3,2] (or none: first dimension 0), tri_material
-    i32[T], corner_magnitude f32[T] (``triangle_magnitudes``). Materials: ambient f32[M,3],
+    i32[T], corner_magnitude f32[T] (``triangle_magnitudes``), and the same in one record per
+    triangle, records f32[T, 32] (``engine.render.surface_record.surface_records``: what the
+    eight-lane step reads; the lane-by-lane one reads the arrays). Materials: ambient f32[M,3],
     textures as in ``engine.render.materials.MaterialTable``. ambient_light, background f32[3].
 
     The texel gathers run in a second loop over the packet's lanes: there they are independent
@@ -222,13 +224,12 @@ def shade_surface(offsets, dirs, pixel, weight, prim, u, v,
     has_uvs = uvs.shape[0] > 0
     # The rows: eight lanes a step (``surface8``: the same bits) where the rows allow it, over the
     # whole batch regardless of packets (2x2 packets have four lanes); else lane by lane.
-    vector = eight_lanes_fit(dirs, point, view, normal, facing, leave, v0, v1, v2, ng, normals, uvs)
+    vector = eight_lanes_fit(dirs, point, view, normal, facing, leave, records, v0.shape[0])
     n_lanes = dirs.shape[0]
     blocks = n_lanes // 8 if vector else 0
     for b in prange(blocks):
-        surface8(dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
-                 texture_layout, has_normals, has_uvs, hit, point, magnitude, view, normal, facing, entering,
-                 material, leave, texel_row, 8 * b)
+        surface8(dirs, pixel, prim, u, v, records, texture_layout, has_normals, has_uvs, hit, point, magnitude,
+                 view, normal, facing, entering, material, leave, texel_row, 8 * b)
     # The lanes past the last block -- or every lane, serially, of a batch whose rows are not 12
     # contiguous bytes (not the renderer's): one inlined copy of the lane-by-lane step.
     for j in range(8 * blocks, n_lanes):

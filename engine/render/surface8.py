@@ -1,8 +1,8 @@
 """``fill_surface_lane`` eight lanes at a time (LLVM vector IR through ``engine.core.lanes8``).
 
-``surface8(dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
-texture_layout, has_normals, has_uvs, hit, point, magnitude, view, normal, facing, entering,
-material, leave, texel_row, start)`` fills the Surface rows of lanes start .. start+7 as
+``surface8(dirs, pixel, prim, u, v, records, texture_layout, has_normals, has_uvs, hit, point,
+magnitude, view, normal, facing, entering, material, leave, texel_row, start)`` fills the Surface
+rows of lanes start .. start+7 as
 ``engine.render.surface.shade_surface``'s first loop does lane by lane: ``hit`` for every lane,
 ``leave`` zero where nothing was hit, and on hit lanes the hit point (from the corners in double,
 rounded once), the offset scale, the unit ray direction, the geometric and shading normals
@@ -14,13 +14,15 @@ texels stay with the caller.
 Why: per hit lane this is two square roots, six divisions, a dozen double-precision products
 and some 30 loads of the hit triangle's corners, normals and texture coordinates, all scalar:
 the largest pass between two traversals (35 ms of the kitchen-paper frame on two threads).
-The arithmetic is vector, and each hit triangle's rows (corners, normal, corner normals, texture
-coordinates) are one load per lane, dealt out into vectors by shuffles (``Lanes.gather_rows``;
-one scalar load and insert per element took three quarters of the step's instructions: kitchen
-primary batch, one thread, 19.1 -> 15.3 ms). Arrays: dirs, point, view, normal, facing, leave
-f32[R,3] with 12-byte rows; triangle arrays with contiguous rows (the caller checks both);
-pixel, prim, material, texel_row i32[R]; u, v, magnitude f32[R]; hit, entering bool[R];
-triangles as ``shade_surface`` documents them.
+The arithmetic is vector, and each hit triangle's fields (corners, normal, corner normals,
+texture coordinates, material, offset scale) come from its one record
+(``engine.render.surface_record``): one row start per lane, each field one load per lane, dealt
+out into vectors by shuffles (``Lanes.gather_record``; one scalar load and insert per element
+took three quarters of the step's instructions: kitchen primary batch, one thread, 19.1 -> 15.3
+ms; eight separate triangle arrays instead of the record, 1.2-1.4x the loop's time). Arrays:
+dirs, point, view, normal, facing, leave f32[R,3] with 12-byte rows; records f32[T, 32] with
+contiguous rows (the caller checks both); pixel, prim, material, texel_row i32[R]; u, v,
+magnitude f32[R]; hit, entering bool[R].
 """
 from __future__ import annotations
 
@@ -29,20 +31,18 @@ from numba.extending import intrinsic
 
 from engine.core.lanes8 import I64, Lanes, check_arguments
 from engine.core.offset import MIN_MAGNITUDE, OFFSET_SCALE
+from engine.render.surface_record import RECORD_FIELDS
 
-_NAMES = ("dirs", "pixel", "prim", "u", "v", "v0", "v1", "v2", "ng", "normals", "uvs", "tri_material",
-          "corner_magnitude", "texture_layout", "has_normals", "has_uvs", "hit", "point", "magnitude", "view",
-          "normal", "facing", "entering", "material", "leave", "texel_row", "start")
+_NAMES = ("dirs", "pixel", "prim", "u", "v", "records", "texture_layout", "has_normals", "has_uvs", "hit", "point",
+          "magnitude", "view", "normal", "facing", "entering", "material", "leave", "texel_row", "start")
 
 
 @intrinsic
-def surface8(typingctx, dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude,
-             texture_layout, has_normals, has_uvs, hit, point, magnitude, view, normal, facing, entering, material,
-             leave, texel_row, start):
+def surface8(typingctx, dirs, pixel, prim, u, v, records, texture_layout, has_normals, has_uvs, hit, point,
+             magnitude, view, normal, facing, entering, material, leave, texel_row, start):
     """Surface rows of lanes start .. start+7 (see the module doc)."""
-    args_ = (dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, tri_material, corner_magnitude, texture_layout,
-             has_normals, has_uvs, hit, point, magnitude, view, normal, facing, entering, material, leave, texel_row,
-             start)
+    args_ = (dirs, pixel, prim, u, v, records, texture_layout, has_normals, has_uvs, hit, point, magnitude, view,
+             normal, facing, entering, material, leave, texel_row, start)
     check_arguments(_NAMES, args_, {"has_normals": types.Boolean, "has_uvs": types.Boolean, "start": types.Integer})
     sig = types.void(*args_)
 
@@ -61,8 +61,12 @@ def surface8(typingctx, dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, t
         hits = (lanes.row(a["pixel"], i) >= 0) & (prim_ >= 0)
         p = lanes.where(hits, lanes.to_i64(prim_), 0)  # a valid row to gather on every lane
 
-        # The hit triangles' rows, each one load per lane (``Lanes.gather_rows``).
-        corners = {name: lanes.gather_rows(a[name], p, 3) for name in ("v0", "v1", "v2")}
+        # The hit triangles' records, each field one load per lane (``Lanes.gather_record``);
+        # the corner normals and texture coordinates only where the branches below read them.
+        starts = lanes.row_starts(a["records"], p)  # once, before the branches that read more fields
+        fields = lambda *names: lanes.gather_record(a["records"], starts, {k: RECORD_FIELDS[k] for k in names})
+        tri = fields("v0", "v1", "v2", "ng", "magnitude", "material")
+        corners = {name: tri[name] for name in ("v0", "v1", "v2")}
 
         dx, dy, dz = lanes.rows3(a["dirs"], i)
         length = lanes.sqrt(dx * dx + dy * dy + dz * dz)
@@ -78,14 +82,14 @@ def surface8(typingctx, dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, t
                              + v64 * lanes.to_f64(corners["v2"][k]))
             point.append(x)
             largest = lanes.max(largest, lanes.fabs(x))
-        magnitude = lanes.max(largest, lanes.gather(a["corner_magnitude"], [p]))
-        g = lanes.gather_rows(a["ng"], p, 3)
+        magnitude = lanes.max(largest, tri["magnitude"][0])
+        g = tri["ng"]
         front = g[0] * view[0] + g[1] * view[1] + g[2] * view[2] < 0.0
         facing = [lanes.where(front, g[k], -g[k]) for k in range(3)]
         w = 1.0 - u - v
 
         def interpolated_normal():
-            corner_normals = lanes.gather_rows(a["normals"], p, 9)  # [corner, axis] row by row
+            corner_normals = fields("normals")["normals"]  # [corner, axis] row by row
             n = [w * corner_normals[k] + u * corner_normals[3 + k] + v * corner_normals[6 + k] for k in range(3)]
             size = lanes.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
             # degenerate interpolation: the geometric normal (then turned to the ray)
@@ -94,13 +98,13 @@ def surface8(typingctx, dirs, pixel, prim, u, v, v0, v1, v2, ng, normals, uvs, t
             return [lanes.where(away, -n[k], n[k]) for k in range(3)]
 
         normal = lanes.choose(a["has_normals"], interpolated_normal, lambda: facing)
-        m = lanes.gather(a["tri_material"], [p])
+        m = lanes.as_i32(tri["material"][0])
         m64 = lanes.to_i64(m)
         layout = a["texture_layout"]
         first_texel = lanes.gather(layout, [0, m64])
 
         def texel_rows():
-            st = lanes.gather_rows(a["uvs"], p, 6)  # [corner, s or t] row by row
+            st = fields("uvs")["uvs"]  # [corner, s or t] row by row
             s = w * st[0] + u * st[2] + v * st[4]
             t = w * st[1] + u * st[3] + v * st[5]
             width, height = lanes.gather(layout, [1, m64]), lanes.gather(layout, [2, m64])

@@ -52,6 +52,7 @@ from engine.core.scratch import Scratch
 from engine.core.threads import at_own_threads, thread_count
 from engine.render.spawn import gather_and_spawn, new_children
 from engine.render.surface import new_surface, shade_surface
+from engine.render.surface_record import surface_records
 from engine.render.tracer import Tally, Tracer
 
 WARM_UP_SIZE = 32                           # pixels a side of the compile-absorbing warm-up frame
@@ -140,6 +141,9 @@ class WhittedRenderer:
                                                          bins=self.config.render.bins)
         self.bounds = scene_bounds(self.bvh)
         self.corner_magnitude = triangle_magnitudes(self.tris)  # for secondary-ray offsets
+        t = self.tris
+        self.surface_records = surface_records(t.v0, t.v1, t.v2, t.ng, t.normals, t.uvs, t.material,
+                                               self.corner_magnitude)
         self.ambient_light = np.asarray(scene.ambient_light, np.float32)
         self.background = np.asarray(scene.background, np.float32)
         self.tracer = Tracer(self.bvh, self.tris, self.bounds, self.traversal, self.frustum)
@@ -260,7 +264,7 @@ class WhittedRenderer:
         surface = new_surface(r, take)
         shade_surface(packets.offsets, rays.dir, rays.pixel, rays.weight, hits.prim, hits.u, hits.v,
                       tris.v0, tris.v1, tris.v2, tris.ng, tris.normals, tris.uvs, tris.material,
-                      self.corner_magnitude, m.ambient, m.texture_layout, m.texels, m.palette, self.ambient_light,
+                      self.corner_magnitude, self.surface_records, m.ambient, m.texture_layout, m.texels, m.palette, self.ambient_light,
                       self.background, image, *surface)
         if self.scene.lights:
             light = self.scratch.allocator("light")
