@@ -5,7 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from engine.bench.trimesh_queries import _alternating_seconds, _paired_times, paired_speedup, parse, run
+from engine.bench.paired_stats import paired_ratio
+from engine.bench.trimesh_queries import _alternating_seconds, _paired_times, parse, run
 from engine.core.errors import ConfigError
 from engine.render.config import read_toml
 
@@ -90,8 +91,8 @@ def test_the_paired_speed_up_divides_the_calls_of_the_same_round():
     drift = [1.0, 1.5, 2.0, 1.2, 1.8, 1.1, 1.9, 1.3, 1.6, 1.4, 1.7]
     theirs = [0.2 * d for d in drift]
     ours = [0.1 * d for d in drift]
-    assert paired_speedup(theirs, ours) == pytest.approx((2.0, 2.0, 2.0))
-    median, low, high = paired_speedup(theirs, ours[::-1])
+    assert paired_ratio(theirs, ours) == pytest.approx((2.0, 2.0, 2.0))
+    median, low, high = paired_ratio(theirs, ours[::-1])
     assert low == pytest.approx(1.6) and high == pytest.approx(2.5)  # the 2nd and 10th of 11 (1.18x .. 3.4x)
 
 

@@ -90,16 +90,23 @@ def run(seed, with_normals, with_uvs, wide, triangle_rows=np.ascontiguousarray, 
     return image, {name: np.ascontiguousarray(a) for name, a in zip(SURFACE_FIELDS, surface)}
 
 
+def assert_same_surface(expected, got):
+    """Two ``run`` results (image, surface) equal bit for bit: the image, ``hit`` and ``leave`` on
+    every lane, the other rows where a Surface defines them (hit lanes)."""
+    (image_1, surface_1), (image_2, surface_2) = expected, got
+    assert np.array_equal(image_2, image_1)
+    hit = surface_1["hit"]
+    for name in SURFACE_FIELDS:
+        rows = slice(None) if name in ("hit", "leave") else hit
+        assert np.array_equal(surface_2[name][rows].view(np.uint8), surface_1[name][rows].view(np.uint8)), name
+
+
 @pytest.mark.parametrize("with_normals, with_uvs", [(True, True), (False, True), (True, False), (False, False)])
 def test_eight_lane_surface_is_the_lane_by_lane_one(with_normals, with_uvs):
     image_8, surface_8 = run(7, with_normals, with_uvs, wide=True)
-    image_1, surface_1 = run(7, with_normals, with_uvs, wide=False)
-    assert np.array_equal(image_8, image_1)
-    hit = surface_1["hit"]
-    # hit and leave on every lane; the other rows where a Surface defines them (hit lanes).
-    for name in SURFACE_FIELDS:
-        rows = slice(None) if name in ("hit", "leave") else hit
-        assert np.array_equal(surface_8[name][rows].view(np.uint8), surface_1[name][rows].view(np.uint8)), name
+    lane_by_lane = run(7, with_normals, with_uvs, wide=False)
+    assert_same_surface(lane_by_lane, (image_8, surface_8))
+    hit = lane_by_lane[1]["hit"]
     assert 0.8 < hit.mean() < 0.99
     rows = surface_8["texel_row"][hit]
     if with_uvs:  # textured and untextured lanes both occur, every row inside its texture
@@ -114,13 +121,7 @@ def test_triangle_rows_apart_or_scattered_give_the_same_surface(triangle_rows):
     # The eight-lane step reads the triangles' surface records, made from the arrays whatever
     # their strides; the lane-by-lane tail reads the arrays at their own strides. Both give the
     # contiguous arrays' answer.
-    image_1, surface_1 = run(7, True, True, wide=True)
-    image_2, surface_2 = run(7, True, True, wide=True, triangle_rows=triangle_rows)
-    assert np.array_equal(image_1, image_2)
-    hit = surface_1["hit"]
-    for name in SURFACE_FIELDS:
-        rows = slice(None) if name in ("hit", "leave") else hit
-        assert np.array_equal(surface_2[name][rows].view(np.uint8), surface_1[name][rows].view(np.uint8)), name
+    assert_same_surface(run(7, True, True, wide=True), run(7, True, True, wide=True, triangle_rows=triangle_rows))
 
 
 #: Catalogue scenes read from the shared scene folder (the others are procedural).
@@ -185,10 +186,4 @@ def test_a_surface_record_holds_its_triangle_s_arrays():
 def test_records_that_do_not_fit_the_triangles_send_the_pass_lane_by_lane(bad_records):
     # Records of other triangles, or in rows the step cannot load whole, are never read: the
     # pass goes lane by lane over the triangle arrays and gives the same surface.
-    image_1, surface_1 = run(7, True, True, wide=True)
-    image_2, surface_2 = run(7, True, True, wide=True, records=bad_records)
-    assert np.array_equal(image_1, image_2)
-    hit = surface_1["hit"]
-    for name in SURFACE_FIELDS:
-        rows = slice(None) if name in ("hit", "leave") else hit
-        assert np.array_equal(surface_2[name][rows].view(np.uint8), surface_1[name][rows].view(np.uint8)), name
+    assert_same_surface(run(7, True, True, wide=True), run(7, True, True, wide=True, records=bad_records))

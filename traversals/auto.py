@@ -9,7 +9,8 @@ frustum. It asks for 64 packets spread over each batch, 32 over a batch under
 ``split_min_packets`` (``engine.packet.walk.choose_batch``). When they all get the same strategy,
 it walks the whole batch. When they do not, a batch of at least ``split_min_packets`` packets is
 chosen packet by packet (a parallel pass asks the rule for every packet, then each strategy walks
-its own packets); a smaller one is walked whole by the strategy most of its 32 got. Small batches go whole because splitting them measured slower: on the small
+its own packets); a smaller one is walked whole by the strategy most of its 32 got. Small batches
+go whole because splitting them measured slower: on the small
 scenes at 256x256 a batch walked by two strategies in two passes lost to the better single
 strategy by up to 18%, where a packet's whole walk costs about a microsecond, while the
 kitchen's 1024x1024 reflection batch (1,710 16x16 packets) walked 17% faster chosen packet by

@@ -154,8 +154,8 @@ def _timed_calls(call, repeat: int):
 
 def _alternating_seconds(sides, repeat: int, rounds: int):
     """[(median seconds, answer, seconds of every call in order)] of each side, ``sides`` being
-    callables ``timed(k) -> (list of seconds, answer)`` that make k timed calls (after their own
-    warm-up, the first time). The ``repeat`` calls of
+    callables ``timed(k) -> (list of seconds, answer)`` that make k timed calls after their own
+    warm-up. The ``repeat`` calls of
     each side are made in ``rounds`` blocks, the sides' blocks alternating and the side that goes
     first changing from round to round, so that a drift of this host over the seconds a query
     takes lands on every side alike. Timed as one stretch per side, trimesh's then packetrt's,
@@ -273,12 +273,6 @@ def _time_query(theirs, ours, ours_1, call, args, render_call, repeat: int, roun
     return measured[0], measured[1], one, render_times
 
 
-def paired_speedup(theirs_seconds, ours_seconds):
-    """(median, low, high): trimesh's time over packetrt's, call k of each paired
-    (``engine.bench.paired_stats.paired_ratio``; the module doc)."""
-    return paired_ratio(theirs_seconds, ours_seconds)
-
-
 def run(spec: dict, out: Path, progress=print) -> list:
     """Every (mesh, ray set, query) record; written to out/results.jsonl and out/results.md."""
     import numba
@@ -331,12 +325,12 @@ def run(spec: dict, out: Path, progress=print) -> list:
                               "threads": threads,
                               "trimesh_seconds": t_theirs, "packetrt_seconds": t_ours,
                               "trimesh_mrays": n / t_theirs / 1e6, "packetrt_mrays": n / t_ours / 1e6,
-                              "speedup": t_theirs / t_ours, "speedup_paired": paired_speedup(s_theirs, s_ours),
+                              "speedup": t_theirs / t_ours, "speedup_paired": paired_ratio(s_theirs, s_ours),
                               "agree": agree,
                               "packetrt_1thread_seconds": t_one,
                               "same_on_1thread": _same_answers(a_ours, a_one) if t_one else None,
                               "speedup_1thread": t_theirs / t_one if t_one else None,
-                              "speedup_1thread_paired": paired_speedup(s_theirs, s_one) if t_one else None,
+                              "speedup_1thread_paired": paired_ratio(s_theirs, s_one) if t_one else None,
                               "render_path_mrays": render_rate, "host": host}
                     records.append(record)
                     one = f" (1 thread x{record['speedup_1thread']:.2f})" if t_one else ""
@@ -355,9 +349,8 @@ def markdown_table(records: list, trimesh_version: str) -> str:
              f"({first.get('threads', '?')} numba threads); medians of {first.get('repeat', '?')} in "
              f"{first.get('rounds', 1)} alternating rounds per backend",
              "", "Speed-up: trimesh's median time over packetrt's. Paired: the k-th calls of the two backends "
-             "(the same round) paired, the median speed-up and its 95% interval (the sign test's); with as many "
-             "rounds as repeats the two calls of a pair are made one after the other, so the host's drift "
-             "cancels: a target speed-up is met where the interval lies above it.",
+             "(the same round, a second or so apart) paired, the median speed-up and its 95% interval (the sign "
+             "test's): a target speed-up is met where the interval lies above it.",
              "", "Host slow-down: how many times slower than the run's fastest moment the host ran around the "
              "query (engine.bench.host_speed); compare rows near 1.00.",
              "", "| mesh | rays | query | n | trimesh Mrays/s | packetrt Mrays/s | speed-up | speed-up, paired [95%] | "

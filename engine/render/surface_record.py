@@ -31,6 +31,10 @@ from numba import njit, prange
 RECORD_WIDTH = 32
 RECORD_FIELDS = {"v0": (0, 3), "v1": (3, 3), "v2": (6, 3), "ng": (9, 3), "normals": (12, 9), "uvs": (21, 6),
                  "magnitude": (27, 1), "material": (28, 1)}
+# The first columns, as constants the fill kernel compiles in (one layout: RECORD_FIELDS).
+_V0, _V1, _V2, _NG, _NORMALS, _UVS, _MAGNITUDE, _MATERIAL = (
+    RECORD_FIELDS[name][0] for name in ("v0", "v1", "v2", "ng", "normals", "uvs", "magnitude", "material"))
+_UNUSED = _MATERIAL + 1
 
 
 def surface_records(v0, v1, v2, ng, normals, uvs, material, magnitude) -> np.ndarray:
@@ -58,16 +62,16 @@ def fill_records(v0, v1, v2, ng, normals, uvs, material, magnitude, records, rec
     has_uvs = uvs.shape[0] > 0
     for i in prange(records.shape[0]):
         for a in range(3):
-            records[i, a] = v0[i, a]
-            records[i, 3 + a] = v1[i, a]
-            records[i, 6 + a] = v2[i, a]
-            records[i, 9 + a] = ng[i, a]
+            records[i, _V0 + a] = v0[i, a]
+            records[i, _V1 + a] = v1[i, a]
+            records[i, _V2 + a] = v2[i, a]
+            records[i, _NG + a] = ng[i, a]
         for c in range(3):
             for a in range(3):
-                records[i, 12 + 3 * c + a] = normals[i, c, a] if has_normals else np.float32(0.0)
+                records[i, _NORMALS + 3 * c + a] = normals[i, c, a] if has_normals else np.float32(0.0)
             for a in range(2):
-                records[i, 21 + 2 * c + a] = uvs[i, c, a] if has_uvs else np.float32(0.0)
-        records[i, 27] = magnitude[i]
-        record_bits[i, 28] = material[i]
-        for a in range(29, 32):
+                records[i, _UVS + 2 * c + a] = uvs[i, c, a] if has_uvs else np.float32(0.0)
+        records[i, _MAGNITUDE] = magnitude[i]
+        record_bits[i, _MATERIAL] = material[i]
+        for a in range(_UNUSED, RECORD_WIDTH):
             records[i, a] = np.float32(0.0)
