@@ -5,9 +5,11 @@ tests/test_gpu_rayspace.py, which sets NUMBA_ENABLE_CUDASIM=1 for it alone).
 
 CASES.npz holds the scene (``tri_<field>`` for every ``Triangles`` field) and, for each case
 ``<name>_<key>``: org, dir f32[C,3], tmin, tmax f32[C], pixel i32[C], and a JSON ``<name>_spec``
-(query "closest" | "occluded", n, width, height, light or null, pair_budget). OUT.npz gets the
-answers (``<name>_t/prim/u/v`` or ``<name>_occluded``, the full output arrays, whose rows past n
-must keep their sentinel) and ``<name>_report`` (JSON: stats, seconds, or the error raised).
+(query "closest" | "occluded", n, width, height, light or null, pair_budget, shadow_grid). OUT.npz
+gets the answers (``<name>_t/prim/u/v`` or ``<name>_occluded``, the full output arrays, whose rows
+past n must keep their sentinel), ``<name>_light_pixel`` (the device's light-grid pixels of rays
+0 .. n-1, for a case with a light and the "light" grid) and ``<name>_report`` (JSON: stats,
+seconds, or the error raised).
 """
 from __future__ import annotations
 
@@ -40,7 +42,8 @@ def main(cases_path: str, out_path: str) -> None:
         spec = json.loads(str(data[f"{name}_spec"]))
         rays = [upload(data[f"{name}_{key}"]) for key in ("org", "dir", "tmin", "tmax", "pixel")]
         size = data[f"{name}_tmin"].shape[0]
-        tracer = DeviceRaySpace(dtris, tris, pair_budget=spec["pair_budget"])
+        grid = spec.get("shadow_grid", "light")
+        tracer = DeviceRaySpace(dtris, tris, pair_budget=spec["pair_budget"], shadow_grid=grid)
         report = {}
         clock = time.perf_counter()
         try:
@@ -56,6 +59,8 @@ def main(cases_path: str, out_path: str) -> None:
                                 light=spec["light"])
             for key, array in dev.items():
                 out[f"{name}_{key}"] = array.copy_to_host()
+            if spec["light"] is not None and grid == "light" and spec["n"]:
+                out[f"{name}_light_pixel"] = tracer.scratch.get("light_pixel", spec["n"], np.int32).copy_to_host()
             report["stats"] = tracer.last
         except Exception as error:  # reported to the parent test, which decides
             report["error"] = f"{type(error).__name__}: {error}"

@@ -23,6 +23,7 @@ from engine.core.offset import offset_origin
 from engine.core.triangle import intersect_triangle, ray_shear, safe_inverse
 from engine.core.types import Packets, RayBatch, Triangles, empty_hits, new_stats
 from engine.packet.layout import make_batch
+from engine.rayspace.light_grid import light_grid_pixels, rank_pixel
 from engine.render.camera import camera_rays
 from engine.render.plugins import make_traversal
 from scenes.catalog import load_named
@@ -157,12 +158,13 @@ def barycentrics(rays, tris, prim):
 
 # -- one simulator run for every case ------------------------------------------------------
 
-def _case(cases: dict, name: str, rays: RayBatch, query: str, n: int, light=None, budget=1 << 22) -> None:
+def _case(cases: dict, name: str, rays: RayBatch, query: str, n: int, light=None, budget=1 << 22,
+          shadow_grid="light") -> None:
     for key, value in (("org", rays.org), ("dir", rays.dir), ("tmin", rays.tmin), ("tmax", rays.tmax),
                        ("pixel", rays.pixel)):
         cases[f"{name}_{key}"] = np.ascontiguousarray(value)
     spec = {"query": query, "n": n, "width": SIZE, "height": SIZE, "pair_budget": budget,
-            "light": None if light is None else [float(x) for x in light]}
+            "light": None if light is None else [float(x) for x in light], "shadow_grid": shadow_grid}
     cases[f"{name}_spec"] = np.array(json.dumps(spec))
 
 
@@ -176,6 +178,7 @@ def run(tmp_path_factory):
     _case(cases, "primary", rays.primary, "closest", len(rays.primary.org))
     _case(cases, "secondary", secondary, "closest", len(secondary.org) - GARBAGE)
     _case(cases, "shadow_reversed", shadow, "occluded", len(shadow.org), light=rays.light)
+    _case(cases, "shadow_pixel_grid", shadow, "occluded", len(shadow.org), light=rays.light, shadow_grid="pixel")
     _case(cases, "shadow_forward", shadow, "occluded", len(shadow.org))
     _case(cases, "shadow_elsewhere", unbounded_some(shadow), "occluded", ELSEWHERE_RAYS, light=ELSEWHERE)
     _case(cases, "crowded", crowded(secondary), "closest", len(secondary.org) - GARBAGE)
@@ -293,10 +296,11 @@ def test_a_block_of_more_rays_than_the_survivor_mask_holds(run):
     assert_closest(answers, "crowded", batch, rays.tris, n)
 
 
-@pytest.mark.parametrize("name", ["shadow_reversed", "shadow_forward", "shadow_elsewhere"])
+@pytest.mark.parametrize("name", ["shadow_reversed", "shadow_pixel_grid", "shadow_forward", "shadow_elsewhere"])
 def test_shadow_rays_occlusion(run, name):
-    """Reversed from the light, forward, or reversed from a wrong point with some rays unbounded
-    (those stay forward): the same answers, since any leaf that holds its segment is exact."""
+    """Reversed from the light (grouped by direction from it, or by pixel), forward, or reversed
+    from a wrong point with some rays unbounded (those stay forward): the same answers, since
+    any leaf that holds its segment is exact and the grouping only decides what is tested."""
     rays, answers, extra = run
     batch = unbounded_some(extra["shadow"]) if name == "shadow_elsewhere" else extra["shadow"]
     n = ELSEWHERE_RAYS if name == "shadow_elsewhere" else len(batch.org)
@@ -307,6 +311,28 @@ def test_shadow_rays_occlusion(run, name):
     assert np.array_equal(got[:n].astype(bool), prim >= 0)
     assert 0 < (prim >= 0).sum() < (batch.pixel[:n] >= 0).sum()  # some lit, some in shadow
     assert stats["reversed_batches"] == (name != "shadow_forward")
+
+
+def test_light_grid_pixels_and_streams_are_the_cpu_plugins(run):
+    """The device places every shadow ray on the light grid's cell the CPU computes (the same
+    twinned math), and the stream then tests what the CPU plugin tests; the pixel grid tests
+    other pairs (so the option reaches the device)."""
+    rays, answers, extra = run
+    batch = extra["shadow"]
+    n = len(batch.org)
+    cpu_pixels, side = light_grid_pixels(batch.dir, batch.tmin, batch.tmax, batch.pixel, SIZE, SIZE)
+    assert np.array_equal(answers["shadow_reversed_light_pixel"], cpu_pixels)
+    live = cpu_pixels >= 0
+    assert side * side >= live.sum() > side * side // 4
+    # The k-th ray of the sorted order at Morton position k: one ray a pixel, four a block.
+    assert np.array_equal(np.sort(cpu_pixels[live]), np.sort([rank_pixel(k, side) for k in range(live.sum())]))
+    assert "shadow_pixel_grid_light_pixel" not in answers
+    light, pixel = ok(answers, "shadow_reversed"), ok(answers, "shadow_pixel_grid")
+    cpu = new_stats(1)
+    RaySpaceTraversal().occluded(None, rays.tris, batch, extra["shadow_packets"], None, np.zeros(n, np.bool_), cpu)
+    for key in ("pairs_before", "pairs_after", "cone_sphere_tests"):
+        assert np.allclose(light[key], cpu.extra["rayspace"][key], rtol=0.01), (key, light[key])
+    assert light["cone_sphere_tests"] != pixel["cone_sphere_tests"]
 
 
 def test_small_pair_budget_batches_triangles(run):

@@ -29,12 +29,18 @@ Shadow rays
     is the original ray's, bit for bit; testing the reversed ray instead would reach the
     surface it leaves at the far end, where the tmin offset has no reversed counterpart.
     Rays of a batch that aim at different lights are not reversed.
+    Reversed rays are placed on a grid over their directions from the light
+    (``engine.rayspace.light_grid``) instead of at their pixels, unless ``shadow_grid =
+    "pixel"``: their nodes' cones are then as narrow as the rays allow; the same answers.
 
 Options (``[options.rayspace]`` in a config, or keyword arguments of the class)
     pair_budget = 4194304   most (node, triangle) pairs one stream may hold (1 .. 2^31-1).
                             A level that would overflow splits the triangles into batches
                             traced one after another, merged by closest hit. A budget too
                             small for one triangle's pairs raises ConfigError with the need.
+    shadow_grid = "light"   how rays that share a light are grouped: "light", by direction
+                            from the light; "pixel", by ancestral pixel (the paper's layout,
+                            as every other batch is grouped).
 
 Statistics (``stats.extra["rayspace"]``, summed over calls; lists are indexed by level,
 0 = rays, last = root): ``cone_sphere_tests``, ``pairs_before`` (child slots before
@@ -66,6 +72,7 @@ import numpy as np
 from numba import get_thread_id, njit, prange
 
 from engine.rayspace.cone_sphere import absolute_slack, build_hierarchy, reversed_segment
+from engine.rayspace.light_grid import checked_shadow_grid, light_grid_pixels
 from engine.core.errors import ConfigError
 from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear
 from engine.rayspace.pair_stream import expand, group_by_slot, root_stream
@@ -266,19 +273,20 @@ def _batch_size(budget: int, triangles: int, pairs: int) -> int:
 class RaySpaceTraversal:
     """Ray-space cone-sphere hierarchy over the batch's rays (Roger et al. 2007); no scene hierarchy."""
 
-    OPTIONS = {"pair_budget": 1 << 22}
+    OPTIONS = {"pair_budget": 1 << 22, "shadow_grid": "light"}
     #: The hierarchy is over the rays: a moving scene has no structure of ours to keep current.
     uses_bvh = False
     #: Frusta are not read: the tracer builds none for this traversal.
     uses_frusta = False
 
-    def __init__(self, pair_budget=OPTIONS["pair_budget"]):
+    def __init__(self, pair_budget=OPTIONS["pair_budget"], shadow_grid=OPTIONS["shadow_grid"]):
         """Options as in the module doc; a bad value is a ConfigError."""
         if isinstance(pair_budget, bool) or not isinstance(pair_budget, (int, np.integer)) \
                 or not 1 <= pair_budget <= MAX_PAIR_BUDGET:
             raise ConfigError(f"options.rayspace: pair_budget must be an integer in 1..{MAX_PAIR_BUDGET}, "
                               f"got {pair_budget!r}")
         self.pair_budget = int(pair_budget)
+        self.shadow_grid = checked_shadow_grid(shadow_grid)
 
     # -- the two queries ---------------------------------------------------------------
     def intersect(self, bvh, tris, rays, packets, frusta, hits, stats):
@@ -308,8 +316,11 @@ class RaySpaceTraversal:
 
         clock = time.perf_counter()
         apex = shared_apex(rays, live) if rays.kind == "shadow" else None
-        h = build_hierarchy(rays.org, rays.dir, rays.tmin, rays.tmax, rays.pixel,
-                            packets.width, packets.height, apex)
+        pixel, width, height = rays.pixel, packets.width, packets.height
+        if apex is not None and self.shadow_grid == "light":
+            pixel, width = light_grid_pixels(rays.dir, rays.tmin, rays.tmax, rays.pixel, width, height)
+            height = width
+        h = build_hierarchy(rays.org, rays.dir, rays.tmin, rays.tmax, pixel, width, height, apex)
         seconds["build"] = time.perf_counter() - clock
         abs_tol = absolute_slack(h, centre, radius)
 

@@ -7,6 +7,8 @@ from engine.core.errors import ConfigError
 from engine.gpu.device import BLOCK, blocks, require_cuda
 from engine.gpu.rayspace import final
 from engine.gpu.rayspace.hierarchy import build
+from engine.gpu.rayspace.light_grid import light_grid_pixels
+from engine.rayspace.light_grid import checked_shadow_grid
 from engine.gpu.rayspace.scratch import Scratch
 from engine.gpu.rayspace.stream import WORK_SLOTS, WORK_TESTS, Stream
 from engine.gpu.scan import Scanner
@@ -60,7 +62,9 @@ class DeviceRaySpace:
     ``engine.core.types.Triangles`` on the host (only its count is checked). pair_budget: the
     most (node, triangle) pairs one level's stream may hold, as the CPU plugin's option; a level
     that would exceed it splits the triangles into batches, and a single triangle that exceeds
-    it raises ConfigError with the number it needs.
+    it raises ConfigError with the number it needs. shadow_grid: "light" (rays given a
+    ``light`` grouped by their direction from it, ``engine.rayspace.light_grid``) or "pixel"
+    (by ancestral pixel, the paper's layout), as the CPU plugin's option.
 
     ``stats``: the running totals over calls (keys of ``new_record``); ``last``: the last call's.
     """
@@ -68,7 +72,7 @@ class DeviceRaySpace:
     name = "rayspace"
     uses_bvh = False
 
-    def __init__(self, tris, host_tris, pair_budget: int = 4194304):
+    def __init__(self, tris, host_tris, pair_budget: int = 4194304, shadow_grid: str = "light"):
         if isinstance(pair_budget, bool) or not isinstance(pair_budget, (int, np.integer)) \
                 or not 1 <= pair_budget <= MAX_PAIR_BUDGET:
             raise ConfigError(f"options.rayspace: pair_budget must be an integer in 1..{MAX_PAIR_BUDGET}, "
@@ -78,6 +82,7 @@ class DeviceRaySpace:
                              "are not the same scene")
         self.tris = tris
         self.pair_budget = int(pair_budget)
+        self.shadow_grid = checked_shadow_grid(shadow_grid)
         self.scratch = Scratch(hint=f"lower [options.rayspace] pair_budget (now {int(pair_budget):,} pairs; "
                                     "both pair buffers hold it) or render smaller")
         self.scanner = Scanner()
@@ -120,7 +125,8 @@ class DeviceRaySpace:
 
         light: the point light every ray aims at (3 floats), or None. Given, the hierarchy is
         built over the segments reversed to leave the light (the paper's shadow rays): tight
-        leaves, the same answers. Any point is correct; only culling depends on it.
+        leaves, the same answers; with ``shadow_grid = "light"`` the rays are also grouped by
+        their direction from it. Any point is correct; only culling depends on it.
         """
         n = int(n)
         if n:
@@ -143,6 +149,10 @@ class DeviceRaySpace:
         if n == 0 or n_tris == 0:
             self.last = new_record(0)
             return
+        if light is not None and self.shadow_grid == "light":
+            pixel, width = light_grid_pixels(self.scratch, self.scanner, dirs, tmin, tmax, pixel, n, int(width),
+                                             int(height))
+            height = width
         h = build(self.scratch, self.scanner, self.tris, org, dirs, tmin, tmax, pixel, n, int(width), int(height),
                   light)
         self._h = h

@@ -1,0 +1,142 @@
+"""Shadow rays' light-grid pixels on the device: ``engine.rayspace.light_grid``'s layout, its
+``octahedral``, ``cell_key``, ``rank_pixel`` and ``is_live`` compiled as device twins, so every
+ray gets the CPU's pixel.
+
+``_bounds`` reduces the live rays' map rectangle (per thread over a grid stride, per block in
+shared memory, one atomic per block and bound); ``_count_cells`` gives each live ray its cell's
+Morton key and counts the cells; a scan, ``_fill_cells`` and ``_order_cells`` (rays of a cell by
+ray id, as the CPU's stable sort leaves them) make the sorted order; ``_rank_pixels`` writes the
+k-th ray's pixel. One host wait: the scan's total, which sizes the screen.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from engine.gpu.device import BLOCK, blocks, require_cuda
+from engine.gpu.fill import fill_array
+from engine.gpu.twin import device_twin
+from engine.rayspace import light_grid
+from engine.rayspace.light_grid import cell_bits, grid_side
+
+cuda = require_cuda()
+
+_octahedral = device_twin(light_grid.octahedral)
+_cell_key = device_twin(light_grid.cell_key, cell_scale=device_twin(light_grid.cell_scale))
+_rank_pixel = device_twin(light_grid.rank_pixel)
+_is_live = device_twin(light_grid.is_live)
+
+#: Blocks of the bounds reduction: each thread folds n / (REDUCE_BLOCKS * BLOCK) rays first.
+REDUCE_BLOCKS = 128
+_EMPTY_BOUNDS = np.array([np.inf, -np.inf, np.inf, -np.inf])
+
+
+@cuda.jit
+def _bounds(dirs, tmin, tmax, pixel, n, bounds):
+    """bounds f64[4] (low_u, high_u, low_v, high_v, starting at inf, -inf, inf, -inf) over the
+    live rays 0 .. n-1."""
+    shared = cuda.shared.array(4, np.float64)
+    if cuda.threadIdx.x == 0:
+        shared[0] = np.inf
+        shared[1] = -np.inf
+        shared[2] = np.inf
+        shared[3] = -np.inf
+    cuda.syncthreads()
+    low_u, high_u, low_v, high_v = np.inf, -np.inf, np.inf, -np.inf
+    for r in range(cuda.grid(1), n, cuda.gridsize(1)):
+        if _is_live(pixel, tmin, tmax, r):
+            u, v = _octahedral(dirs[r, 0], dirs[r, 1], dirs[r, 2])
+            low_u, high_u = min(low_u, u), max(high_u, u)
+            low_v, high_v = min(low_v, v), max(high_v, v)
+    if low_u <= high_u:
+        cuda.atomic.min(shared, 0, low_u)
+        cuda.atomic.max(shared, 1, high_u)
+        cuda.atomic.min(shared, 2, low_v)
+        cuda.atomic.max(shared, 3, high_v)
+    cuda.syncthreads()
+    if cuda.threadIdx.x == 0 and shared[0] <= shared[1]:
+        cuda.atomic.min(bounds, 0, shared[0])
+        cuda.atomic.max(bounds, 1, shared[1])
+        cuda.atomic.min(bounds, 2, shared[2])
+        cuda.atomic.max(bounds, 3, shared[3])
+
+
+@cuda.jit
+def _count_cells(dirs, tmin, tmax, pixel, n, n_pixels, bounds, bits, keys, cell_count, bad_pixel):
+    """keys[r]: live ray r's cell key (-1 when dead), counted per cell; a live ray off the
+    screen goes to bad_pixel[0] (atomic max) instead."""
+    r = cuda.grid(1)
+    if r < n:
+        keys[r] = -1
+        if _is_live(pixel, tmin, tmax, r):
+            if pixel[r] >= n_pixels:
+                cuda.atomic.max(bad_pixel, 0, pixel[r])
+            else:
+                u, v = _octahedral(dirs[r, 0], dirs[r, 1], dirs[r, 2])
+                key = _cell_key(u, v, bounds[0], bounds[1], bounds[2], bounds[3], bits)
+                keys[r] = key
+                cuda.atomic.add(cell_count, key, 1)
+
+
+@cuda.jit
+def _fill_cells(keys, n, cell_start, fill, order):
+    r = cuda.grid(1)
+    if r < n and keys[r] >= 0:
+        order[cell_start[keys[r]] + cuda.atomic.add(fill, keys[r], 1)] = r
+
+
+@cuda.jit
+def _order_cells(cell_start, n_cells, order):
+    """Insertion sort of each cell's rays by ray id (a cell holds a few rays)."""
+    c = cuda.grid(1)
+    if c < n_cells:
+        lo = cell_start[c]
+        for i in range(lo + 1, cell_start[c + 1]):
+            ray = order[i]
+            j = i - 1
+            while j >= lo and order[j] > ray:
+                order[j + 1] = order[j]
+                j -= 1
+            order[j + 1] = ray
+
+
+@cuda.jit
+def _rank_pixels(order, n_live, side, out):
+    k = cuda.grid(1)
+    if k < n_live:
+        out[order[k]] = _rank_pixel(k, side)
+
+
+def light_grid_pixels(scratch, scanner, dirs, tmin, tmax, pixel, n: int, width: int, height: int):
+    """(i32[n] device array, side): rays 0 .. n-1 of the device queue (dirs f32[C,3]; tmin, tmax
+    f32[C]; pixel i32[C] on the ``width x height`` screen) at their light-grid pixels on a
+    ``side x side`` screen, as ``engine.rayspace.light_grid.light_grid_pixels`` places them;
+    -1 for dead rays. A live ray off the screen raises ValueError, as the build does."""
+    bits = cell_bits(n)
+    n_cells = 1 << (2 * bits)
+    bounds = scratch.get("light_bounds", 4, np.float64)
+    bounds.copy_to_device(_EMPTY_BOUNDS)
+    keys = scratch.get("light_key", n, np.int32)
+    count = scratch.get("light_cell_count", n_cells, np.int32)
+    fill = scratch.get("light_cell_fill", n_cells, np.int32)
+    start = scratch.get("light_cell_start", n_cells + 1, np.int32)
+    bad = scratch.get("light_bad_pixel", 1, np.int32)
+    out = scratch.get("light_pixel", n, np.int32)
+    fill_array[blocks(n_cells), BLOCK](count, n_cells, 0)
+    fill_array[blocks(n_cells), BLOCK](fill, n_cells, 0)
+    fill_array[1, BLOCK](bad, 1, -1)
+    if n:
+        fill_array[blocks(n), BLOCK](out, n, -1)
+        _bounds[min(REDUCE_BLOCKS, blocks(n)), BLOCK](dirs, tmin, tmax, pixel, n, bounds)
+        _count_cells[blocks(n), BLOCK](dirs, tmin, tmax, pixel, n, int(width) * int(height), bounds, bits, keys,
+                                       count, bad)
+    n_live = scanner.exclusive_scan(count, n_cells, start)
+    worst = int(bad.copy_to_host()[0])
+    if worst >= 0:
+        raise ValueError(f"ray pixel {worst} is outside the {width}x{height} screen grid")
+    side = grid_side(n_live)
+    if n_live:
+        order = scratch.get("light_order", n_live, np.int32)
+        _fill_cells[blocks(n), BLOCK](keys, n, start, fill, order)
+        _order_cells[blocks(n_cells), BLOCK](start, n_cells, order)
+        _rank_pixels[blocks(n_live), BLOCK](order, n_live, side, out)
+    return out, side
