@@ -4,8 +4,8 @@ ray gets the CPU's pixel.
 
 ``_bounds`` reduces the live rays' map rectangle (per thread over a grid stride, per block in
 shared memory, one atomic per block and bound); ``_count_cells`` gives each live ray its cell's
-Morton key and counts the cells; a scan, ``_fill_cells`` and ``_order_cells`` (rays of a cell by
-ray id, as the CPU's stable sort leaves them) make the sorted order; ``_rank_pixels`` writes the
+Morton key and counts the cells; a scan, ``_fill_cells`` and the build's ``_order_blocks`` (rays of
+a cell by ray id, as the CPU's stable sort leaves them) make the sorted order; ``_rank_pixels`` writes the
 k-th ray's pixel. One host wait: the scan's total, which sizes the screen.
 """
 from __future__ import annotations
@@ -14,6 +14,7 @@ import numpy as np
 
 from engine.gpu.device import BLOCK, blocks, require_cuda
 from engine.gpu.fill import fill_array
+from engine.gpu.rayspace.hierarchy import _order_blocks
 from engine.gpu.twin import device_twin
 from engine.rayspace import light_grid
 from engine.rayspace.light_grid import cell_bits, grid_side
@@ -85,21 +86,6 @@ def _fill_cells(keys, n, cell_start, fill, order):
 
 
 @cuda.jit
-def _order_cells(cell_start, n_cells, order):
-    """Insertion sort of each cell's rays by ray id (a cell holds a few rays)."""
-    c = cuda.grid(1)
-    if c < n_cells:
-        lo = cell_start[c]
-        for i in range(lo + 1, cell_start[c + 1]):
-            ray = order[i]
-            j = i - 1
-            while j >= lo and order[j] > ray:
-                order[j + 1] = order[j]
-                j -= 1
-            order[j + 1] = ray
-
-
-@cuda.jit
 def _rank_pixels(order, n_live, side, out):
     k = cuda.grid(1)
     if k < n_live:
@@ -137,6 +123,6 @@ def light_grid_pixels(scratch, scanner, dirs, tmin, tmax, pixel, n: int, width: 
     if n_live:
         order = scratch.get("light_order", n_live, np.int32)
         _fill_cells[blocks(n), BLOCK](keys, n, start, fill, order)
-        _order_cells[blocks(n_cells), BLOCK](start, n_cells, order)
+        _order_blocks[blocks(n_cells), BLOCK](start, n_cells, order)  # a cell's rays by ray id
         _rank_pixels[blocks(n_live), BLOCK](order, n_live, side, out)
     return out, side
