@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numba
 import numpy as np
 import pytest
 from numba import njit
@@ -260,7 +261,7 @@ def test_stats_per_level_like_the_cpu_plugin(run):
     assert stats["candidates_per_ray"] == pytest.approx(stats["candidates"] / live)
     # The same hierarchy as the CPU's (same math, same slot order), so about the same streams;
     # equal unless a last-bit difference in the libraries' sin/cos moves a cone edge.
-    cpu = new_stats(1)
+    cpu = new_stats(numba.get_num_threads())
     make_traversal("rayspace").intersect(None, rays.tris, rays.primary, rays.packets, None,
                                          empty_hits(len(rays.primary.org)), cpu)
     mine = cpu.extra["rayspace"]
@@ -328,7 +329,7 @@ def test_light_grid_pixels_and_streams_are_the_cpu_plugins(run):
     assert np.array_equal(np.sort(cpu_pixels[live]), np.sort([rank_pixel(k, side) for k in range(live.sum())]))
     assert "shadow_pixel_grid_light_pixel" not in answers
     light, pixel = ok(answers, "shadow_reversed"), ok(answers, "shadow_pixel_grid")
-    cpu = new_stats(1)
+    cpu = new_stats(numba.get_num_threads())
     RaySpaceTraversal().occluded(None, rays.tris, batch, extra["shadow_packets"], None, np.zeros(n, np.bool_), cpu)
     for key in ("pairs_before", "pairs_after", "cone_sphere_tests"):
         assert np.allclose(light[key], cpu.extra["rayspace"][key], rtol=0.01), (key, light[key])
@@ -343,7 +344,7 @@ def test_small_pair_budget_batches_triangles(run):
     assert stats["batches"] > 1 and stats["retries"] >= 1 and stats["peak_pairs"] <= SMALL_BUDGET
     assert stats["pairs_before"][stats["levels"]] > rays.tris.v0.shape[0]  # retried triangles count again
     assert_closest(answers, "batches", batch, rays.tris, len(batch.org))
-    cpu = new_stats(1)
+    cpu = new_stats(numba.get_num_threads())
     RaySpaceTraversal(pair_budget=SMALL_BUDGET).intersect(None, rays.tris, batch, extra["shadow_packets"], None,
                                                           empty_hits(len(batch.org)), cpu)
     assert (stats["batches"], stats["retries"]) == (cpu.extra["rayspace"]["batches"], cpu.extra["rayspace"]["retries"])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, assume, example, given, settings
@@ -141,7 +142,7 @@ def assert_same_hits(ref, got):
 def test_closest_hits_match_single(rayspace, scene, kind):
     setup = setup_for(scene)
     rays, packets = getattr(setup, kind)()
-    stats = new_stats(2)
+    stats = new_stats(numba.get_num_threads())
     ref, got = intersect_both(rayspace, setup, rays, packets, stats)
     assert_same_hits(ref, got)
     extra = stats.extra["rayspace"]
@@ -260,7 +261,7 @@ def test_dead_lanes_are_misses(rayspace):
 def test_shadow_batch_to_one_light_is_reversed(rayspace):
     setup = setup_for("whitted")
     rays, packets = setup.shadow()
-    stats = new_stats(2)
+    stats = new_stats(numba.get_num_threads())
     ref, got = occluded_both(rayspace, setup, rays, packets, stats)
     np.testing.assert_array_equal(got, ref)
     assert ref.any() and not ref.all()
@@ -274,7 +275,7 @@ def test_shadow_rays_ending_exactly_at_the_light(rayspace):
     org = offset_origin(setup.point, setup.ng)
     to = light - org
     rays, packets = setup.batch("shadow", org, to, np.ones(len(org), np.float32))
-    stats = new_stats(2)
+    stats = new_stats(numba.get_num_threads())
     ref, got = occluded_both(rayspace, setup, rays, packets, stats)
     np.testing.assert_array_equal(got, ref)
     assert stats.extra["rayspace"]["reversed_batches"] == 1
@@ -288,7 +289,7 @@ def test_shadow_batch_to_two_lights_is_not_reversed(rayspace):
     cat = lambda field: np.concatenate([getattr(a, field)[la], getattr(b, field)[lb]])
     rays, packets = make_batch("shadow", cat("org"), cat("dir"), cat("tmin"), cat("tmax"), cat("pixel"),
                                cat("weight"), setup.width, setup.height, PACKET)
-    stats = new_stats(2)
+    stats = new_stats(numba.get_num_threads())
     ref, got = occluded_both(rayspace, setup, rays, packets, stats)
     np.testing.assert_array_equal(got, ref)
     assert stats.extra["rayspace"]["reversed_batches"] == 0
@@ -305,7 +306,7 @@ def test_shadow_tmin_offset_is_kept(rayspace):
     for tmin in (0.0, 1e-4, 1e-2):
         rays, packets = setup.batch("shadow", setup.point, l, (dist * np.float32(1 - 1e-4)).astype(np.float32),
                                     tmin=np.full(len(dist), tmin, np.float32))
-        stats = new_stats(2)
+        stats = new_stats(numba.get_num_threads())
         ref, got = occluded_both(rayspace, setup, rays, packets, stats)
         np.testing.assert_array_equal(got, ref)
         assert stats.extra["rayspace"]["reversed_batches"] == 1
@@ -316,12 +317,12 @@ def test_shadow_tmin_offset_is_kept(rayspace):
 def test_tiny_budget_splits_into_batches_with_identical_hits(rayspace):
     setup = setup_for("bunny")
     rays, packets = setup.reflection()
-    full = new_stats(2)
+    full = new_stats(numba.get_num_threads())
     ref, _ = intersect_both(rayspace, setup, rays, packets, full)
     assert full.extra["rayspace"]["batches"] == 1
     budget = max(full.extra["rayspace"]["peak_pairs"] // 7, 1)
     small = make_traversal("rayspace", {"pair_budget": budget})
-    stats = new_stats(2)
+    stats = new_stats(numba.get_num_threads())
     got = empty_hits(len(rays.org))
     small.intersect(setup.bvh, setup.tris, rays, packets, None, got, stats)
     assert_same_hits(ref, got)
@@ -364,11 +365,11 @@ def test_options_table_and_instances():
 def test_stats_accumulate_across_calls(rayspace):
     setup = setup_for("whitted")
     rays, packets = setup.reflection()
-    stats = new_stats(2)
+    stats = new_stats(numba.get_num_threads())
     for _ in range(2):
         rayspace.intersect(setup.bvh, setup.tris, rays, packets, None, empty_hits(len(rays.org)), stats)
     extra = stats.extra["rayspace"]
-    one = new_stats(2)
+    one = new_stats(numba.get_num_threads())
     rayspace.intersect(setup.bvh, setup.tris, rays, packets, None, empty_hits(len(rays.org)), one)
     single = one.extra["rayspace"]
     assert extra["calls"] == 2 and extra["candidates"] == 2 * single["candidates"]

@@ -59,6 +59,7 @@ from engine.packet.choose import LIMIT_NAMES
 from engine.packet.plugin import PacketTraversal, walk_batch
 from engine.packet.strategies import AUTO, CHOSEN_NAMES
 from engine.packet.walk import choose_batch
+from engine.core.types import thread_counters
 
 #: ``split_min_packets``'s default, set between two measurements, not fitted: the split batches of
 #: the 256x256 frames (at most 1,024 packets) walked faster whole, and the kitchen's 1024x1024
@@ -127,7 +128,7 @@ class AutoTraversal(PacketTraversal):
              from_end=False):
         choices = np.empty(len(packets.offsets) - 1, np.int8)
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
-                   None if stats is None else stats.counters, limits=self._limits, choices=choices,
+                   thread_counters(stats), limits=self._limits, choices=choices,
                    from_end=from_end, per_packet=self._per_packet(packets), book=self.book,
                    min_share=self.split_min_share)
         if stats is not None:
@@ -137,7 +138,7 @@ class AutoTraversal(PacketTraversal):
     def _walk_group(self, bvh, tris, rays, packets, frusta, any_hit, stats, from_end, chosen, visits):
         choices = np.empty(len(packets.offsets) - 1, np.int8)
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, True, any_hit.t, any_hit.prim, any_hit.u, any_hit.v,
-                   None if stats is None else stats.counters, limits=self._limits, choices=choices,
+                   thread_counters(stats), limits=self._limits, choices=choices,
                    from_end=from_end, chosen=chosen, visits=visits,
                    per_packet=self._per_packet(packets), min_share=self.split_min_share)
         if stats is not None:

@@ -78,7 +78,7 @@ from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear
 from engine.rayspace.pair_stream import expand, group_by_slot, root_stream
 from engine.core.registry import register_traversal
 from engine.rayspace.triangle_spheres import triangle_spheres
-from engine.core.types import COUNTER_RAY_TRI, check_answer_arrays, empty_hits
+from engine.core.types import COUNTER_RAY_TRI, check_answer_arrays, empty_hits, thread_counters
 
 CHUNK = 256               # slots per prange task of the final tests
 MAX_PAIR_BUDGET = 2**31 - 1   # stream indices are i32
@@ -355,7 +355,7 @@ class RaySpaceTraversal:
             clock = time.perf_counter()
             _final_tests(h.slot_ray, start, cand, tris.v0, tris.v1, tris.v2, rays.org, rays.dir,
                          rays.tmin, rays.tmax, any_hit, out_t, out_prim, out_u, out_v,
-                         None if stats is None else stats.counters)
+                         thread_counters(stats))
             seconds["final"] += time.perf_counter() - clock
             record["candidates"] += int(cand.shape[0])
             record["batches"] += 1

@@ -11,7 +11,7 @@ from numba import get_thread_id, njit, prange
 from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear, slab_test
 from engine.core.registry import register_traversal
 from engine.core.types import (COUNTER_NODES, COUNTER_RAY_AABB, COUNTER_RAY_TRI, MAX_BVH_DEPTH, check_answer_arrays,
-                          empty_hits)
+                          empty_hits, thread_counters)
 
 CHUNK = 256  # rays per prange task: one stack allocation per chunk
 
@@ -121,11 +121,11 @@ class SingleRayTraversal:
         check_answer_arrays(rays.org.shape[0], hits.t, hits.prim, hits.u, hits.v)
         trace_single(bvh.bmin, bvh.bmax, bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
                      rays.org, rays.inv_dir, rays.dir, rays.tmin, rays.tmax, False,
-                     hits.t, hits.prim, hits.u, hits.v, None if stats is None else stats.counters)
+                     hits.t, hits.prim, hits.u, hits.v, thread_counters(stats))
 
     def occluded(self, bvh, tris, rays, packets, frusta, occluded, stats):
         any_hit = empty_hits(rays.org.shape[0])  # scratch: which triangle stopped each ray
         trace_single(bvh.bmin, bvh.bmax, bvh.first, bvh.count, bvh.prim, tris.v0, tris.v1, tris.v2,
                      rays.org, rays.inv_dir, rays.dir, rays.tmin, rays.tmax, True,
-                     any_hit.t, any_hit.prim, any_hit.u, any_hit.v, None if stats is None else stats.counters)
+                     any_hit.t, any_hit.prim, any_hit.u, any_hit.v, thread_counters(stats))
         occluded[:] = any_hit.prim >= 0

@@ -175,6 +175,22 @@ def new_stats(threads: int) -> Stats:
     return Stats(np.zeros((max(threads, 1), 3, MAX_BVH_DEPTH), np.int64), {})
 
 
+def thread_counters(stats: Stats | None):
+    """``stats.counters`` for a kernel that counts into row ``numba.get_thread_id()`` (None
+    without stats). Fewer rows than the threads numba runs now is a ValueError: such a kernel
+    would write past the array's end (heap corruption, found in session 34 behind crashes at
+    exit and wrong answers of tests that passed ``new_stats(1)`` to a two-thread traversal)."""
+    if stats is None:
+        return None
+    import numba
+
+    threads = numba.get_num_threads()
+    if stats.counters.ndim != 3 or stats.counters.shape[0] < threads:
+        raise ValueError(f"stats counters have {stats.counters.shape[0]} thread rows, fewer than the {threads} "
+                         f"threads numba runs now: make them with new_stats(numba.get_num_threads())")
+    return stats.counters
+
+
 def stats_totals(stats: Stats) -> dict:
     """{"ray_aabb": n, "ray_tri": n, "nodes": n} summed over threads and depths."""
     summed = stats.counters.sum(axis=(0, 2))

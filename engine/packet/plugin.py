@@ -16,7 +16,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from engine.core.types import Frusta, Hits, check_answer_arrays
+from engine.core.types import Frusta, Hits, check_answer_arrays, thread_counters
 from engine.packet.auto_limits import fitted_limits, limits_array
 from engine.packet.choose import N_LIMITS
 from engine.packet.frustum_builders import build_frusta
@@ -186,7 +186,7 @@ class PacketTraversal:
     def _walk_group(self, bvh, tris, rays, packets, frusta, any_hit, stats, from_end, chosen, visits):
         """One trial group's any-hit walk: the packets k with chosen[k] >= 0."""
         walk_batch(self.strategy, bvh, tris, rays, packets, frusta, True, any_hit.t, any_hit.prim, any_hit.u,
-                   any_hit.v, None if stats is None else stats.counters, from_end=from_end, chosen=chosen,
+                   any_hit.v, thread_counters(stats), from_end=from_end, chosen=chosen,
                    visits=visits)
 
     def _any_hit_scratch(self, n):
@@ -207,7 +207,7 @@ class PacketTraversal:
     def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats,
              from_end=False):
         walk_batch(self.strategy, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v,
-                   None if stats is None else stats.counters, kernel=type(self).kernel, from_end=from_end)
+                   thread_counters(stats), kernel=type(self).kernel, from_end=from_end)
 
 
 class PacketFrustum:

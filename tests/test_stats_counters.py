@@ -1,0 +1,52 @@
+"""Counters with fewer thread rows than numba runs are refused before any kernel writes past them.
+
+The counting kernels add to row ``numba.get_thread_id()`` of ``stats.counters``; a two-thread
+traversal handed ``new_stats(1)`` wrote one row past the array (session 34: crashes at exit and
+wrong answers in other arrays). Every traversal that counts now checks the rows first."""
+from __future__ import annotations
+
+import numba
+import numpy as np
+import pytest
+
+from engine.core.bvh import build_bvh
+from engine.core.threads import numba_threads
+from engine.core.types import empty_hits, new_stats, stats_totals
+from engine.packet.layout import make_batch
+from engine.render.plugins import make_traversal
+from scenes.catalog import load_named
+
+COUNTING = ["single", "ranged", "masked", "partition", "simd", "auto", "rayspace"]
+
+
+@pytest.fixture(scope="module")
+def scene_rays():
+    scene = load_named("whitted", {})
+    tris = scene.triangles
+    rng = np.random.default_rng(4)
+    n = 256
+    lo, hi = tris.v0.min(axis=0), tris.v0.max(axis=0)
+    org = rng.uniform(lo, hi, (n, 3)).astype(np.float32)
+    dirs = rng.normal(size=(n, 3)).astype(np.float32)
+    rays, packets = make_batch("reflection", org, dirs, np.zeros(n, np.float32), np.full(n, np.inf, np.float32),
+                               np.arange(n, dtype=np.int32), np.ones((n, 3), np.float32), 16, 16, 4)
+    return build_bvh(tris), tris, rays, packets
+
+
+@pytest.mark.parametrize("name", COUNTING)
+def test_too_few_thread_rows_are_refused_and_enough_are_counted(scene_rays, name):
+    bvh, tris, rays, packets = scene_rays
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs two numba threads")
+    plugin = make_traversal(name)
+    with numba_threads(2):
+        hits = empty_hits(rays.org.shape[0])
+        with pytest.raises(ValueError, match="1 thread rows, fewer than the 2 threads"):
+            plugin.intersect(bvh, tris, rays, packets, None, hits, new_stats(1))
+        with pytest.raises(ValueError, match="fewer than the 2 threads"):
+            plugin.occluded(bvh, tris, rays, packets, None, np.zeros(rays.org.shape[0], np.bool_), new_stats(1))
+        stats = new_stats(numba.get_num_threads())
+        plugin.intersect(bvh, tris, rays, packets, None, hits, stats)
+    assert stats_totals(stats)["ray_tri"] > 0 and (hits.prim >= 0).any()
+    with numba_threads(1):  # one row is enough for one thread
+        plugin.intersect(bvh, tris, rays, packets, None, empty_hits(rays.org.shape[0]), new_stats(1))
