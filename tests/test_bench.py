@@ -11,6 +11,7 @@ import pytest
 
 import engine.bench.runner as bench
 from engine.bench.matrix import RECURSION, load_matrix, parse_matrix
+from engine.core.errors import ConfigError
 from engine.bench.packets_report import COST_TERMS, packet_cells
 from engine.bench.results import fastest_host, host_slowdown, host_slowness
 from engine.cli import main
@@ -262,6 +263,34 @@ def test_cells_are_the_union_of_group_products_with_stable_ids():
     table = parse_matrix({**data, "axes": {**data["axes"], "traversal": [{"label": "mix", "shadow": "single"}]}}, "x")
     assert table.cells[0].traversal.per_kind()["shadow"] == "single"
     assert table.cells[0].traversal.per_kind()["primary"] == "ranged"
+
+
+def test_a_traversal_entry_carries_options_that_override_the_matrix():
+    """One matrix compares option values: an entry's options replace the matrix's for its cells,
+    join them for other keys, and make cells of their own; a bad table names its key."""
+    data = {"repeat": 1, "options": {"rayspace": {"pair_budget": 5000}},
+            "axes": {"scene": ["whitted"], "frustum": ["none"], "packet": [8], "recursion": ["shadows"],
+                     "resolution": [16],
+                     "traversal": [{"label": "light", "shadow": "rayspace"},
+                                   {"label": "pixel", "shadow": "rayspace",
+                                    "options": {"rayspace": {"shadow_grid": "pixel"}}}]}}
+    cells = {c.traversal.label: c for c in parse_matrix(data, "m.toml").cells}
+    assert dict(cells["light"].options) == {"rayspace": (("pair_budget", 5000),)}
+    assert dict(cells["pixel"].options) == {"rayspace": (("pair_budget", 5000), ("shadow_grid", "pixel"))}
+    assert cells["light"].key != cells["pixel"].key
+    assert cells["pixel"].config().options == cells["pixel"].options
+    no_entry_options = parse_matrix({**data, "axes": {**data["axes"], "traversal": ["single"]}}, "m.toml")
+    assert no_entry_options.cells[0].options == (("rayspace", (("pair_budget", 5000),)),)
+    bad = {**data, "axes": {**data["axes"], "traversal": [{"shadow": "rayspace", "options": {"rayspace": 3}}]}}
+    with pytest.raises(ConfigError, match=r"m\.toml: axes\.traversal\[0\]\.options"):
+        parse_matrix(bad, "m.toml")
+    wrong = {**data, "axes": {**data["axes"], "traversal": [{"shadow": "rayspace",
+                                                             "options": {"rayspace": {"shadow_grid": "x"}}}]}}
+    with pytest.raises(ConfigError, match="shadow_grid must be one of"):
+        parse_matrix(wrong, "m.toml")
+    frustum = {**data, "axes": {**data["axes"], "frustum": [{"shadow": "none", "options": {}}]}}
+    with pytest.raises(ConfigError, match="unknown key"):
+        parse_matrix(frustum, "m.toml")
 
 
 def test_bundled_matrices_parse():

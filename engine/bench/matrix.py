@@ -12,7 +12,8 @@ A matrix is the cross product of six axes::
 
     [axes]                      # every axis a non-empty list
     scene = ["whitted", {name = "bunny", lod = 3, label = "bunny-948"}]
-    traversal = ["single", "paper", {label = "mixed", primary = "ranged", shadow = "masked"}]
+    traversal = ["single", "paper", {label = "mixed", primary = "ranged", shadow = "masked"},
+                 {label = "rs-pixel", shadow = "rayspace", options = {rayspace = {shadow_grid = "pixel"}}}]
     frustum = ["none", "paper"]
     packet = [8, 16]            # 2, 4, 8, 16, 32
     recursion = ["shadows", "reflection2"]   # keys of RECURSION
@@ -28,7 +29,8 @@ A matrix is the cross product of six axes::
 A traversal or frustum value is a registered plugin name (for every ray kind), ``"paper"`` (the
 first paper's final system: Ranged primary, Partition others; pinhole / pointlight / general
 frusta), or a table naming plugins per ray kind (kinds left out take the paper's choice) with
-an optional ``label``. A scene is a catalog name or a table ``{name, label, time, <params>}``.
+an optional ``label``; a traversal table may also carry ``options`` (tables per plugin, as
+``[options]``), which override the matrix's options for its cells. A scene is a catalog name or a table ``{name, label, time, <params>}``.
 
 Everything is checked here -- keys, types, plugin, scene and preset names, scene parameters and
 data files, image sizes -- and a mistake is a ConfigError naming the file, the key (for example
@@ -130,6 +132,9 @@ class PluginSpec:
 
     label: str
     names: tuple
+    #: Plugin options of this traversal entry, ((plugin, ((key, value), ...)), ...): they
+    #: override the matrix's [options] for its cells, so one matrix can compare option values.
+    options: tuple = ()
 
     def per_kind(self) -> dict:
         return dict(zip(RAY_KINDS, self.names))
@@ -241,15 +246,32 @@ def _plugin(source, where, value, what: str) -> PluginSpec:
             return PluginSpec("paper", tuple(check(PAPER[what][k], where) for k in RAY_KINDS))
         return PluginSpec(value, (check(value, where),) * len(RAY_KINDS))
     if isinstance(value, dict):
-        unknown = set(value) - set(RAY_KINDS) - {"label"}
+        extra = {"label", "options"} if what == "traversal" else {"label"}
+        unknown = set(value) - set(RAY_KINDS) - extra
         if unknown:
-            _fail(source, where, f"unknown key(s) {sorted(unknown)}; allowed: {', '.join(RAY_KINDS)}, label")
+            _fail(source, where, f"unknown key(s) {sorted(unknown)}; allowed: {', '.join(RAY_KINDS)}, "
+                                 f"{', '.join(sorted(extra))}")
         names = tuple(check(value.get(k, PAPER[what][k]), f"{where}.{k}") for k in RAY_KINDS)
         label = value.get("label", ",".join(f"{k}={value[k]}" for k in RAY_KINDS if k in value) or "paper")
         if not isinstance(label, str):
             _fail(source, f"{where}.label", f"must be a string, got {label!r}")
-        return PluginSpec(label, names)
+        return PluginSpec(label, names, _options(source, f"{where}.options", value.get("options", {})))
     _fail(source, where, f"must be a {what} name or a table ({allowed}), got {value!r} ({_type_name(value)})")
+
+
+def _options(source, where, value) -> tuple:
+    """((plugin, ((key, value), ...)), ...), sorted, of a table of per-plugin option tables."""
+    if not isinstance(value, dict) or not all(isinstance(v, dict) for v in value.values()):
+        _fail(source, where, "must be tables of plugin options (PLUGIN = {key = value})")
+    return tuple((plugin, tuple(sorted(table.items()))) for plugin, table in sorted(value.items()))
+
+
+def merged_options(base: tuple, own: tuple) -> tuple:
+    """``base`` options with ``own``'s keys replacing or joining them, plugin by plugin."""
+    tables = {plugin: dict(items) for plugin, items in base}
+    for plugin, items in own:
+        tables.setdefault(plugin, {}).update(items)
+    return tuple((plugin, tuple(sorted(table.items()))) for plugin, table in sorted(tables.items()))
 
 
 def parse_variant(text, source: str, where: str) -> tuple:
@@ -395,10 +417,7 @@ def parse_matrix(data: dict, source: str = "<matrix>", repeat: int | None = None
     for i, kind in enumerate(plots):
         if kind not in PLOTS:
             _fail(source, f"plot[{i}]", f"unknown figure kind {kind!r}; allowed: {', '.join(PLOTS)}")
-    options = data.get("options", {})
-    if not isinstance(options, dict) or not all(isinstance(v, dict) for v in options.values()):
-        _fail(source, "options", "must be tables [options.PLUGIN] of key = value")
-    options = tuple((plugin, tuple(sorted(table.items()))) for plugin, table in sorted(options.items()))
+    options = _options(source, "options", data.get("options", {}))
     axes = data.get("axes", {})
     if not isinstance(axes, dict):
         _fail(source, "axes", f"must be a table of axes ({', '.join(AXES)})")
@@ -427,8 +446,8 @@ def parse_matrix(data: dict, source: str = "<matrix>", repeat: int | None = None
             _fail(source, f"{where}{missing[0]}", f"missing axis (in [axes] or the group); every cell needs "
                                                   f"{', '.join(AXES)}")
         for scene, trav, frus, packet, rec, (w, h) in itertools.product(*(merged[a] for a in AXES)):
-            cell = Cell(scene, trav, frus, packet, rec, w, h, threads, embree, options, (tag,) if tag else (),
-                        open3d=open3d)
+            cell = Cell(scene, trav, frus, packet, rec, w, h, threads, embree, merged_options(options, trav.options),
+                        (tag,) if tag else (), open3d=open3d)
             _check_cell(source, where, cell)
             previous = cells.get(cell.key)
             if previous is not None:  # the same measurement asked twice: run it once, keep both tags
