@@ -454,6 +454,9 @@ def main(argv=None) -> int:
     # numba's note that this machine's TBB is too old for its TBB threading layer (it uses another)
     # is about numba's set-up, not the command: Open3D loads that TBB (``audit --oracle open3d``).
     warnings.filterwarnings("ignore", message=".*TBB threading layer.*")
+    # numba-cuda warns at every launch of fewer than 128 blocks; a frame's small queues, scans and
+    # upper hierarchy levels are small by nature, and a GPU bench printed dozens of these a scene.
+    warnings.filterwarnings("ignore", message="Grid size .* will likely result in GPU under-utilization")
     try:
         return args.run(args)
     except PacketrtError as exc:

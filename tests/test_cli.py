@@ -145,3 +145,19 @@ def test_outputs_replace_their_target_whole_and_leave_nothing_behind(tmp_path, m
     assert main(["render", "--size", "16x16", "-o", str(tmp_path / "out" / "a.png"), "--stats", str(target)]) == 0
     assert json.loads(target.read_text())["width"] == 16
     assert sorted(p.name for p in target.parent.iterdir()) == ["a.png", "stats.json"]
+
+
+def test_the_gpus_small_grid_warning_is_not_printed_by_commands(capsys):
+    """numba-cuda warns at every launch of fewer than 128 blocks (a frame's scans and upper
+    hierarchy levels are small by nature); a command keeps them off the terminal, other
+    performance warnings still show."""
+    import warnings
+
+    from numba.core.errors import NumbaPerformanceWarning
+
+    assert main(["plugins"]) == 0
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.warn(NumbaPerformanceWarning("Grid size 3 will likely result in GPU under-utilization due to "
+                                              "low occupancy."))
+        warnings.warn(NumbaPerformanceWarning("some other performance note"))
+    assert [str(w.message) for w in seen] == ["some other performance note"]
