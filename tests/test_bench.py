@@ -485,6 +485,26 @@ def _gpu_result(rays):
                                                          "mismatches": 0}]}
 
 
+def test_gpu_variant_may_name_a_traversal_per_ray_kind():
+    """The paper's rayspace system rasterises camera rays: a variant names a device traversal per
+    kind, for frames only; a partial table or one with ray sets is refused, naming the key."""
+    from engine.bench.gpu import check_matrix, variant_traversals
+
+    scene = [{"name": "cornell-box"}]
+    per_kind = {"primary": "bvh", "shadow": "rayspace", "reflection": "rayspace", "refraction": "rayspace"}
+    check_matrix({"kind": "gpu", "scene": scene, "variant": [{"label": "r", "traversal": per_kind, "rays": False}]},
+                 "g.toml")
+    assert variant_traversals({"traversal": per_kind}) == per_kind
+    assert variant_traversals({"traversal": "bvh"}) == dict.fromkeys(per_kind, "bvh")
+    with pytest.raises(ConfigError, match="g.toml: variant 1: a traversal per ray kind times frames only"):
+        check_matrix({"kind": "gpu", "scene": scene, "variant": [{"label": "r", "traversal": per_kind}]}, "g.toml")
+    with pytest.raises(ConfigError, match="g.toml: variant 1 traversal: a table needs a traversal name for each"):
+        check_matrix({"kind": "gpu", "scene": scene, "variant": [{"label": "r", "traversal": {"primary": "bvh"},
+                                                                  "rays": False}]}, "g.toml")
+    with pytest.raises(ConfigError, match="g.toml: variant 1 traversal: must be a name or a table"):
+        check_matrix({"kind": "gpu", "scene": scene, "variant": [{"label": "r", "traversal": 3}]}, "g.toml")
+
+
 def test_gpu_table_of_frames_only_has_no_ray_table():
     """A gpu matrix whose variants cast no ray sets writes the frame and audit tables only (it
     once wrote a ray table's header with an empty traversal column)."""

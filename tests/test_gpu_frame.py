@@ -63,13 +63,19 @@ def test_gpu_benchmark_runs_on_the_simulator(tmp_path):
     matrix.write_text('kind = "gpu"\nname = "gpu-tiny"\nresolution = 8\nrepeat_rays = 1\nrepeat_frames = 1\n'
                       '[[scene]]\nname = "whitted"\nparams = {checks = 2, subdivisions = 0}\n'
                       'recursion = "kitchen-full"\nrays = ["primary", "shadow-all", "bounce"]\n'
-                      '[[variant]]\nlabel = "bvh"\ntraversal = "bvh"\n')
+                      '[[variant]]\nlabel = "bvh"\ntraversal = "bvh"\n'
+                      '[[variant]]\nlabel = "raster"\nrays = false\ntraversal = {primary = "bvh", '
+                      'shadow = "rayspace", reflection = "rayspace", refraction = "rayspace"}\n')
     run = simulated("-m", "engine.cli", "bench", str(matrix), "--device", "cuda", "--out", str(tmp_path / "out"))
     assert run.returncode == 0, run.stderr[-3000:]
     result = json.loads((tmp_path / "out" / "gpu.json").read_text())
     assert [r["rays"] for r in result["rays"]] == ["primary", "shadow-all", "bounce"]
     assert all(r["bvh"]["embree"]["mismatches"] == 0 for r in result["rays"])
     assert result["audits"][0]["mismatches"] == 0 and result["audits"][0]["checked"] > 64
+    # A traversal per ray kind (camera rays by bvh, the rest by rayspace): its frame, audited.
+    raster = [a for a in result["audits"] if a["variant"] == "raster"]
+    assert len(raster) == 1 and raster[0]["mismatches"] == 0 and raster[0]["checked"] == result["audits"][0]["checked"]
+    assert [r for r in result["rays"] if "raster" in r] == []
     assert result["images"][0]["over_1_255"] == 0
     assert "| whitted |" in (tmp_path / "out" / "gpu.md").read_text()
 

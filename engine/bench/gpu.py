@@ -31,13 +31,14 @@ from engine.bench.gpu_pixels import PixelRecorder, explain
 from engine.bench.gpu_rays import RAY_SETS, ray_sets
 from engine.core import atomic
 from engine.core.errors import ConfigError
-from engine.core.types import Packets
+from engine.core.types import RAY_KINDS, Packets
 
 TOP_KEYS = {"kind", "name", "description", "device", "resolution", "repeat_rays", "repeat_frames", "scene",
             "variant", "audit", "image_check"}
 SCENE_KEYS = {"name", "path", "params", "recursion", "rays", "resolution", "ray_resolutions"}
 # rays = false: frames only, no ray-set timings; repeat_frames: this variant's frames per scene;
-# options: per-plugin option tables, as a config's [options.NAME].
+# options: per-plugin option tables, as a config's [options.NAME]; traversal: one device traversal
+# for every ray kind, or a table naming one per kind (every kind; frames only, rays = false).
 VARIANT_KEYS = {"label", "traversal", "rays", "repeat_frames", "options"}
 
 
@@ -64,6 +65,21 @@ def check_matrix(data: dict, source: str) -> None:
     for i, variant in enumerate(data["variant"]):
         if set(variant) - VARIANT_KEYS or "traversal" not in variant:
             _fail(source, f"variant {i + 1}", f"needs label and traversal (bvh or rayspace), got {sorted(variant)}")
+        traversal = variant["traversal"]
+        if isinstance(traversal, dict):
+            if set(traversal) != set(RAY_KINDS) or not all(isinstance(v, str) for v in traversal.values()):
+                _fail(source, f"variant {i + 1} traversal", f"a table needs a traversal name for each of "
+                      f"{', '.join(RAY_KINDS)}, got {traversal!r}")
+            if variant.get("rays", True):
+                _fail(source, f"variant {i + 1}", "a traversal per ray kind times frames only: set rays = false")
+        elif not isinstance(traversal, str):
+            _fail(source, f"variant {i + 1} traversal", f"must be a name or a table per ray kind, got {traversal!r}")
+
+
+def variant_traversals(variant: dict) -> dict:
+    """{ray kind: device traversal name} of a gpu matrix variant."""
+    traversal = variant["traversal"]
+    return dict(traversal) if isinstance(traversal, dict) else dict.fromkeys(RAY_KINDS, traversal)
 
 
 def _median_call_seconds(launch, repeat: int, cuda) -> float:
@@ -224,8 +240,7 @@ def _frames(scene_table, variants, matrix, source) -> tuple[list, list, list]:
         config = cell_config({"resolution": scene_table.get("resolution", matrix.get("resolution", 1024))},
                              scene_table, {"label": variant["label"], "options": variant.get("options", {})}, source)
         config = replace(config, render=replace(config.render, device="cuda"),
-                         traversal=replace(config.traversal, **{k: variant["traversal"] for k in
-                                                                ("primary", "shadow", "reflection", "refraction")}))
+                         traversal=replace(config.traversal, **variant_traversals(variant)))
         scene = scene_from_config(config.scene, config.override)
         renderer = GpuWhittedRenderer(scene, config)
         compile_seconds = renderer.warm_up()
