@@ -5,11 +5,11 @@ tests/test_gpu_rayspace.py, which sets NUMBA_ENABLE_CUDASIM=1 for it alone).
 
 CASES.npz holds the scene (``tri_<field>`` for every ``Triangles`` field) and, for each case
 ``<name>_<key>``: org, dir f32[C,3], tmin, tmax f32[C], pixel i32[C], and a JSON ``<name>_spec``
-(query "closest" | "occluded", n, width, height, light or null, pair_budget, shadow_grid). OUT.npz
-gets the answers (``<name>_t/prim/u/v`` or ``<name>_occluded``, the full output arrays, whose rows
-past n must keep their sentinel), ``<name>_light_pixel`` (the device's light-grid pixels of rays
-0 .. n-1, for a case with a light and the "light" grid) and ``<name>_report`` (JSON: stats,
-seconds, or the error raised).
+(query "closest" | "occluded", n, width, height, light or null, pair_budget, shadow_grid,
+secondary_grid, secondary). OUT.npz gets the answers (``<name>_t/prim/u/v`` or ``<name>_occluded``,
+the full output arrays, whose rows past n must keep their sentinel), ``<name>_grid_pixel`` (the
+device's grid pixels of rays 0 .. n-1, for a case placed on the light or the direction grid) and
+``<name>_report`` (JSON: stats, seconds, or the error raised).
 """
 from __future__ import annotations
 
@@ -43,7 +43,10 @@ def main(cases_path: str, out_path: str) -> None:
         rays = [upload(data[f"{name}_{key}"]) for key in ("org", "dir", "tmin", "tmax", "pixel")]
         size = data[f"{name}_tmin"].shape[0]
         grid = spec.get("shadow_grid", "light")
-        tracer = DeviceRaySpace(dtris, tris, pair_budget=spec["pair_budget"], shadow_grid=grid)
+        secondary_grid = spec.get("secondary_grid", "pixel")
+        secondary = spec.get("secondary", False)
+        tracer = DeviceRaySpace(dtris, tris, pair_budget=spec["pair_budget"], shadow_grid=grid,
+                                secondary_grid=secondary_grid)
         report = {}
         clock = time.perf_counter()
         try:
@@ -52,15 +55,16 @@ def main(cases_path: str, out_path: str) -> None:
                            "u": np.full(size, SENTINEL_T), "v": np.full(size, SENTINEL_T)}
                 dev = {key: cuda.to_device(value) for key, value in answers.items()}
                 tracer.closest(*rays, spec["n"], spec["width"], spec["height"], dev["t"], dev["prim"], dev["u"],
-                               dev["v"], light=spec["light"])
+                               dev["v"], light=spec["light"], secondary=secondary)
             else:
                 dev = {"occluded": cuda.to_device(np.full(size, 7, np.uint8))}
                 tracer.occluded(*rays, spec["n"], spec["width"], spec["height"], dev["occluded"],
                                 light=spec["light"])
             for key, array in dev.items():
                 out[f"{name}_{key}"] = array.copy_to_host()
-            if spec["light"] is not None and grid == "light" and spec["n"]:
-                out[f"{name}_light_pixel"] = tracer.scratch.get("light_pixel", spec["n"], np.int32).copy_to_host()
+            placed = grid == "light" if spec["light"] is not None else secondary and secondary_grid == "direction"
+            if placed and spec["n"]:
+                out[f"{name}_grid_pixel"] = tracer.scratch.get("grid_pixel", spec["n"], np.int32).copy_to_host()
             report["stats"] = tracer.last
         except Exception as error:  # reported to the parent test, which decides
             report["error"] = f"{type(error).__name__}: {error}"

@@ -24,6 +24,7 @@ from engine.core.offset import offset_origin
 from engine.core.triangle import intersect_triangle, ray_shear, safe_inverse
 from engine.core.types import Packets, RayBatch, Triangles, empty_hits, new_stats
 from engine.packet.layout import make_batch
+from engine.rayspace.direction_grid import direction_grid_pixels
 from engine.rayspace.light_grid import light_grid_pixels, rank_pixel
 from engine.render.camera import camera_rays
 from engine.render.plugins import make_traversal
@@ -160,12 +161,13 @@ def barycentrics(rays, tris, prim):
 # -- one simulator run for every case ------------------------------------------------------
 
 def _case(cases: dict, name: str, rays: RayBatch, query: str, n: int, light=None, budget=1 << 22,
-          shadow_grid="light") -> None:
+          shadow_grid="light", secondary=False, secondary_grid="pixel") -> None:
     for key, value in (("org", rays.org), ("dir", rays.dir), ("tmin", rays.tmin), ("tmax", rays.tmax),
                        ("pixel", rays.pixel)):
         cases[f"{name}_{key}"] = np.ascontiguousarray(value)
     spec = {"query": query, "n": n, "width": SIZE, "height": SIZE, "pair_budget": budget,
-            "light": None if light is None else [float(x) for x in light], "shadow_grid": shadow_grid}
+            "light": None if light is None else [float(x) for x in light], "shadow_grid": shadow_grid,
+            "secondary": secondary, "secondary_grid": secondary_grid}
     cases[f"{name}_spec"] = np.array(json.dumps(spec))
 
 
@@ -178,6 +180,9 @@ def run(tmp_path_factory):
     cases = {f"tri_{field}": np.ascontiguousarray(a) for field, a in zip(Triangles._fields, rays.tris)}
     _case(cases, "primary", rays.primary, "closest", len(rays.primary.org))
     _case(cases, "secondary", secondary, "closest", len(secondary.org) - GARBAGE)
+    _case(cases, "secondary_direction", secondary, "closest", len(secondary.org) - GARBAGE, secondary=True,
+          secondary_grid="direction")
+    _case(cases, "secondary_pixel_grid", secondary, "closest", len(secondary.org) - GARBAGE, secondary=True)
     _case(cases, "shadow_reversed", shadow, "occluded", len(shadow.org), light=rays.light)
     _case(cases, "shadow_pixel_grid", shadow, "occluded", len(shadow.org), light=rays.light, shadow_grid="pixel")
     _case(cases, "shadow_forward", shadow, "occluded", len(shadow.org))
@@ -286,6 +291,29 @@ def test_secondary_queue_with_shared_pixels_dead_rays_and_rows_past_n(run):
     assert np.array_equal(hits.prim, answers["secondary_prim"][:n])
 
 
+def test_secondary_rays_on_the_direction_grid(run):
+    """Reflection rays placed by screen tile and direction (secondary=True): the CPU's pixels
+    (the same twinned key), the same answers, rows past n untouched; without secondary=True or
+    with secondary_grid = "pixel" (the default) the queue keeps its pixels."""
+    rays, answers, extra = run
+    batch = extra["secondary"]
+    n = len(batch.org) - GARBAGE
+    part = RayBatch(*(a[:n] if isinstance(a, np.ndarray) else a for a in batch))
+    cpu_pixels, side = direction_grid_pixels(part.dir, part.tmin, part.tmax, part.pixel, SIZE, SIZE)
+    assert np.array_equal(answers["secondary_direction_grid_pixel"], cpu_pixels)
+    assert (cpu_pixels >= 0).sum() == n - 3 and side * side >= n - 3
+    for name in ("secondary_direction", "secondary_pixel_grid"):
+        assert_closest(answers, name, batch, rays.tris, n)
+        assert (answers[f"{name}_prim"][n:] == -7).all()
+    assert "secondary_grid_pixel" not in answers and "secondary_pixel_grid_grid_pixel" not in answers
+    cpu = new_stats(numba.get_num_threads())
+    make_traversal("rayspace", {"secondary_grid": "direction"}).intersect(None, rays.tris, part,
+                                         Packets(np.array([0, n], np.int32), 1, SIZE, SIZE), None, empty_hits(n), cpu)
+    stats = ok(answers, "secondary_direction")
+    for key in ("pairs_before", "pairs_after", "cone_sphere_tests"):
+        assert np.allclose(stats[key], cpu.extra["rayspace"][key], rtol=0.01), (key, stats[key])
+
+
 def test_a_block_of_more_rays_than_the_survivor_mask_holds(run):
     """Over 63 rays in one 2x2 block: survivors past the mask's bits are found by re-testing."""
     rays, answers, extra = run
@@ -322,12 +350,12 @@ def test_light_grid_pixels_and_streams_are_the_cpu_plugins(run):
     batch = extra["shadow"]
     n = len(batch.org)
     cpu_pixels, side = light_grid_pixels(batch.dir, batch.tmin, batch.tmax, batch.pixel, SIZE, SIZE)
-    assert np.array_equal(answers["shadow_reversed_light_pixel"], cpu_pixels)
+    assert np.array_equal(answers["shadow_reversed_grid_pixel"], cpu_pixels)
     live = cpu_pixels >= 0
     assert side * side >= live.sum() > side * side // 4
     # The k-th ray of the sorted order at Morton position k: one ray a pixel, four a block.
     assert np.array_equal(np.sort(cpu_pixels[live]), np.sort([rank_pixel(k, side) for k in range(live.sum())]))
-    assert "shadow_pixel_grid_light_pixel" not in answers
+    assert "shadow_pixel_grid_grid_pixel" not in answers
     light, pixel = ok(answers, "shadow_reversed"), ok(answers, "shadow_pixel_grid")
     cpu = new_stats(numba.get_num_threads())
     RaySpaceTraversal().occluded(None, rays.tris, batch, extra["shadow_packets"], None, np.zeros(n, np.bool_), cpu)

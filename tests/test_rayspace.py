@@ -346,16 +346,18 @@ def test_budget_too_small_for_one_triangle_names_the_minimum(rayspace):
 @pytest.mark.parametrize("options", [
     {"pair_budget": 0}, {"pair_budget": -5}, {"pair_budget": 2**31}, {"pair_budget": 1.5},
     {"pair_budget": "big"}, {"pair_budget": True}, {"budget": 10}, {"pair_budget": 10, "extra": 1},
-    {"shadow_grid": "screen"}, {"shadow_grid": 1}, {"shadow_grid": None},
+    {"shadow_grid": "screen"}, {"shadow_grid": 1}, {"shadow_grid": None}, {"secondary_grid": "light"},
 ])
 def test_bad_options_raise_config_error(options):
-    with pytest.raises(ConfigError, match=r"options\.rayspace: .*(pair_budget|allowed|shadow_grid)"):
+    with pytest.raises(ConfigError, match=r"options\.rayspace: .*(pair_budget|allowed|shadow_grid|secondary_grid)"):
         make_traversal("rayspace", options)
 
 
 def test_options_table_and_instances():
-    assert make_traversal("rayspace").OPTIONS == {"pair_budget": 1 << 22, "shadow_grid": "light"}
+    assert make_traversal("rayspace").OPTIONS == {"pair_budget": 1 << 22, "shadow_grid": "light",
+                                                  "secondary_grid": "pixel"}
     assert make_traversal("rayspace", {"shadow_grid": "pixel"}).shadow_grid == "pixel"
+    assert make_traversal("rayspace", {"secondary_grid": "direction"}).secondary_grid == "direction"
     assert make_traversal("rayspace", {"pair_budget": 1000}).pair_budget == 1000
     assert make_traversal("rayspace").pair_budget == 1 << 22
 

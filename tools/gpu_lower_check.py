@@ -6,7 +6,8 @@ is not a constant, a numpy call the CUDA target lacks -- passes every simulator 
 only on a lent GPU, whose time is short. This check finds those here, in two child processes:
 
 1. ``--record OUT.json`` (under ``NUMBA_ENABLE_CUDASIM=1``): runs small GPU workloads on the
-   simulator -- a 5 x 4 frame with ``bvh`` and one with ``rayspace``, the
+   simulator -- a 5 x 4 frame with ``bvh`` and two with ``rayspace`` (secondary rays by pixel and by
+   direction), the
    ``RayTracer(device="cuda")`` queries and the device refit, GPU side only -- and records every
    kernel launch's argument types (numba types of the arrays and scalars it was given);
 2. ``--lower IN.json`` (numba's real CUDA target, no GPU): compiles each recorded (kernel,
@@ -66,9 +67,11 @@ def _workloads() -> None:
     from scenes.catalog import load_named
 
     scene = load_named("whitted", {"checks": 2, "subdivisions": 0})
-    for traversal, depth in (("bvh", 3), ("rayspace", 2)):
+    for traversal, depth, options in (("bvh", 3, ()), ("rayspace", 2, ()),
+                                      ("rayspace", 2, (("rayspace", (("secondary_grid", "direction"),)),))):
         config = Config(render=RenderConfig(width=5, height=4, max_depth=depth, packet=4, device="cuda"),
-                        traversal=PerKind(*[traversal] * 4), frustum=PerKind("none", "none", "none", "none"))
+                        traversal=PerKind(*[traversal] * 4), frustum=PerKind("none", "none", "none", "none"),
+                        options=options)
         GpuWhittedRenderer(scene, config).render()
     tracer = RayTracer(scene, device="cuda")
     org = np.tile(np.array([[0.0, 1.0, 6.0]], np.float32), (8, 1))

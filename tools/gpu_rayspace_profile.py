@@ -28,7 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 #: The rayspace kernels (module attribute names) that are launched from Python.
 KERNELS = {"_expand", "_root_pairs", "nearest_t", "nearest_prim", "merge_batch", "any_hit", "reset_answers",
            "reset_flags", "_count_blocks", "_fill_slots", "_order_blocks", "_leaves", "_inner", "_spheres",
-           "_node_scale", "fill_array", "_scan_blocks", "_scan_sums", "_add_offsets", "_bounds", "_count_cells", "_fill_cells", "_rank_pixels"}
+           "_node_scale", "fill_array", "_scan_blocks", "_scan_sums", "_add_offsets", "_bounds", "_count_cells", "_count_tile_cells", "_fill_cells",
+           "_rank_pixels"}
 
 
 class TimedKernel:
@@ -61,6 +62,8 @@ def main(argv=None) -> int:
     parser.add_argument("--frames", type=int, default=5)
     parser.add_argument("--pair-budget", type=int, default=268435456)
     parser.add_argument("--shadow-grid", default="light", help="options.rayspace.shadow_grid: light or pixel")
+    parser.add_argument("--secondary-grid", default="direction",
+                        help="options.rayspace.secondary_grid: direction or pixel")
     args = parser.parse_args(argv)
 
     from numba import cuda
@@ -68,20 +71,21 @@ def main(argv=None) -> int:
     from engine.bench.dynamic import cell_config
     from engine.gpu import scan
     from engine.gpu.frame import GpuWhittedRenderer
-    from engine.gpu.rayspace import final, hierarchy, light_grid, stream
+    from engine.gpu.rayspace import final, hierarchy, ray_grids, stream
     from scenes.catalog import scene_from_config
 
     config = cell_config({"resolution": args.size}, {"name": args.scene, "recursion": args.recursion},
                          {"label": "rayspace", "traversal": "rayspace",
                           "options": {"rayspace": {"pair_budget": args.pair_budget,
-                                                  "shadow_grid": args.shadow_grid}}}, "gpu_rayspace_profile")
+                                                  "shadow_grid": args.shadow_grid,
+                                                  "secondary_grid": args.secondary_grid}}}, "gpu_rayspace_profile")
     renderer = GpuWhittedRenderer(scene_from_config(config.scene, config.override), config)
     print(f"compile {renderer.warm_up():.1f} s", flush=True)
     times = [renderer.render().seconds["total"] for _ in range(args.frames)]
     print("frames ms", [round(t * 1e3, 1) for t in times], "median", round(statistics.median(times) * 1e3, 1))
 
     totals = defaultdict(lambda: [0.0, 0])
-    for module in (stream, final, hierarchy, light_grid, scan):
+    for module in (stream, final, hierarchy, ray_grids, scan):
         for name in KERNELS & set(vars(module)):
             setattr(module, name, TimedKernel(name, getattr(module, name), totals, cuda))
     cuda.synchronize()

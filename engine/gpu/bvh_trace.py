@@ -161,10 +161,11 @@ class DeviceBVHTraversal:
         occluded_kernel[launch_grid(bound), BLOCK](org, dirs, tmin, tmax, count, b.child_boxes, b.links, b.prim,
                                                    b.leaf_tris, b.root_row, self.far_first, out)
 
-    def queue_launch(self, query: str, org, dirs, tmin, tmax, pixel, count, bound, width, height, *out, light=None):
+    def queue_launch(self, query: str, org, dirs, tmin, tmax, pixel, count, bound, width, height, *out, light=None,
+                     secondary=False):
         """A prepared launch (``engine.gpu.launch``) of ``closest_queue`` (query "closest", out =
         t, prim, u, v) or ``occluded_queue`` (query "occluded", out = flags) on fixed arrays.
-        light: unused (the ray-space hierarchy reverses shadow rays to leave it)."""
+        light, secondary: unused (the ray-space hierarchy groups rays by them)."""
         b = self.bvh
         kernel, order = (closest_kernel, ()) if query == "closest" else (occluded_kernel, (self.far_first,))
         return PreparedLaunch(kernel, launch_grid(bound), BLOCK, (org, dirs, tmin, tmax, count, b.child_boxes, b.links,

@@ -480,7 +480,8 @@ class GpuWhittedRenderer:
         # traversal (the config's refraction entry applies when both kinds name the same one).
         kind = "primary" if gen == 0 else "reflection"
         steps = [(f"trace {kind}", self.traversal[kind].queue_launch(
-            "closest", *f.trace_views[gen % 2], f.count_views[2 * gen], bound, width, height, *f.hit_views), kind)]
+            "closest", *f.trace_views[gen % 2], f.count_views[2 * gen], bound, width, height, *f.hit_views,
+            secondary=gen > 0), kind)]
         if self.observer is not None:
             steps.append(("observe", functools.partial(self._observe_closest, f, gen, queue), None))
         steps.append(("shade", PreparedLaunch(_shade, grid(bound), BLOCK, (

@@ -55,21 +55,22 @@ class HostCounted:
     def _n(count, bound) -> int:
         return min(int(count.copy_to_host()[0]), bound)
 
-    def closest_queue(self, org, dirs, tmin, tmax, pixel, count, bound, width, height, *out) -> None:
+    def closest_queue(self, org, dirs, tmin, tmax, pixel, count, bound, width, height, *out, secondary=False) -> None:
         n = self._n(count, min(bound, org.shape[0]))
         if n > 0:
-            self.traversal.closest(org, dirs, tmin, tmax, pixel, n, width, height, *out)
+            self.traversal.closest(org, dirs, tmin, tmax, pixel, n, width, height, *out, secondary=secondary)
 
     def occluded_queue(self, org, dirs, tmin, tmax, pixel, count, bound, width, height, out, light=None) -> None:
         n = self._n(count, min(bound, org.shape[0]))
         if n > 0:
             self.traversal.occluded(org, dirs, tmin, tmax, pixel, n, width, height, out, light=light)
 
-    def queue_launch(self, query: str, *args, light=None):
+    def queue_launch(self, query: str, *args, light=None, secondary=False):
         """A callable running ``closest_queue`` / ``occluded_queue`` on these arguments
-        (``light``: the point every shadow ray aims at, when there is one)."""
+        (``light``: the point every shadow ray aims at, when there is one; ``secondary``: the
+        closest-hit queue holds reflection and refraction rays)."""
         if query == "closest":
-            return functools.partial(self.closest_queue, *args)
+            return functools.partial(self.closest_queue, *args, secondary=secondary)
         return functools.partial(self.occluded_queue, *args, light=light)
 
 

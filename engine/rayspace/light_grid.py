@@ -159,14 +159,26 @@ def light_grid_pixels(dirs: np.ndarray, tmin: np.ndarray, tmax: np.ndarray, pixe
     screen as the module doc describes. dirs: f32[R,3]; tmin, tmax: f32[R]; pixel: i32[R] on
     the ``width x height`` screen (a live ray off it is a ValueError, as in the build)."""
     pixel = np.ascontiguousarray(pixel, np.int32)
+    check_on_screen(pixel, tmin, tmax, width, height)
+    keys = np.empty(pixel.shape[0], np.int64)
+    _cell_keys(dirs, tmin, tmax, pixel, *_bounds(dirs, tmin, tmax, pixel), cell_bits(pixel.shape[0]), keys)
+    return place_by_keys(keys)
+
+
+def check_on_screen(pixel: np.ndarray, tmin: np.ndarray, tmax: np.ndarray, width: int, height: int) -> None:
+    """A live ray whose pixel is off the ``width x height`` screen is a ValueError, as in the build."""
     live = (pixel >= 0) & (tmin <= tmax)
     if live.any() and int(pixel[live].max()) >= width * height:
         raise ValueError(f"ray pixel {int(pixel[live].max())} is outside the {width}x{height} screen grid")
-    keys = np.empty(pixel.shape[0], np.int64)
-    _cell_keys(dirs, tmin, tmax, pixel, *_bounds(dirs, tmin, tmax, pixel), cell_bits(pixel.shape[0]), keys)
+
+
+def place_by_keys(keys: np.ndarray) -> tuple[np.ndarray, int]:
+    """(i32[R] pixels, side): rays with key >= 0 sorted by key, stably (equal keys keep ray
+    order), the k-th at Morton position k of a ``side x side`` screen; -1 where key < 0.
+    keys: i64[R]."""
     order = np.flatnonzero(keys >= 0)
-    order = order[np.argsort(keys[order], kind="stable")]  # stable: a cell's rays in ray order
+    order = order[np.argsort(keys[order], kind="stable")]
     side = grid_side(order.shape[0])
-    out = np.full(pixel.shape[0], -1, np.int32)
+    out = np.full(keys.shape[0], -1, np.int32)
     _rank_pixels(order, side, out)
     return out, side

@@ -7,7 +7,8 @@ from engine.core.errors import ConfigError
 from engine.gpu.device import BLOCK, blocks, require_cuda
 from engine.gpu.rayspace import final
 from engine.gpu.rayspace.hierarchy import build
-from engine.gpu.rayspace.light_grid import light_grid_pixels
+from engine.gpu.rayspace.ray_grids import direction_grid_pixels, light_grid_pixels
+from engine.rayspace.direction_grid import checked_secondary_grid
 from engine.rayspace.light_grid import checked_shadow_grid
 from engine.gpu.rayspace.scratch import Scratch
 from engine.gpu.rayspace.stream import WORK_SLOTS, WORK_TESTS, Stream
@@ -64,7 +65,9 @@ class DeviceRaySpace:
     that would exceed it splits the triangles into batches, and a single triangle that exceeds
     it raises ConfigError with the number it needs. shadow_grid: "light" (rays given a
     ``light`` grouped by their direction from it, ``engine.rayspace.light_grid``) or "pixel"
-    (by ancestral pixel, the paper's layout), as the CPU plugin's option.
+    (by ancestral pixel, the paper's layout), as the CPU plugin's option; secondary_grid:
+    "pixel", or "direction" (closest-hit calls with ``secondary=True`` grouped by screen tile and
+    direction, ``engine.rayspace.direction_grid``).
 
     ``stats``: the running totals over calls (keys of ``new_record``); ``last``: the last call's.
     """
@@ -72,7 +75,8 @@ class DeviceRaySpace:
     name = "rayspace"
     uses_bvh = False
 
-    def __init__(self, tris, host_tris, pair_budget: int = 4194304, shadow_grid: str = "light"):
+    def __init__(self, tris, host_tris, pair_budget: int = 4194304, shadow_grid: str = "light",
+                 secondary_grid: str = "pixel"):
         if isinstance(pair_budget, bool) or not isinstance(pair_budget, (int, np.integer)) \
                 or not 1 <= pair_budget <= MAX_PAIR_BUDGET:
             raise ConfigError(f"options.rayspace: pair_budget must be an integer in 1..{MAX_PAIR_BUDGET}, "
@@ -83,6 +87,7 @@ class DeviceRaySpace:
         self.tris = tris
         self.pair_budget = int(pair_budget)
         self.shadow_grid = checked_shadow_grid(shadow_grid)
+        self.secondary_grid = checked_secondary_grid(secondary_grid)
         self.scratch = Scratch(hint=f"lower [options.rayspace] pair_budget (now {int(pair_budget):,} pairs; "
                                     "both pair buffers hold it) or render smaller")
         self.scanner = Scanner()
@@ -92,7 +97,7 @@ class DeviceRaySpace:
 
     # -- the two queries ---------------------------------------------------------------
     def closest(self, org, dirs, tmin, tmax, pixel, n, width, height, t_out, prim_out, u_out, v_out,
-                light=None) -> None:
+                light=None, secondary=False) -> None:
         """Closest hits of rays 0 .. n-1 of a device queue.
 
         org, dirs: f32[C,3]; tmin, tmax: f32[C]; pixel: i32[C] ancestral pixel y * width + x on
@@ -100,6 +105,7 @@ class DeviceRaySpace:
         C >= n. Writes t_out f32, prim_out i32, u_out, v_out f32 (length >= n): the hit of the
         shared watertight test over all triangles with the smallest t, ties to the smaller
         index (inf, -1, 0, 0 on a miss), bit for bit the CPU's answer. light: as ``occluded``.
+        secondary: the rays are reflections and refractions (grouped by ``secondary_grid``).
         """
         n = int(n)
         best_t = self.scratch.get("best_t", n, np.float32)
@@ -117,7 +123,7 @@ class DeviceRaySpace:
             final.merge_batch[blocks(n), BLOCK](n, org, dirs, tmin, tmax, tris.v0, tris.v1, tris.v2, best_t,
                                                 best_prim, t_out, prim_out, u_out, v_out)
 
-        self._trace(org, dirs, tmin, tmax, pixel, n, width, height, light, finish)
+        self._trace(org, dirs, tmin, tmax, pixel, n, width, height, light, finish, secondary)
 
     def occluded(self, org, dirs, tmin, tmax, pixel, n, width, height, out, light=None) -> None:
         """Any hit of rays 0 .. n-1 (arguments as ``closest``): out[r] = 1 (or True) when some
@@ -140,7 +146,7 @@ class DeviceRaySpace:
         self._trace(org, dirs, tmin, tmax, pixel, n, width, height, light, finish)
 
     # -- the work ----------------------------------------------------------------------
-    def _trace(self, org, dirs, tmin, tmax, pixel, n, width, height, light, finish) -> None:
+    def _trace(self, org, dirs, tmin, tmax, pixel, n, width, height, light, finish, secondary=False) -> None:
         """Build, then stream triangle batches down and hand each final (slot, triangle) stream
         to ``finish(slots, tris, count)``; the statistics go to ``last`` and ``stats``."""
         if int(width) < 1 or int(height) < 1:
@@ -152,6 +158,10 @@ class DeviceRaySpace:
         if light is not None and self.shadow_grid == "light":
             pixel, width = light_grid_pixels(self.scratch, self.scanner, dirs, tmin, tmax, pixel, n, int(width),
                                              int(height))
+            height = width
+        elif light is None and secondary and self.secondary_grid == "direction":
+            pixel, width = direction_grid_pixels(self.scratch, self.scanner, dirs, tmin, tmax, pixel, n, int(width),
+                                                 int(height))
             height = width
         h = build(self.scratch, self.scanner, self.tris, org, dirs, tmin, tmax, pixel, n, int(width), int(height),
                   light)

@@ -1,0 +1,173 @@
+"""Rays placed on a grid by key on the device, as ``engine.rayspace.light_grid`` (shadow rays by
+direction from their light) and ``engine.rayspace.direction_grid`` (reflection and refraction
+rays by screen tile, then direction) place them on the CPU: their key functions
+(``octahedral``, ``cell_key``, ``tile_direction_key``, ``rank_pixel``, ``is_live``) compiled as
+device twins, so every ray gets the CPU's pixel.
+
+Keys: for the light grid ``_bounds`` first reduces the live rays' map rectangle (per thread over a
+grid stride, per block in shared memory, one atomic per block and bound) and ``_count_cells``
+keys each live ray by its cell; ``_count_tile_cells`` keys it by tile and direction. Both count
+the keys; a scan, ``_fill_cells`` and the build's ``_order_blocks`` (a key's rays by ray id, as
+the CPU's stable sort leaves them) make the sorted order, and ``_rank_pixels`` writes the k-th
+ray's pixel. One host wait: the scan's total, which sizes the screen.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from engine.gpu.device import BLOCK, blocks, require_cuda
+from engine.gpu.fill import fill_array
+from engine.gpu.rayspace.hierarchy import _order_blocks
+from engine.gpu.twin import device_twin
+from engine.rayspace import direction_grid, light_grid
+from engine.rayspace.direction_grid import key_bits, tile_size
+from engine.rayspace.light_grid import cell_bits, grid_side
+
+cuda = require_cuda()
+
+_octahedral = device_twin(light_grid.octahedral)
+_cell_key = device_twin(light_grid.cell_key, cell_scale=device_twin(light_grid.cell_scale))
+_rank_pixel = device_twin(light_grid.rank_pixel)
+_is_live = device_twin(light_grid.is_live)
+_tile_direction_key = device_twin(direction_grid.tile_direction_key, octahedral=_octahedral)
+
+#: Blocks of the bounds reduction: each thread folds n / (REDUCE_BLOCKS * BLOCK) rays first.
+REDUCE_BLOCKS = 128
+_EMPTY_BOUNDS = np.array([np.inf, -np.inf, np.inf, -np.inf])
+
+
+@cuda.jit
+def _bounds(dirs, tmin, tmax, pixel, n, bounds):
+    """bounds f64[4] (low_u, high_u, low_v, high_v, starting at inf, -inf, inf, -inf) over the
+    live rays 0 .. n-1."""
+    shared = cuda.shared.array(4, np.float64)
+    if cuda.threadIdx.x == 0:
+        shared[0] = np.inf
+        shared[1] = -np.inf
+        shared[2] = np.inf
+        shared[3] = -np.inf
+    cuda.syncthreads()
+    low_u, high_u, low_v, high_v = np.inf, -np.inf, np.inf, -np.inf
+    for r in range(cuda.grid(1), n, cuda.gridsize(1)):
+        if _is_live(pixel, tmin, tmax, r):
+            u, v = _octahedral(dirs[r, 0], dirs[r, 1], dirs[r, 2])
+            low_u, high_u = min(low_u, u), max(high_u, u)
+            low_v, high_v = min(low_v, v), max(high_v, v)
+    if low_u <= high_u:
+        cuda.atomic.min(shared, 0, low_u)
+        cuda.atomic.max(shared, 1, high_u)
+        cuda.atomic.min(shared, 2, low_v)
+        cuda.atomic.max(shared, 3, high_v)
+    cuda.syncthreads()
+    if cuda.threadIdx.x == 0 and shared[0] <= shared[1]:
+        cuda.atomic.min(bounds, 0, shared[0])
+        cuda.atomic.max(bounds, 1, shared[1])
+        cuda.atomic.min(bounds, 2, shared[2])
+        cuda.atomic.max(bounds, 3, shared[3])
+
+
+@cuda.jit
+def _count_cells(dirs, tmin, tmax, pixel, n, n_pixels, bounds, bits, keys, cell_count, bad_pixel):
+    """keys[r]: live ray r's cell key (-1 when dead), counted per cell; a live ray off the
+    screen goes to bad_pixel[0] (atomic max) instead."""
+    r = cuda.grid(1)
+    if r < n:
+        keys[r] = -1
+        if _is_live(pixel, tmin, tmax, r):
+            if pixel[r] >= n_pixels:
+                cuda.atomic.max(bad_pixel, 0, pixel[r])
+            else:
+                u, v = _octahedral(dirs[r, 0], dirs[r, 1], dirs[r, 2])
+                key = _cell_key(u, v, bounds[0], bounds[1], bounds[2], bounds[3], bits)
+                keys[r] = key
+                cuda.atomic.add(cell_count, key, 1)
+
+
+@cuda.jit
+def _fill_cells(keys, n, cell_start, fill, order):
+    r = cuda.grid(1)
+    if r < n and keys[r] >= 0:
+        order[cell_start[keys[r]] + cuda.atomic.add(fill, keys[r], 1)] = r
+
+
+@cuda.jit
+def _rank_pixels(order, n_live, side, out):
+    k = cuda.grid(1)
+    if k < n_live:
+        out[order[k]] = _rank_pixel(k, side)
+
+
+@cuda.jit
+def _count_tile_cells(dirs, tmin, tmax, pixel, n, n_pixels, width, tile, keys, cell_count, bad_pixel):
+    """keys[r]: live ray r's tile-direction key (-1 when dead), counted per key; a live ray off
+    the screen goes to bad_pixel[0] (atomic max) instead."""
+    r = cuda.grid(1)
+    if r < n:
+        keys[r] = -1
+        if _is_live(pixel, tmin, tmax, r):
+            if pixel[r] >= n_pixels:
+                cuda.atomic.max(bad_pixel, 0, pixel[r])
+            else:
+                key = _tile_direction_key(dirs[r, 0], dirs[r, 1], dirs[r, 2], pixel[r], width, tile)
+                keys[r] = key
+                cuda.atomic.add(cell_count, key, 1)
+
+
+def _key_arrays(scratch, n: int, n_cells: int):
+    """(keys i32[n], count i32[n_cells] zeroed, bad_pixel i32[1] = -1) scratch arrays."""
+    keys = scratch.get("grid_key", n, np.int32)
+    count = scratch.get("grid_cell_count", n_cells, np.int32)
+    bad = scratch.get("grid_bad_pixel", 1, np.int32)
+    fill_array[blocks(n_cells), BLOCK](count, n_cells, 0)
+    fill_array[1, BLOCK](bad, 1, -1)
+    return keys, count, bad
+
+
+def _place_by_keys(scratch, scanner, keys, count, bad, n: int, n_cells: int, width: int, height: int):
+    """(i32[n] pixels, side) from counted keys (``engine.rayspace.light_grid.place_by_keys``)."""
+    out = scratch.get("grid_pixel", n, np.int32)
+    fill = scratch.get("grid_cell_fill", n_cells, np.int32)
+    start = scratch.get("grid_cell_start", n_cells + 1, np.int32)
+    fill_array[blocks(n_cells), BLOCK](fill, n_cells, 0)
+    if n:
+        fill_array[blocks(n), BLOCK](out, n, -1)
+    n_live = scanner.exclusive_scan(count, n_cells, start)
+    worst = int(bad.copy_to_host()[0])
+    if worst >= 0:
+        raise ValueError(f"ray pixel {worst} is outside the {width}x{height} screen grid")
+    side = grid_side(n_live)
+    if n_live:
+        order = scratch.get("grid_order", n_live, np.int32)
+        _fill_cells[blocks(n), BLOCK](keys, n, start, fill, order)
+        _order_blocks[blocks(n_cells), BLOCK](start, n_cells, order)  # a key's rays by ray id
+        _rank_pixels[blocks(n_live), BLOCK](order, n_live, side, out)
+    return out, side
+
+
+def light_grid_pixels(scratch, scanner, dirs, tmin, tmax, pixel, n: int, width: int, height: int):
+    """(i32[n] device array, side): rays 0 .. n-1 of the device queue (dirs f32[C,3]; tmin, tmax
+    f32[C]; pixel i32[C] on the ``width x height`` screen) at their light-grid pixels on a
+    ``side x side`` screen, as ``engine.rayspace.light_grid.light_grid_pixels`` places them;
+    -1 for dead rays. A live ray off the screen raises ValueError, as the build does."""
+    bits = cell_bits(n)
+    n_cells = 1 << (2 * bits)
+    bounds = scratch.get("light_bounds", 4, np.float64)
+    bounds.copy_to_device(_EMPTY_BOUNDS)
+    keys, count, bad = _key_arrays(scratch, n, n_cells)
+    if n:
+        _bounds[min(REDUCE_BLOCKS, blocks(n)), BLOCK](dirs, tmin, tmax, pixel, n, bounds)
+        _count_cells[blocks(n), BLOCK](dirs, tmin, tmax, pixel, n, int(width) * int(height), bounds, bits, keys,
+                                       count, bad)
+    return _place_by_keys(scratch, scanner, keys, count, bad, n, n_cells, int(width), int(height))
+
+
+def direction_grid_pixels(scratch, scanner, dirs, tmin, tmax, pixel, n: int, width: int, height: int):
+    """(i32[n] device array, side): rays 0 .. n-1 placed by screen tile and direction, as
+    ``engine.rayspace.direction_grid.direction_grid_pixels`` places them (arguments as
+    ``light_grid_pixels``)."""
+    n_cells = 1 << key_bits(int(width), int(height))
+    keys, count, bad = _key_arrays(scratch, n, n_cells)
+    if n:
+        _count_tile_cells[blocks(n), BLOCK](dirs, tmin, tmax, pixel, n, int(width) * int(height), int(width),
+                                            tile_size(int(width), int(height)), keys, count, bad)
+    return _place_by_keys(scratch, scanner, keys, count, bad, n, n_cells, int(width), int(height))
