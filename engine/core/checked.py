@@ -35,6 +35,13 @@ def _range(lo, hi) -> str:
     return f"in {lo}..{hi}"
 
 
+def one_of(value, where: str, allowed: tuple, error=ConfigError) -> str:
+    """``value`` if it is one of the words ``allowed``, else ``error`` naming them."""
+    if not isinstance(value, str) or value not in allowed:
+        raise error(f"{where} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
+    return value
+
+
 def to_int(value, where: str, lo: int, hi: int, error=ConfigError) -> int:
     """``value`` (a Python or numpy integer, not a bool) if lo <= value <= hi, else ``error``."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):

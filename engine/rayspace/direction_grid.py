@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from engine.core.errors import ConfigError
+from engine.core.checked import one_of
 from engine.rayspace.light_grid import check_on_screen, is_live, octahedral, place_by_keys
 
 #: The layouts ``[options.rayspace] secondary_grid`` takes: "direction" (this module) or "pixel"
@@ -35,10 +35,7 @@ SECONDARY_GRIDS = ("direction", "pixel")
 
 def checked_secondary_grid(value) -> str:
     """``value`` if it names a layout of ``SECONDARY_GRIDS``, else a ConfigError."""
-    if not isinstance(value, str) or value not in SECONDARY_GRIDS:
-        raise ConfigError(f"options.rayspace: secondary_grid must be one of "
-                          f"{', '.join(map(repr, SECONDARY_GRIDS))}, got {value!r}")
-    return value
+    return one_of(value, "options.rayspace: secondary_grid", SECONDARY_GRIDS)
 
 #: Pixels a tile side (at most MAX_TILES tiles a side: larger screens get larger tiles).
 TILE = 32

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from engine.core.errors import ConfigError
+from engine.core.checked import one_of
 
 #: The layouts ``[options.rayspace] shadow_grid`` takes: "light" (this module) or "pixel" (the
 #: paper's: shadow rays at their ancestral pixels).
@@ -38,10 +38,7 @@ SHADOW_GRIDS = ("light", "pixel")
 
 def checked_shadow_grid(value) -> str:
     """``value`` if it names a layout of ``SHADOW_GRIDS``, else a ConfigError."""
-    if not isinstance(value, str) or value not in SHADOW_GRIDS:
-        raise ConfigError(f"options.rayspace: shadow_grid must be one of {', '.join(map(repr, SHADOW_GRIDS))}, "
-                          f"got {value!r}")
-    return value
+    return one_of(value, "options.rayspace: shadow_grid", SHADOW_GRIDS)
 
 
 @njit(cache=True, inline="always")

@@ -5,9 +5,8 @@ rays by screen tile, then direction) place them on the CPU: their key functions
 device twins, so every ray gets the CPU's pixel.
 
 Keys: for the light grid ``_bounds`` first reduces the live rays' map rectangle (per thread over a
-grid stride, per block in shared memory, one atomic per block and bound) and ``_count_cells``
-keys each live ray by its cell; ``_count_tile_cells`` keys it by tile and direction. Both count
-the keys; a scan, ``_fill_cells`` and the build's ``_order_blocks`` (a key's rays by ray id, as
+grid stride, per block in shared memory, one atomic per block and bound); ``_count_keys`` keys
+each live ray by its light-grid cell or by its tile and direction, and counts the keys; a scan, ``_fill_cells`` and the build's ``_order_blocks`` (a key's rays by ray id, as
 the CPU's stable sort leaves them) make the sorted order, and ``_rank_pixels`` writes the k-th
 ray's pixel. One host wait: the scan's total, which sizes the screen.
 """
@@ -66,10 +65,16 @@ def _bounds(dirs, tmin, tmax, pixel, n, bounds):
         cuda.atomic.max(bounds, 3, shared[3])
 
 
+#: ``_count_keys``'s key kinds.
+LIGHT_CELL, TILE_DIRECTION = 0, 1
+
+
 @cuda.jit
-def _count_cells(dirs, tmin, tmax, pixel, n, n_pixels, bounds, bits, keys, cell_count, bad_pixel):
-    """keys[r]: live ray r's cell key (-1 when dead), counted per cell; a live ray off the
-    screen goes to bad_pixel[0] (atomic max) instead."""
+def _count_keys(dirs, tmin, tmax, pixel, n, n_pixels, kind, bounds, bits, width, tile, keys, key_count, bad_pixel):
+    """keys[r]: live ray r's key (-1 when dead), counted per key: its light-grid cell (kind
+    LIGHT_CELL: map rectangle ``bounds``, 2^bits cells a side) or its tile-direction key (kind
+    TILE_DIRECTION: screen ``width`` wide, ``tile`` pixel tiles). A live ray off the screen goes
+    to bad_pixel[0] (atomic max) instead."""
     r = cuda.grid(1)
     if r < n:
         keys[r] = -1
@@ -77,10 +82,13 @@ def _count_cells(dirs, tmin, tmax, pixel, n, n_pixels, bounds, bits, keys, cell_
             if pixel[r] >= n_pixels:
                 cuda.atomic.max(bad_pixel, 0, pixel[r])
             else:
-                u, v = _octahedral(dirs[r, 0], dirs[r, 1], dirs[r, 2])
-                key = _cell_key(u, v, bounds[0], bounds[1], bounds[2], bounds[3], bits)
+                if kind == LIGHT_CELL:
+                    u, v = _octahedral(dirs[r, 0], dirs[r, 1], dirs[r, 2])
+                    key = _cell_key(u, v, bounds[0], bounds[1], bounds[2], bounds[3], bits)
+                else:
+                    key = _tile_direction_key(dirs[r, 0], dirs[r, 1], dirs[r, 2], pixel[r], width, tile)
                 keys[r] = key
-                cuda.atomic.add(cell_count, key, 1)
+                cuda.atomic.add(key_count, key, 1)
 
 
 @cuda.jit
@@ -95,22 +103,6 @@ def _rank_pixels(order, n_live, side, out):
     k = cuda.grid(1)
     if k < n_live:
         out[order[k]] = _rank_pixel(k, side)
-
-
-@cuda.jit
-def _count_tile_cells(dirs, tmin, tmax, pixel, n, n_pixels, width, tile, keys, cell_count, bad_pixel):
-    """keys[r]: live ray r's tile-direction key (-1 when dead), counted per key; a live ray off
-    the screen goes to bad_pixel[0] (atomic max) instead."""
-    r = cuda.grid(1)
-    if r < n:
-        keys[r] = -1
-        if _is_live(pixel, tmin, tmax, r):
-            if pixel[r] >= n_pixels:
-                cuda.atomic.max(bad_pixel, 0, pixel[r])
-            else:
-                key = _tile_direction_key(dirs[r, 0], dirs[r, 1], dirs[r, 2], pixel[r], width, tile)
-                keys[r] = key
-                cuda.atomic.add(cell_count, key, 1)
 
 
 def _key_arrays(scratch, n: int, n_cells: int):
@@ -156,8 +148,8 @@ def light_grid_pixels(scratch, scanner, dirs, tmin, tmax, pixel, n: int, width: 
     keys, count, bad = _key_arrays(scratch, n, n_cells)
     if n:
         _bounds[min(REDUCE_BLOCKS, blocks(n)), BLOCK](dirs, tmin, tmax, pixel, n, bounds)
-        _count_cells[blocks(n), BLOCK](dirs, tmin, tmax, pixel, n, int(width) * int(height), bounds, bits, keys,
-                                       count, bad)
+        _count_keys[blocks(n), BLOCK](dirs, tmin, tmax, pixel, n, int(width) * int(height), LIGHT_CELL, bounds, bits,
+                                      0, 0, keys, count, bad)
     return _place_by_keys(scratch, scanner, keys, count, bad, n, n_cells, int(width), int(height))
 
 
@@ -168,6 +160,7 @@ def direction_grid_pixels(scratch, scanner, dirs, tmin, tmax, pixel, n: int, wid
     n_cells = 1 << key_bits(int(width), int(height))
     keys, count, bad = _key_arrays(scratch, n, n_cells)
     if n:
-        _count_tile_cells[blocks(n), BLOCK](dirs, tmin, tmax, pixel, n, int(width) * int(height), int(width),
-                                            tile_size(int(width), int(height)), keys, count, bad)
+        bounds = scratch.get("light_bounds", 4, np.float64)  # not read for this kind
+        _count_keys[blocks(n), BLOCK](dirs, tmin, tmax, pixel, n, int(width) * int(height), TILE_DIRECTION, bounds,
+                                      0, int(width), tile_size(int(width), int(height)), keys, count, bad)
     return _place_by_keys(scratch, scanner, keys, count, bad, n, n_cells, int(width), int(height))
