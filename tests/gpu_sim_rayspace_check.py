@@ -43,7 +43,7 @@ def main(cases_path: str, out_path: str) -> None:
         rays = [upload(data[f"{name}_{key}"]) for key in ("org", "dir", "tmin", "tmax", "pixel")]
         size = data[f"{name}_tmin"].shape[0]
         grid = spec.get("shadow_grid", "light")
-        secondary_grid = spec.get("secondary_grid", "pixel")
+        secondary_grid = spec.get("secondary_grid", "direction")
         secondary = spec.get("secondary", False)
         tracer = DeviceRaySpace(dtris, tris, pair_budget=spec["pair_budget"], shadow_grid=grid,
                                 secondary_grid=secondary_grid)

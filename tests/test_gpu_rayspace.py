@@ -161,7 +161,7 @@ def barycentrics(rays, tris, prim):
 # -- one simulator run for every case ------------------------------------------------------
 
 def _case(cases: dict, name: str, rays: RayBatch, query: str, n: int, light=None, budget=1 << 22,
-          shadow_grid="light", secondary=False, secondary_grid="pixel") -> None:
+          shadow_grid="light", secondary=False, secondary_grid="direction") -> None:
     for key, value in (("org", rays.org), ("dir", rays.dir), ("tmin", rays.tmin), ("tmax", rays.tmax),
                        ("pixel", rays.pixel)):
         cases[f"{name}_{key}"] = np.ascontiguousarray(value)
@@ -180,9 +180,9 @@ def run(tmp_path_factory):
     cases = {f"tri_{field}": np.ascontiguousarray(a) for field, a in zip(Triangles._fields, rays.tris)}
     _case(cases, "primary", rays.primary, "closest", len(rays.primary.org))
     _case(cases, "secondary", secondary, "closest", len(secondary.org) - GARBAGE)
-    _case(cases, "secondary_direction", secondary, "closest", len(secondary.org) - GARBAGE, secondary=True,
-          secondary_grid="direction")
-    _case(cases, "secondary_pixel_grid", secondary, "closest", len(secondary.org) - GARBAGE, secondary=True)
+    _case(cases, "secondary_direction", secondary, "closest", len(secondary.org) - GARBAGE, secondary=True)
+    _case(cases, "secondary_pixel_grid", secondary, "closest", len(secondary.org) - GARBAGE, secondary=True,
+          secondary_grid="pixel")
     _case(cases, "shadow_reversed", shadow, "occluded", len(shadow.org), light=rays.light)
     _case(cases, "shadow_pixel_grid", shadow, "occluded", len(shadow.org), light=rays.light, shadow_grid="pixel")
     _case(cases, "shadow_forward", shadow, "occluded", len(shadow.org))
@@ -294,7 +294,7 @@ def test_secondary_queue_with_shared_pixels_dead_rays_and_rows_past_n(run):
 def test_secondary_rays_on_the_direction_grid(run):
     """Reflection rays placed by screen tile and direction (secondary=True): the CPU's pixels
     (the same twinned key), the same answers, rows past n untouched; without secondary=True or
-    with secondary_grid = "pixel" (the default) the queue keeps its pixels."""
+    with secondary_grid = "pixel" the queue keeps its pixels."""
     rays, answers, extra = run
     batch = extra["secondary"]
     n = len(batch.org) - GARBAGE
@@ -307,7 +307,7 @@ def test_secondary_rays_on_the_direction_grid(run):
         assert (answers[f"{name}_prim"][n:] == -7).all()
     assert "secondary_grid_pixel" not in answers and "secondary_pixel_grid_grid_pixel" not in answers
     cpu = new_stats(numba.get_num_threads())
-    make_traversal("rayspace", {"secondary_grid": "direction"}).intersect(None, rays.tris, part,
+    make_traversal("rayspace").intersect(None, rays.tris, part,
                                          Packets(np.array([0, n], np.int32), 1, SIZE, SIZE), None, empty_hits(n), cpu)
     stats = ok(answers, "secondary_direction")
     for key in ("pairs_before", "pairs_after", "cone_sphere_tests"):

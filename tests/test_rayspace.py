@@ -355,9 +355,9 @@ def test_bad_options_raise_config_error(options):
 
 def test_options_table_and_instances():
     assert make_traversal("rayspace").OPTIONS == {"pair_budget": 1 << 22, "shadow_grid": "light",
-                                                  "secondary_grid": "pixel"}
+                                                  "secondary_grid": "direction"}
     assert make_traversal("rayspace", {"shadow_grid": "pixel"}).shadow_grid == "pixel"
-    assert make_traversal("rayspace", {"secondary_grid": "direction"}).secondary_grid == "direction"
+    assert make_traversal("rayspace", {"secondary_grid": "pixel"}).secondary_grid == "pixel"
     assert make_traversal("rayspace", {"pair_budget": 1000}).pair_budget == 1000
     assert make_traversal("rayspace").pair_budget == 1 << 22
 

@@ -40,10 +40,12 @@ Options (``[options.rayspace]`` in a config, or keyword arguments of the class)
                             small for one triangle's pairs raises ConfigError with the need.
     shadow_grid = "light"   how rays that share a light are grouped: "light", by direction
                             from the light; "pixel", by ancestral pixel (the paper's layout).
-    secondary_grid = "pixel"   how reflection and refraction rays are grouped: "pixel", by
-                            ancestral pixel (the paper's layout); "direction", by screen tile
-                            and then direction (``engine.rayspace.direction_grid``: the kitchen's
-                            frame 0.69x, simpler scenes' 1.03-1.06x). Camera rays always by pixel.
+    secondary_grid = "direction"   how reflection and refraction rays are grouped:
+                            "direction", by screen tile and then direction
+                            (``engine.rayspace.direction_grid``: the kitchen's frame 0.69x,
+                            cosine-n's reflections 0.45-0.89x, simpler scenes' frames
+                            1.03-1.06x); "pixel", by ancestral pixel (the paper's layout).
+                            Camera rays are always grouped by pixel.
 
 Statistics (``stats.extra["rayspace"]``, summed over calls; lists are indexed by level,
 0 = rays, last = root): ``cone_sphere_tests``, ``pairs_before`` (child slots before
@@ -278,7 +280,7 @@ def _batch_size(budget: int, triangles: int, pairs: int) -> int:
 class RaySpaceTraversal:
     """Ray-space cone-sphere hierarchy over the batch's rays (Roger et al. 2007); no scene hierarchy."""
 
-    OPTIONS = {"pair_budget": 1 << 22, "shadow_grid": "light", "secondary_grid": "pixel"}
+    OPTIONS = {"pair_budget": 1 << 22, "shadow_grid": "light", "secondary_grid": "direction"}
     #: The hierarchy is over the rays: a moving scene has no structure of ours to keep current.
     uses_bvh = False
     #: Frusta are not read: the tracer builds none for this traversal.

@@ -66,8 +66,8 @@ class DeviceRaySpace:
     it raises ConfigError with the number it needs. shadow_grid: "light" (rays given a
     ``light`` grouped by their direction from it, ``engine.rayspace.light_grid``) or "pixel"
     (by ancestral pixel, the paper's layout), as the CPU plugin's option; secondary_grid:
-    "pixel", or "direction" (closest-hit calls with ``secondary=True`` grouped by screen tile and
-    direction, ``engine.rayspace.direction_grid``).
+    "direction" (closest-hit calls with ``secondary=True`` grouped by screen tile and direction,
+    ``engine.rayspace.direction_grid``) or "pixel".
 
     ``stats``: the running totals over calls (keys of ``new_record``); ``last``: the last call's.
     """
@@ -76,7 +76,7 @@ class DeviceRaySpace:
     uses_bvh = False
 
     def __init__(self, tris, host_tris, pair_budget: int = 4194304, shadow_grid: str = "light",
-                 secondary_grid: str = "pixel"):
+                 secondary_grid: str = "direction"):
         if isinstance(pair_budget, bool) or not isinstance(pair_budget, (int, np.integer)) \
                 or not 1 <= pair_budget <= MAX_PAIR_BUDGET:
             raise ConfigError(f"options.rayspace: pair_budget must be an integer in 1..{MAX_PAIR_BUDGET}, "
