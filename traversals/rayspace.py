@@ -5,10 +5,13 @@ every batch: nothing depends on the scene's layout, so moving geometry costs not
 rebuild. Ignores the BVH and the frusta it is given.
 
 How it works
-    1. Build (``engine.rayspace.cone_sphere``): the batch's live rays are indexed by ancestral pixel on
-       the ``packets.width x packets.height`` screen; each ray is an exact cone-sphere (radius 0,
-       spread 0, reach bounded by tmax), each 2x2 pixel block holds all its rays, and every
-       coarser level of the mip-map holds four nodes of the level below, up to one root.
+    1. Build (``engine.rayspace.cone_sphere``): the batch's live rays are indexed by a pixel on a
+       screen: camera rays by their own pixel on the ``packets.width x packets.height`` screen,
+       shadow and secondary rays by default at the pixel the light or direction grid gives them
+       (options below; "pixel" keeps their ancestral pixels, as the paper does); each ray is an
+       exact cone-sphere (radius 0, spread 0, reach bounded by tmax), each 2x2 pixel block holds
+       all its rays, and every coarser level of the mip-map holds four nodes of the level below,
+       up to one root.
     2. Traversal (``engine.rayspace.pair_stream``): a stream of (node, triangle) pairs starts with every
        triangle at the root; per level each pair's children are tested against the
        triangle's bounding sphere (``engine.rayspace.triangle_spheres``) and the survivors are compacted
