@@ -256,8 +256,9 @@ def _surviving(h, chain, centre, radius, abs_tol, keep):
 
 def rayspace_node(tris, rays, packets, k: int) -> RaySpaceNode:
     """The hierarchy ``rayspace`` builds for this batch in the paper's pixel layout, and its node
-    over packet k's tile. (With ``shadow_grid = "light"``, the default, the plugin places shadow
-    rays by direction instead, where no node covers a screen tile; this view keeps the pixels.)"""
+    over packet k's tile. (With the default ``shadow_grid`` and ``secondary_grid`` the plugin
+    places shadow, reflection and refraction rays by direction instead, where no node covers a
+    screen tile; this view keeps the pixels.)"""
     from traversals.rayspace import live_lanes, shared_apex
 
     offsets = np.asarray(packets.offsets)
