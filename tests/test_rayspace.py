@@ -152,6 +152,21 @@ def test_closest_hits_match_single(rayspace, scene, kind):
 
 
 @pytest.mark.parametrize("scene", SCENES)
+@pytest.mark.parametrize("kind", ["reflection", "refraction", "shadow"])
+def test_the_papers_pixel_layout_gives_the_same_hits(scene, kind):
+    """``shadow_grid`` and ``secondary_grid`` "pixel" (the paper's layout; the defaults group
+    by direction): the same hits as single, and other (node, triangle) pairs tested."""
+    setup = setup_for(scene)
+    rays, packets = getattr(setup, kind)()
+    paper = make_traversal("rayspace", {"shadow_grid": "pixel", "secondary_grid": "pixel"})
+    by_pixel, by_grid = new_stats(numba.get_num_threads()), new_stats(numba.get_num_threads())
+    ref, got = intersect_both(paper, setup, rays, packets, by_pixel)
+    assert_same_hits(ref, got)
+    intersect_both(make_traversal("rayspace"), setup, rays, packets, by_grid)
+    assert by_pixel.extra["rayspace"]["cone_sphere_tests"] != by_grid.extra["rayspace"]["cone_sphere_tests"]
+
+
+@pytest.mark.parametrize("scene", SCENES)
 @pytest.mark.parametrize("kind", ["reflection", "shadow"])
 def test_occlusion_matches_single(rayspace, scene, kind):
     setup = setup_for(scene)
