@@ -151,6 +151,20 @@ def test_closest_hits_match_single(rayspace, scene, kind):
     assert stats.counters[:, COUNTER_RAY_TRI, 0].sum() == extra["candidates"]
 
 
+def test_a_whitted_frame_by_rayspace_audits_clean_against_embree(tmp_path):
+    """Every ray of a frame, rayspace for every kind with its default grids (each light's shadow
+    rays by direction from it, secondary rays by tile and direction), checked against Embree."""
+    import json
+
+    from engine.cli import main
+
+    report = tmp_path / "audit.json"
+    assert main(["audit", "--size", "48x48", "--traversal", "rayspace", "--json", str(report)]) == 0
+    data = json.loads(report.read_text())
+    assert data["mismatches"] == [] and data["agreement"] == 1.0
+    assert all(data["by_kind"][kind]["checked"] > 0 for kind in ("primary", "shadow", "reflection", "refraction"))
+
+
 @pytest.mark.parametrize("scene", SCENES)
 @pytest.mark.parametrize("kind", ["reflection", "refraction", "shadow"])
 def test_the_papers_pixel_layout_gives_the_same_hits(scene, kind):

@@ -11,7 +11,7 @@ import pytest
 
 from engine.core.bvh import build_bvh
 from engine.core.threads import numba_threads
-from engine.core.types import empty_hits, new_stats, stats_totals
+from engine.core.types import MAX_BVH_DEPTH, Stats, empty_hits, new_stats, stats_totals
 from engine.packet.layout import make_batch
 from engine.render.plugins import make_traversal
 from scenes.catalog import load_named
@@ -34,10 +34,24 @@ def scene_rays():
 
 
 @pytest.mark.parametrize("name", COUNTING)
+def test_counters_without_a_row_are_refused_on_one_thread(scene_rays, name):
+    """Runs on any machine: no thread row at all is refused, one row is enough for one thread."""
+    bvh, tris, rays, packets = scene_rays
+    plugin = make_traversal(name)
+    with numba_threads(1):
+        empty = Stats(np.zeros((0, 3, MAX_BVH_DEPTH), np.int64), {})
+        with pytest.raises(ValueError, match="0 thread rows, fewer than the 1 threads"):
+            plugin.intersect(bvh, tris, rays, packets, None, empty_hits(rays.org.shape[0]), empty)
+        one = new_stats(1)
+        plugin.intersect(bvh, tris, rays, packets, None, empty_hits(rays.org.shape[0]), one)
+    assert stats_totals(one)["ray_tri"] > 0
+
+
+@pytest.mark.parametrize("name", COUNTING)
 def test_too_few_thread_rows_are_refused_and_enough_are_counted(scene_rays, name):
     bvh, tris, rays, packets = scene_rays
     if numba.config.NUMBA_NUM_THREADS < 2:
-        pytest.skip("needs two numba threads")
+        pytest.skip("needs two numba threads (the one-thread case is the test above)")
     plugin = make_traversal(name)
     with numba_threads(2):
         hits = empty_hits(rays.org.shape[0])
