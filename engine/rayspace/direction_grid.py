@@ -17,7 +17,7 @@ at 1024^2, cone-sphere tests per reflection ray 4,094 -> 2,813, per refraction r
 maps of 16^2 or 64^2 cells counted more; a 60-bit Morton key of origin and direction (no
 tiles) 2,844 and 9,330 at 1024^2.
 
-Compiled for the GPU as well (``engine.gpu.rayspace.light_grid`` twins ``tile_direction_key``):
+Compiled for the GPU as well (``engine.gpu.rayspace.ray_grids`` twins ``tile_direction_key``):
 integer tile arithmetic and one float64 product per axis, so both targets give each ray the same key.
 """
 from __future__ import annotations
@@ -26,7 +26,7 @@ import numpy as np
 from numba import njit, prange
 
 from engine.core.checked import one_of
-from engine.rayspace.light_grid import check_on_screen, is_live, octahedral, place_by_keys
+from engine.rayspace.light_grid import check_on_screen, is_live, morton2, octahedral, place_by_keys
 
 #: The layouts ``[options.rayspace] secondary_grid`` takes: "direction" (this module) or "pixel"
 #: (the paper's: reflection and refraction rays at their ancestral pixels).
@@ -69,17 +69,8 @@ def tile_direction_key(dx, dy, dz, pixel, width, tile):
     half = cells * 0.5
     cu = min(max(int((u + 1.0) * half), 0), cells - 1)
     cv = min(max(int((v + 1.0) * half), 0), cells - 1)
-    tx = (pixel % width) // tile
-    ty = (pixel // width) // tile
-    key = 0
-    for bit in range(16):
-        key |= ((tx >> bit) & 1) << (2 * bit)
-        key |= ((ty >> bit) & 1) << (2 * bit + 1)
-    direction = 0
-    for bit in range(DIRECTION_BITS):
-        direction |= ((cu >> bit) & 1) << (2 * bit)
-        direction |= ((cv >> bit) & 1) << (2 * bit + 1)
-    return (key << (2 * DIRECTION_BITS)) | direction
+    tile_key = morton2((pixel % width) // tile, (pixel // width) // tile, 16)
+    return (tile_key << (2 * DIRECTION_BITS)) | morton2(cu, cv, DIRECTION_BITS)
 
 
 @njit(cache=True, parallel=True)

@@ -20,8 +20,8 @@ pairs the stream tests. Placing rays at their map cell directly (no sort) piled 
 one 2x2 block where the map is dense (the default scene), which the GPU's one-pair-per-thread
 stream pays for in idle lanes; the rank gives every block four.
 
-Every function here is also compiled for the GPU (``engine.gpu.rayspace.light_grid`` twins
-``octahedral``, ``cell_key``, ``rank_pixel`` and ``is_live``): float64, and no product added to
+Every function here is also compiled for the GPU (``engine.gpu.rayspace.ray_grids`` twins
+``octahedral``, ``morton2``, ``cell_key``, ``rank_pixel`` and ``is_live``): float64, and no product added to
 anything (nothing a compiler may fuse), so both targets give every ray the same pixel.
 """
 from __future__ import annotations
@@ -81,17 +81,23 @@ def cell_scale(low, high, cells):
 
 
 @njit(cache=True, inline="always")
+def morton2(x, y, bits):
+    """The Morton code of (x, y) < 2^bits: x's bits at the even positions, y's at the odd."""
+    key = 0
+    for bit in range(bits):
+        key |= ((x >> bit) & 1) << (2 * bit)
+        key |= ((y >> bit) & 1) << (2 * bit + 1)
+    return key
+
+
+@njit(cache=True, inline="always")
 def cell_key(u, v, low_u, high_u, low_v, high_v, bits):
     """The Morton code (x bits even, y bits odd) of the cell of map point (u, v) on the
     2^bits x 2^bits grid spanning [low_u, high_u] x [low_v, high_v]."""
     cells = 1 << bits
     x = min(max(int((u - low_u) * cell_scale(low_u, high_u, cells)), 0), cells - 1)
     y = min(max(int((v - low_v) * cell_scale(low_v, high_v, cells)), 0), cells - 1)
-    key = 0
-    for bit in range(bits):
-        key |= ((x >> bit) & 1) << (2 * bit)
-        key |= ((y >> bit) & 1) << (2 * bit + 1)
-    return key
+    return morton2(x, y, bits)
 
 
 @njit(cache=True, inline="always")

@@ -1,7 +1,7 @@
 """Rays placed on a grid by key on the device, as ``engine.rayspace.light_grid`` (shadow rays by
 direction from their light) and ``engine.rayspace.direction_grid`` (reflection and refraction
 rays by screen tile, then direction) place them on the CPU: their key functions
-(``octahedral``, ``cell_key``, ``tile_direction_key``, ``rank_pixel``, ``is_live``) compiled as
+(``octahedral``, ``morton2``, ``cell_key``, ``tile_direction_key``, ``rank_pixel``, ``is_live``) compiled as
 device twins, so every ray gets the CPU's pixel.
 
 Keys: for the light grid ``_bounds`` first reduces the live rays' map rectangle (per thread over a
@@ -25,10 +25,11 @@ from engine.rayspace.light_grid import cell_bits, grid_side
 cuda = require_cuda()
 
 _octahedral = device_twin(light_grid.octahedral)
-_cell_key = device_twin(light_grid.cell_key, cell_scale=device_twin(light_grid.cell_scale))
+_morton2 = device_twin(light_grid.morton2)
+_cell_key = device_twin(light_grid.cell_key, cell_scale=device_twin(light_grid.cell_scale), morton2=_morton2)
 _rank_pixel = device_twin(light_grid.rank_pixel)
 _is_live = device_twin(light_grid.is_live)
-_tile_direction_key = device_twin(direction_grid.tile_direction_key, octahedral=_octahedral)
+_tile_direction_key = device_twin(direction_grid.tile_direction_key, octahedral=_octahedral, morton2=_morton2)
 
 #: Blocks of the bounds reduction: each thread folds n / (REDUCE_BLOCKS * BLOCK) rays first.
 REDUCE_BLOCKS = 128
