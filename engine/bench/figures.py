@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from engine.bench.machine import cpu_label
 from engine.core.atomic import replacing
 from engine.core.types import RAY_KINDS
 
@@ -42,5 +43,5 @@ def save(fig, path: Path) -> Path:
 def machine_line(records: list) -> str:
     m = records[0]["machine"]
     dirty = " (with uncommitted changes)" if m["git"]["dirty"] else ""
-    return (f"{m['cpu']}, {records[0]['threads']} threads; Python {m['python']}, numpy {m['numpy']}, numba "
+    return (f"{cpu_label(m)}, {records[0]['threads']} threads; Python {m['python']}, numpy {m['numpy']}, numba "
             f"{m['numba']}, embreex {m['embreex']} (Embree {m['embree']}); commit {m['git']['commit'][:10]}{dirty}")

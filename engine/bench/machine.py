@@ -29,6 +29,47 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def _cpuinfo_fields() -> dict:
+    """The first processor's fields of /proc/cpuinfo ({} where there is none)."""
+    fields = {}
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if not line.strip():
+                break
+            key, _, value = line.partition(":")
+            fields[key.strip()] = value.strip()
+    except OSError:
+        pass
+    return fields
+
+
+def cpu_identity() -> dict:
+    """What tells two hosts with the same model name apart (a virtual machine may report only
+    "AMD EPYC" for a Zen 3 and a Zen 5): LLVM's name for the host CPU, which is what numba
+    compiles for (``znver5``), the vendor's family / model / stepping, and the widest float
+    vectors the kernels may use (``avx512``, ``avx2``, ...). Sessions 28-34 ran on 2-core
+    "AMD EPYC" hosts that differed in all three, and their timings differ by 2x."""
+    import llvmlite.binding as llvm
+
+    fields = _cpuinfo_fields()
+    flags = set(fields.get("flags", "").split())
+    features = set(llvm.get_host_cpu_features().flatten().split(","))
+    vector = next((name for name, flag in (("avx512", "avx512f"), ("avx2", "avx2"), ("avx", "avx"),
+                                          ("sse4.2", "sse4_2"))
+                   if flag in flags or f"+{flag.replace('_', '.')}" in features), "other")
+    return {"llvm_cpu": llvm.get_host_cpu_name(), "family": fields.get("cpu family", "?"),
+            "model": fields.get("model", "?"), "stepping": fields.get("stepping", "?"), "vector": vector}
+
+
+def cpu_label(machine: dict) -> str:
+    """'AMD EPYC (znver5, avx512)' from a machine record; records written before the identity
+    was kept give the model name alone."""
+    identity = machine.get("cpu_identity")
+    if not identity:
+        return machine["cpu"]
+    return f"{machine['cpu']} ({identity['llvm_cpu']}, {identity['vector']})"
+
+
 def _git() -> dict:
     def run(*args):
         try:
@@ -49,7 +90,7 @@ def machine_info() -> dict:
         embree_version = library_version()
     except Exception:  # no usable Embree: the cells that need it will say so
         embree_version = "unavailable"
-    return {"cpu": _cpu_model(), "cores": os.cpu_count(), "numba_threads": numba.config.NUMBA_NUM_THREADS,
+    return {"cpu": _cpu_model(), "cpu_identity": cpu_identity(), "cores": os.cpu_count(), "numba_threads": numba.config.NUMBA_NUM_THREADS,
             "threading_layer": numba.config.THREADING_LAYER, "platform": platform.platform(),
             "python": platform.python_version(), "numpy": np.__version__, "numba": numba.__version__,
             "embreex": _version("embreex"), "embree": embree_version, "open3d": _version("open3d"),
