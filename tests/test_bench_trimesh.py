@@ -25,7 +25,8 @@ def test_a_tiny_matrix_runs_and_counts_agreement(tmp_path):
     records = run(spec, tmp_path, progress=lambda line: None)
     assert [(r["rays"], r["query"]) for r in records] == [
         ("incoherent", "first"), ("incoherent", "any"), ("incoherent", "all"), ("points", "contains"),
-        ("primary", "first"), ("primary", "any"), ("primary", "all")]
+        ("primary", "first"), ("primary", "any"), ("primary", "all"),
+        ("shuffled", "first"), ("shuffled", "any"), ("shuffled", "all")]
     for r in records:
         assert r["trimesh_mrays"] > 0 and r["packetrt_mrays"] > 0
         assert r["speedup_1thread"] > 0 and r["same_on_1thread"] is True, r

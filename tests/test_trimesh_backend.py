@@ -119,7 +119,7 @@ def test_coherent_rays_take_the_packet_walk_with_the_per_ray_walks_answers(which
         packed = RayMeshIntersector(mesh).intersects_first(origins, directions)
         packed_any = RayMeshIntersector(mesh).intersects_any(origins, directions)
     assert len(calls) == 2 and all(issubclass(w.category, BadRayWarning) for w in caught) and len(caught) == 2
-    monkeypatch.setattr(intersector, "is_coherent", lambda *a: False)
+    monkeypatch.setattr(intersector, "packing", lambda *a: coherent.PACK_NONE)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", BadRayWarning)
         per_ray = RayMeshIntersector(mesh).intersects_first(origins, directions)
@@ -128,6 +128,49 @@ def test_coherent_rays_take_the_packet_walk_with_the_per_ray_walks_answers(which
     assert (packed[:6] == -1).all() and (packed >= 0).sum() > 1000
     assert len(calls) == 2
 
+
+
+@pytest.mark.parametrize("which", ["sphere", "bunny"])
+def test_shuffled_rays_from_one_eye_are_sorted_into_packets_with_the_per_ray_walks_answers(which, request,
+                                                                                           monkeypatch):
+    """Camera rays in a random order (bad ones among them) make loose packets in that order: the
+    batch is sorted by ``engine.query.order.coherent_order`` and walked in packets of sorted
+    neighbours, answering each ray exactly as the per-ray walk does and as Embree does
+    (tie-aware). Rays that spread in origin and direction alike are not sorted."""
+    import engine.query.coherent as coherent
+    import engine.query.intersector as intersector
+
+    mesh = request.getfixturevalue(which)
+    origins, directions = pinhole_rays(mesh, 96, bad=6)
+    shuffle = np.random.default_rng(3).permutation(len(origins))
+    origins, directions = origins[shuffle], directions[shuffle]
+    scale = mesh.extents.max()
+    assert coherent.packing(origins, directions, scale) == coherent.PACK_SORTED
+    assert coherent.packing(*pinhole_rays(mesh, 96), scale) == coherent.PACK_INPUT
+    assert coherent.packing(*rays_at(mesh, 20000, seed=4), scale) == coherent.PACK_NONE
+    packed_rows = []
+    monkeypatch.setattr(intersector, "packet_first_hits",
+                        lambda *a: packed_rows.append(a[7].copy()) or coherent.packet_first_hits(*a))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", BadRayWarning)
+        sorted_first = RayMeshIntersector(mesh).intersects_first(origins, directions)
+        sorted_any = RayMeshIntersector(mesh).intersects_any(origins, directions)
+        assert len(packed_rows) == 2
+        rows = packed_rows[0]
+        assert np.array_equal(np.sort(rows), np.arange(len(origins)))
+        # The packets are tight: far tighter than blocks of the shuffled order.
+        assert coherent.coherent_blocks(coherent.block_medians(origins, directions, scale, rows))
+        assert coherent.block_medians(origins, directions, scale, rows)[0] < \
+            0.1 * coherent.block_medians(origins, directions, scale)[0]
+        monkeypatch.setattr(intersector, "packing", lambda *a: coherent.PACK_NONE)
+        per_ray = RayMeshIntersector(mesh).intersects_first(origins, directions)
+        per_ray_any = RayMeshIntersector(mesh).intersects_any(origins, directions)
+        theirs = EmbreeIntersector(mesh)
+        good = np.isfinite(directions).all(axis=1) & (np.abs(directions).sum(axis=1) > 0)
+        assert_same_first_hits(mesh, sorted_first[good], theirs.intersects_first(origins[good], directions[good]),
+                               origins[good], directions[good])
+    assert np.array_equal(sorted_first, per_ray) and np.array_equal(sorted_any, per_ray_any)
+    assert (sorted_first[~good] == -1).all() and (sorted_first >= 0).sum() > 1000
 
 
 def test_camera_rays_through_the_packet_walk_equal_trimesh_default_backend(bunny):
@@ -174,7 +217,7 @@ def test_camera_rays_are_recognised_by_their_row_length_and_walked_in_tiles(bunn
         tiled = RayMeshIntersector(bunny).intersects_first(origins, directions)
         tiled_any = RayMeshIntersector(bunny).intersects_any(origins, directions)
         assert len(packed_rows) == 2 and np.array_equal(packed_rows[0], rows)
-        monkeypatch.setattr(intersector, "is_coherent", lambda *a: False)
+        monkeypatch.setattr(intersector, "packing", lambda *a: coherent.PACK_NONE)
         per_ray = RayMeshIntersector(bunny).intersects_first(origins, directions)
         per_ray_any = RayMeshIntersector(bunny).intersects_any(origins, directions)
     assert np.array_equal(tiled, per_ray) and np.array_equal(tiled_any, per_ray_any)

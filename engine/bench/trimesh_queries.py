@@ -24,8 +24,10 @@ timed and checked against each other.
     scene = "bart-kitchen"
 
 Ray sets per mesh: ``incoherent`` (origins around the mesh, aimed at random points inside its
-box; seeded) and ``primary`` (the scene's auto camera, one ray per pixel of a square image of
-about ``rays`` pixels: coherent). Points for ``contains``: uniform in the mesh's box.
+box; seeded), ``primary`` (the scene's auto camera, one ray per pixel of a square image of
+about ``rays`` pixels, row by row: coherent) and ``shuffled`` (the same camera rays in a seeded
+random order: coherent rays in an order that hides it, which the intersector sorts, see
+``engine.query.coherent.packing``). Points for ``contains``: uniform in the mesh's box.
 
 Agreement per query and ray: ``first``: the same triangle, or hits at the same distance (within
 1e-5 of the mesh's size: an edge shared by two triangles); ``any``: the same answer; ``all``: the
@@ -293,8 +295,10 @@ def run(spec: dict, out: Path, progress=print) -> list:
             ours_1 = RayMeshIntersector(mesh, threads=1) if spec["one_thread"] else None
             side = int(np.sqrt(spec["rays"]))
             cam_o, cam_d = camera_rays(scene, side, side)
-            ray_sets = {"incoherent": incoherent_rays(mesh, spec["rays"]),
-                        "primary": (cam_o.astype(np.float64), cam_d.astype(np.float64))}
+            camera = (cam_o.astype(np.float64), cam_d.astype(np.float64))
+            shuffle = np.random.default_rng(2).permutation(len(cam_o))
+            ray_sets = {"incoherent": incoherent_rays(mesh, spec["rays"]), "primary": camera,
+                        "shuffled": (camera[0][shuffle], camera[1][shuffle])}
             render_call, render_rays = render_path_trace(scene, side) if spec["render_path"] else (None, 0)
             rng = np.random.default_rng(1)
             points = rng.uniform(*mesh.bounds, size=(spec["points"], 3))

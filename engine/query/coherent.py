@@ -25,11 +25,23 @@ an index computation rather than a sort. On 447 x 447 camera rays (two threads, 
 interleaved queries) first hits took 12.8 ms in tiles against 13.9 ms in strips on the kitchen,
 10.5 against 10.8 on the bunny. Rays of no recognisable width keep the caller's order, in strips.
 
-Why the caller's order and not a sort: the batch was judged coherent in that order, and on
-camera rays given row by row (447 x 447, one core, packets of 256) the walk ran at 8.41 / 6.59
-Mrays/s (bunny / kitchen) in input order against 8.43 / 7.00 after the Morton sort, which itself
-cost more than the difference (16 ms of a 42 ms bunny query). The per-ray walk ran 7.70 / 2.93
-on the same rays, trimesh's embreex backend 5.27 / 2.83.
+Why the caller's order when it is coherent, and not a sort: on camera rays given row by row
+(447 x 447, one core, packets of 256) the walk ran at 8.41 / 6.59 Mrays/s (bunny / kitchen) in
+input order against 8.43 / 7.00 after the Morton sort, which itself cost more than the
+difference (16 ms of a 42 ms bunny query). The per-ray walk ran 7.70 / 2.93 on the same rays,
+trimesh's embreex backend 5.27 / 2.83.
+
+When the order hides the coherence (``packing``). The same camera rays shuffled still passed
+the block test (every block as wide as the view, under the threshold on the bunny's narrow one)
+and took the packet walk in packets spanning the whole view: 25.4 / 32.9 ms a query (bunny /
+kitchen, 199,809 rays, two threads, Zen 5), slower than embreex (18.9 / 35.5 ms). So a batch
+whose blocks are not much tighter than the batch as a whole (``ORDERED_FRACTION``), or are
+loose, but whose origins or directions are tight as a whole (rays from one eye or sensor,
+parallel sweeps) is sorted first (``engine.query.order.coherent_order``: a Morton key over the
+coordinates that vary, scaled to the batch, and a parallel radix sort; about 4 ms for 200,000
+rays) and walked in packets of sorted neighbours when they are tight: 11.0 / 12.2 ms. Rays that
+spread in origin and direction alike (rays between random points) never pay for the sort: they
+go to the per-ray walk as before.
 """
 from __future__ import annotations
 
@@ -71,19 +83,23 @@ SAMPLED_BLOCKS = 256
 
 
 @njit(cache=True, parallel=True)
-def block_spreads(origins, directions, scale, block, step, out_dir, out_org):
+def block_spreads(origins, directions, scale, block, step, rows, out_dir, out_org):
     """For sampled block b, the block of ``block`` consecutive rays starting at ray b * step *
-    block (origins, directions f64[n,3]; scale the mesh's size): out_dir f64[B] the direction
-    spread, out_org f64[B] the origin spread. A block with a bad ray (zero or non-finite
-    direction) counts as incoherent (spread 1)."""
+    block (origins, directions f64[n,3]; scale the mesh's size), in the caller's order or, when
+    rows (i64[n]) is not empty, in that order: out_dir f64[B] the direction spread, out_org
+    f64[B] the origin spread. A block with a bad ray (zero or non-finite direction) counts as
+    incoherent (spread 1)."""
     n = origins.shape[0]
+    ordered = rows.shape[0] > 0
     for b in prange(out_dir.shape[0]):
         sx = sy = sz = 0.0
         far2 = 0.0  # squared: one square root a block, not one a ray
         bad = False
         lo = b * step * block
         hi = min(n, lo + block)
-        for i in range(lo, hi):
+        first = rows[lo] if ordered else lo
+        for k in range(lo, hi):
+            i = rows[k] if ordered else k
             norm = np.sqrt(directions[i, 0] ** 2 + directions[i, 1] ** 2 + directions[i, 2] ** 2)
             if not (norm > 0.0 and np.isfinite(norm)):
                 bad = True
@@ -92,9 +108,9 @@ def block_spreads(origins, directions, scale, block, step, out_dir, out_org):
             sx += directions[i, 0] * inverse
             sy += directions[i, 1] * inverse
             sz += directions[i, 2] * inverse
-            dx = origins[i, 0] - origins[lo, 0]
-            dy = origins[i, 1] - origins[lo, 1]
-            dz = origins[i, 2] - origins[lo, 2]
+            dx = origins[i, 0] - origins[first, 0]
+            dy = origins[i, 1] - origins[first, 1]
+            dz = origins[i, 2] - origins[first, 2]
             far2 = max(far2, dx * dx + dy * dy + dz * dz)
         count = hi - lo
         mean = np.sqrt(sx * sx + sy * sy + sz * sz) / count
@@ -103,17 +119,96 @@ def block_spreads(origins, directions, scale, block, step, out_dir, out_org):
         out_org[b] = 1.0 if not np.isfinite(far) else far / scale
 
 
-def is_coherent(origins: np.ndarray, directions: np.ndarray, scale: float) -> bool:
-    """Whether a batch (f64[n,3] each) should take the packet walk (see the module doc)."""
+@njit(cache=True)
+def batch_spread(origins, directions, scale, samples):
+    """(direction spread, origin spread) of the whole batch, as ``block_spreads`` measures a
+    block, over ``samples`` rays evenly spaced through it; bad rays are left out (1.0, 1.0 when
+    every sampled ray is bad)."""
     n = origins.shape[0]
-    if n < MIN_RAYS:
-        return False
-    blocks = -(-n // PACKET_RAYS)
+    step = max(1, n // max(samples, 1))
+    sx = sy = sz = 0.0
+    far2 = 0.0
+    first = -1
+    count = 0
+    for i in range(0, n, step):
+        norm = np.sqrt(directions[i, 0] ** 2 + directions[i, 1] ** 2 + directions[i, 2] ** 2)
+        if not (norm > 0.0 and np.isfinite(norm) and np.isfinite(origins[i, 0]) and np.isfinite(origins[i, 1])
+                and np.isfinite(origins[i, 2])):
+            continue
+        if first < 0:
+            first = i
+        inverse = 1.0 / norm
+        sx += directions[i, 0] * inverse
+        sy += directions[i, 1] * inverse
+        sz += directions[i, 2] * inverse
+        dx = origins[i, 0] - origins[first, 0]
+        dy = origins[i, 1] - origins[first, 1]
+        dz = origins[i, 2] - origins[first, 2]
+        far2 = max(far2, dx * dx + dy * dy + dz * dz)
+        count += 1
+    if count == 0:
+        return 1.0, 1.0
+    return 1.0 - np.sqrt(sx * sx + sy * sy + sz * sz) / count, np.sqrt(far2) / scale
+
+
+#: ``block_spreads``' rows for the caller's order.
+NO_ROWS = np.zeros(0, np.int64)
+#: How a batch is packed for the packet walk (``packing``).
+PACK_NONE, PACK_INPUT, PACK_SORTED = 0, 1, 2
+#: Rays ``batch_spread`` samples.
+BATCH_SAMPLES = 4096
+#: The caller's order is kept when its blocks are at most this fraction of the whole batch's
+#: spread; shuffled rays make blocks as wide as the batch.
+ORDERED_FRACTION = 0.5
+
+
+def block_medians(origins: np.ndarray, directions: np.ndarray, scale: float, rows=None) -> tuple:
+    """(median direction spread, median origin spread) of the batch's blocks of PACKET_RAYS
+    consecutive rays (SAMPLED_BLOCKS of them at most, evenly spaced), in the caller's order or,
+    given rows (i64[n]), in that order."""
+    blocks = -(-origins.shape[0] // PACKET_RAYS)
     step = max(1, blocks // SAMPLED_BLOCKS)
     sampled = -(-blocks // step)
     spread_dir, spread_org = np.empty(sampled), np.empty(sampled)
-    block_spreads(origins, directions, float(scale), PACKET_RAYS, step, spread_dir, spread_org)
-    return bool(np.median(spread_dir) <= MAX_DIRECTION_SPREAD and np.median(spread_org) <= MAX_ORIGIN_SPREAD)
+    block_spreads(origins, directions, float(scale), PACKET_RAYS, step, NO_ROWS if rows is None else rows,
+                  spread_dir, spread_org)
+    return float(np.median(spread_dir)), float(np.median(spread_org))
+
+
+def coherent_blocks(spreads: tuple) -> bool:
+    """Whether block spreads (``block_medians``) are tight enough for the packet walk."""
+    return spreads[0] <= MAX_DIRECTION_SPREAD and spreads[1] <= MAX_ORIGIN_SPREAD
+
+
+def packing(origins: np.ndarray, directions: np.ndarray, scale: float) -> int:
+    """How a batch (f64[n,3] each; the mesh's size ``scale``) goes to the walks:
+
+    - PACK_INPUT: packets in the caller's order (its blocks are tight, and tighter than the
+      batch as a whole, so the order is the rays' own: image rows, scan lines);
+    - PACK_SORTED: sort first (``engine.query.order.coherent_order``), then see: the blocks are
+      loose or no tighter than the batch (shuffled rays), but the batch's origins or its
+      directions are tight as a whole (rays from one eye or sensor, parallel sweeps), so
+      neighbours in the sorted order make tight packets;
+    - PACK_NONE: the per-ray walk in the caller's order (rays that spread in both, such as
+      rays between random points: no order makes them packets, and sorting them only costs).
+    """
+    n = origins.shape[0]
+    if n < MIN_RAYS:
+        return PACK_NONE
+    block = block_medians(origins, directions, scale)
+    whole_dir, whole_org = batch_spread(origins, directions, float(scale), BATCH_SAMPLES)
+    tiny = 1e-12
+    if coherent_blocks(block) and block[0] <= ORDERED_FRACTION * whole_dir + tiny \
+            and block[1] <= ORDERED_FRACTION * whole_org + tiny:
+        return PACK_INPUT
+    if whole_dir <= MAX_DIRECTION_SPREAD or whole_org <= MAX_ORIGIN_SPREAD:
+        return PACK_SORTED
+    return PACK_NONE
+
+
+def is_coherent(origins: np.ndarray, directions: np.ndarray, scale: float) -> bool:
+    """Whether a batch (f64[n,3] each) takes the packet walk in the caller's order (``packing``)."""
+    return packing(origins, directions, scale) == PACK_INPUT
 
 
 @njit(cache=True)

@@ -53,14 +53,15 @@ from engine.core.threads import at_own_threads
 from engine.core.types import BVH, Triangles
 from engine.packet.compact import new_array
 from engine.packet.kernels import child_order_keys
-from engine.query.coherent import is_coherent, packet_first_hits, row_length, tiled_rows
+from engine.query.coherent import (PACK_INPUT, PACK_NONE, PACK_SORTED, block_medians, coherent_blocks,
+                                   packet_first_hits, packing, row_length, tiled_rows)
 from engine.query.contains import DIRECTIONS, contains_kernel
 from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
 from engine.query.frame import FAR_ORIGIN, MeshFrame, mesh_frame
 from engine.query.hits import (collect_hits_kernel, compact_hits_kernel, count_hits_kernel, fill_hits_kernel,
                                first_hit_kernel)
 from engine.query.locations import locations_kernel
-from engine.query.order import ray_order
+from engine.query.order import coherent_order, ray_order
 from engine.query.wide import packed_tree
 
 #: Hits closer than this (in units of the mesh's largest extent) to the previous one along a
@@ -161,11 +162,13 @@ class RayMeshIntersector:
     mesh       a ``trimesh.Trimesh`` (or anything with ``vertices`` f[V,3] and ``faces`` i[T,3]);
                kept as ``self.mesh`` and followed as it changes.
     leaf_size, bins  BVH build settings.
-    order      "input" (default): rays are walked in the order given; "morton": sorted first by
-               direction octant and a Morton code of the origin (``engine.query.order``, numba,
-               parallel). The per-ray walk does not need packets, and on the bunny and the kitchen
-               sorting cost more than it saved (see README, "Using packetrt from trimesh"); it
-               is there for huge batches of shuffled, locally coherent rays.
+    order      "input" (default): rays are walked in the order given, except that first and
+               any hits of a batch that is coherent as a whole but shuffled (rays from one eye
+               or sensor in a random order, parallel sweeps) are sorted into packets first
+               (``engine.query.coherent.packing``); "morton": the per-ray walk takes every
+               batch sorted by direction octant and a Morton code of the origin
+               (``engine.query.order``, numba, parallel). On random rays that sort cost more
+               than it saved (see README, "Using packetrt from trimesh").
     threads    numba threads for each query (0, the default: all cores), set for that call only:
                the caller's own count (``numba.set_num_threads``) is back when it returns.
     """
@@ -287,15 +290,23 @@ class RayMeshIntersector:
         u = allocate("u", n)
         v = allocate("v", n)
         ok = allocate("ok", n, (), np.bool_)
-        if is_coherent(rays.origins, rays.directions, s.frame.scale):
-            rows = rays.rows
+        how = packing(rays.origins, rays.directions, s.frame.scale)
+        rows = rays.rows
+        if how == PACK_SORTED:
+            # Shuffled rays from one eye, parallel sweeps: sorted, neighbours make packets (and
+            # otherwise the per-ray walk still likes the order).
+            rows = coherent_order(rays.origins, rays.directions, s.frame.center, s.frame.scale, allocate)
+            if not coherent_blocks(block_medians(rays.origins, rays.directions, s.frame.scale, rows)):
+                how = PACK_NONE
+        if how == PACK_INPUT:
             width = row_length(rays.directions) if self._order == "input" else 0
             if width:  # an image given row by row: walked in tiles, as the render path walks it
                 rows = tiled_rows(n, width, allocate)
+        if how == PACK_NONE:
+            first_hit_kernel(*self._tree(s), *self._frame_args(s, rays), rows, any_hit, tri, u, v, ok)
+        else:
             packet_first_hits(s.bvh, s.tris, s.order_keys, rays.origins, rays.directions, s.frame.center,
                               s.frame.scale, rows, any_hit, tri, u, v, ok, allocate)
-        else:
-            first_hit_kernel(*self._tree(s), *self._frame_args(s, rays), rays.rows, any_hit, tri, u, v, ok)
         self._warn_bad(ok)
         return tri, u, v
 

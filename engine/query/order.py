@@ -1,17 +1,33 @@
-"""Incoherent rays put in an order the walk likes: neighbours start near each other and point
-the same way, so consecutive rays on a thread touch the same BVH nodes (cache-warm).
+"""Rays put in an order the walks like: neighbours start near each other and point the same way.
 
-The key (u64): direction octant (3 bits) above a 30-bit Morton code of the origin in the mesh's
-local frame (10 bits per axis over [-2, 2]^3, clamped) interleaved with 3 x 4 bits of the unit
-direction; a bad ray (NaN, inf, zero direction) sorts last. Keys are computed from the float64
-world rays and sorted in numba, in parallel: each thread sorts a run, then runs are merged
-pairwise (each round's merges in parallel). ``frame.local_rays`` then gathers the rays in this
-order, so each thread walks a contiguous run of similar rays.
+Two orders, each a key per ray sorted by ``engine.query.radix.radix_argsort`` (stable, parallel):
+
+- ``ray_order`` (``order="morton"``): for the per-ray walk, so that consecutive rays on a thread
+  touch the same BVH nodes (cache-warm). The key (u64): direction octant (3 bits) above a 30-bit
+  Morton code of the origin in the mesh's local frame (10 bits per axis over [-2, 2]^3, clamped)
+  interleaved with 3 x 4 bits of the unit direction; a bad ray (NaN, inf, zero direction) sorts
+  last.
+- ``coherent_order``: for the packet walk, which needs each run of ``PACKET_RAYS`` consecutive
+  rays to be a tight bundle. Its key is a Morton code over the six coordinates of a ray (local
+  origin, unit direction) scaled to the batch's own box, with the bits shared among the
+  coordinates that vary in the batch: rays from one eye in a shuffled order spend all 63 bits
+  on their three direction components (21 each), where the fixed key above gives them 4 bits a
+  component and leaves thousands of rays to a cell, in their shuffled order.
 """
 import numpy as np
-from numba import get_num_threads, njit, prange
+from numba import njit, prange
+
+from engine.query.radix import radix_argsort
 
 ORIGIN_BITS, DIRECTION_BITS = 10, 4
+#: ``ray_order``'s key of a bad ray: above every good key (45 bits), so it sorts last and the
+#: radix sort's passes over the unused high bytes are skipped.
+BAD_RAY_KEY = np.uint64((1 << (3 * (ORIGIN_BITS + DIRECTION_BITS) + 3)) - 1)
+#: ``coherent_order``: at most this many bits of key, shared among the coordinates that vary.
+COHERENT_KEY_BITS = 63
+#: A coordinate varies when its extent over the batch exceeds this (local frame: the mesh is
+#: about 1 across; unit directions).
+MIN_EXTENT = 1e-9
 
 
 @njit(cache=True)
@@ -36,7 +52,7 @@ def ray_keys_kernel(origins, directions, center, scale, keys):
         for a in range(3):
             ok = ok and np.isfinite(origins[i, a])
         if not ok:
-            keys[i] = np.uint64(0xFFFFFFFFFFFFFFFF)
+            keys[i] = BAD_RAY_KEY
             continue
         code = np.uint64(0)
         octant = np.uint64(0)
@@ -53,56 +69,122 @@ def ray_keys_kernel(origins, directions, center, scale, keys):
         keys[i] = code | (octant << np.uint64(3 * (ORIGIN_BITS + DIRECTION_BITS)))
 
 
-@njit(cache=True)
-def _merge(keys, src, dst, lo, mid, hi):
-    """Merge the sorted runs src[lo:mid], src[mid:hi] (indices into keys) into dst[lo:hi]."""
-    i, j, k = lo, mid, lo
-    while i < mid and j < hi:
-        if keys[src[j]] < keys[src[i]]:
-            dst[k] = src[j]
-            j += 1
-        else:
-            dst[k] = src[i]
-            i += 1
-        k += 1
-    while i < mid:
-        dst[k] = src[i]
-        i += 1
-        k += 1
-    while j < hi:
-        dst[k] = src[j]
-        j += 1
-        k += 1
-
-
-@njit(cache=True, parallel=True)
-def parallel_argsort(keys, runs):
-    """i64[n]: a stable order of keys (u64[n]), sorted as ``runs`` runs in parallel, then merged."""
-    n = keys.shape[0]
-    size = (n + runs - 1) // runs
-    a = np.empty(n, np.int64)
-    for r in prange(runs):
-        lo = min(r * size, n)
-        hi = min(lo + size, n)
-        part = np.argsort(keys[lo:hi], kind="mergesort")
-        for k in range(hi - lo):
-            a[lo + k] = lo + part[k]
-    b = np.empty(n, np.int64)
-    width = size
-    while width < n:
-        pairs = (n + 2 * width - 1) // (2 * width)
-        for p in prange(pairs):
-            lo = p * 2 * width
-            _merge(keys, a, b, lo, min(lo + width, n), min(lo + 2 * width, n))
-        a, b = b, a
-        width *= 2
-    return a
-
-
 def ray_order(origins, directions, center, scale) -> np.ndarray:
     """i64[n]: the order to walk world rays (f64[n,3] each) in: grouped by octant and Morton key
     in the frame (center f64[3], scale), bad rays last."""
     keys = np.empty(origins.shape[0], np.uint64)
     ray_keys_kernel(origins, directions, center, float(scale), keys)
-    runs = max(1, min(get_num_threads(), origins.shape[0] // 4096))
-    return parallel_argsort(keys, runs)
+    return radix_argsort(keys)
+
+
+@njit(cache=True, inline="always")
+def ray_coordinates(origins, directions, i, center, inverse_scale):
+    """(ok, x, y, z, dx, dy, dz): ray i's local origin and unit direction (f64); ok False (and
+    zeros) for a bad ray (a NaN/inf component or a zero direction)."""
+    norm = np.sqrt(directions[i, 0] ** 2 + directions[i, 1] ** 2 + directions[i, 2] ** 2)
+    x = (origins[i, 0] - center[0]) * inverse_scale
+    y = (origins[i, 1] - center[1]) * inverse_scale
+    z = (origins[i, 2] - center[2]) * inverse_scale
+    if not (norm > 0.0 and np.isfinite(norm) and np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    inverse = 1.0 / norm  # a key, not an answer: one division a ray
+    return True, x, y, z, directions[i, 0] * inverse, directions[i, 1] * inverse, directions[i, 2] * inverse
+
+
+@njit(cache=True, inline="always")
+def coordinate(k, x, y, z, dx, dy, dz):
+    """Coordinate k (0-2 the origin's, 3-5 the direction's) of a ray."""
+    if k < 3:
+        return x if k == 0 else (y if k == 1 else z)
+    return dx if k == 3 else (dy if k == 4 else dz)
+
+
+@njit(cache=True)
+def sampled_bounds(origins, directions, center, inverse_scale, samples, low, high):
+    """low, high (f64[6]): the smallest and largest local origin and unit direction components
+    of the good rays among ``samples`` evenly spaced ones (+inf / -inf for none). A key clamps
+    the rays outside them to the box's faces, so a sample is enough."""
+    n = origins.shape[0]
+    for k in range(6):
+        low[k] = np.inf
+        high[k] = -np.inf
+    step = max(1, n // max(samples, 1))
+    for i in range(0, n, step):
+        ok, x, y, z, dx, dy, dz = ray_coordinates(origins, directions, i, center, inverse_scale)
+        if ok:
+            for k in range(6):
+                c = coordinate(k, x, y, z, dx, dy, dz)
+                low[k] = min(low[k], c)
+                high[k] = max(high[k], c)
+
+
+def _spread_table(stride: int) -> np.ndarray:
+    """u64[256]: each byte's bits moved to every ``stride``-th bit (``spread_bits`` of a byte)."""
+    table = np.array([sum(((b >> k) & 1) << (stride * k) for k in range(8)) for b in range(256)], np.uint64)
+    table.flags.writeable = False
+    return table
+
+
+#: ``_spread_table`` of every stride a key can have (1 to 6 coordinates), made once: made per
+#: query in Python it cost 0.4 ms.
+SPREAD_TABLES = tuple(_spread_table(stride) for stride in range(7))
+
+
+def spread_table(stride: int) -> np.ndarray:
+    """u64[256]: each byte's bits moved to every ``stride``-th bit (1 <= stride <= 6)."""
+    return SPREAD_TABLES[stride]
+
+
+@njit(cache=True, parallel=True)
+def coherent_keys_kernel(origins, directions, center, inverse_scale, low, cells, axes, bits, table, keys):
+    """keys[i] (u64): ray i's coordinates ``axes`` (i64[m], the ones that vary) quantised to
+    ``bits`` bits each (at most 24) over [low, low + extent] (cells[k] = (2^bits - 1) / extent of
+    axis k, clamped to the box) and interleaved, axis axes[j] at bit j of each group of m, by
+    byte through ``table`` (``spread_table(m)``). A bad ray gets the m * bits low bits all set,
+    as high as a good key can be, so it sorts after them (the sort is stable)."""
+    m = axes.shape[0]
+    top = (1 << bits) - 1
+    bad = (np.uint64(1) << np.uint64(m * bits)) - np.uint64(1)
+    for i in prange(origins.shape[0]):
+        ok, x, y, z, dx, dy, dz = ray_coordinates(origins, directions, i, center, inverse_scale)
+        if not ok:
+            keys[i] = bad
+            continue
+        code = np.uint64(0)
+        for j in range(m):
+            k = axes[j]
+            c = coordinate(k, x, y, z, dx, dy, dz)
+            q = np.uint64(min(max(int((c - low[k]) * cells[k] + 0.5), 0), top))
+            spread = table[q & np.uint64(255)] | (table[(q >> np.uint64(8)) & np.uint64(255)] << np.uint64(8 * m)) \
+                | (table[(q >> np.uint64(16)) & np.uint64(255)] << np.uint64(16 * m))
+            code |= spread << np.uint64(j)
+        keys[i] = code
+
+
+#: Rays ``coherent_order`` takes the batch's box from.
+BOUND_SAMPLES = 4096
+
+
+def coherent_order(origins: np.ndarray, directions: np.ndarray, center: np.ndarray, scale: float,
+                   allocate=None) -> np.ndarray:
+    """i64[n]: world rays (f64[n,3] each) ordered by the batch-scaled Morton key described in the
+    module doc (the mesh's frame: center f64[3], scale), bad rays last; the input order when no
+    coordinate varies. allocate: ``radix_argsort``'s (None: new arrays)."""
+    n = origins.shape[0]
+    inverse_scale = 1.0 / float(scale)
+    low, high = np.empty(6), np.empty(6)
+    sampled_bounds(origins, directions, center, inverse_scale, BOUND_SAMPLES, low, high)
+    extent = high - low
+    axes = np.flatnonzero(np.isfinite(extent) & (extent > MIN_EXTENT)).astype(np.int64)
+    if axes.size == 0:
+        return np.arange(n, dtype=np.int64)
+    # Enough cells that a packet's rays share few of them (4^bits per pair of axes well above
+    # n), and no more: each byte of key is a pass of the radix sort.
+    key_bits = min(COHERENT_KEY_BITS, max(n, 1).bit_length() + 16)
+    bits = max(1, min(24, key_bits // axes.size))
+    cells = np.zeros(6)
+    cells[axes] = ((1 << bits) - 1) / extent[axes]
+    keys = np.empty(n, np.uint64) if allocate is None else allocate("order_keys", n, (), np.uint64)
+    coherent_keys_kernel(origins, directions, center, inverse_scale, np.where(np.isfinite(low), low, 0.0), cells,
+                         axes, bits, spread_table(axes.size), keys)
+    return radix_argsort(keys) if allocate is None else radix_argsort(keys, allocate)

@@ -1,0 +1,84 @@
+"""The ray orders of the mesh queries (engine.query.order) and the radix sort behind them."""
+import numba
+import numpy as np
+import pytest
+
+from engine.query.order import BAD_RAY_KEY, coherent_order, ray_keys_kernel, ray_order, spread_bits, spread_table
+from engine.query.radix import MIN_PART, radix_argsort
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 1000, 2 * MIN_PART + 13])
+@pytest.mark.parametrize("top", [0, 3, 2 ** 11, 2 ** 33, 2 ** 64 - 1])
+def test_radix_argsort_is_numpys_stable_argsort(n, top):
+    keys = np.random.default_rng(n + top % 1000).integers(0, top, size=n, dtype=np.uint64, endpoint=True)
+    before = keys.copy()
+    order = radix_argsort(keys)
+    assert order.dtype == np.int64
+    assert np.array_equal(order, np.argsort(keys, kind="stable"))
+    assert np.array_equal(keys, before)  # the caller's keys are left as given
+
+
+def test_radix_argsort_sorts_in_parts_on_every_thread():
+    """With two or more threads the batch is cut into parts whose counts must combine stably:
+    many equal keys spread over both parts keep their input order."""
+    if numba.get_num_threads() < 2:
+        pytest.skip("needs two numba threads")
+    keys = np.repeat(np.arange(5, dtype=np.uint64)[::-1], 3 * MIN_PART)
+    order = radix_argsort(keys)
+    assert np.array_equal(order, np.argsort(keys, kind="stable"))
+
+
+@pytest.mark.parametrize("stride", range(1, 7))
+def test_spread_table_is_spread_bits_of_each_byte(stride):
+    table = spread_table(stride)
+    assert all(table[b] == spread_bits(np.uint64(b), 8, stride) for b in range(256))
+
+
+def eye_rays(n, seed=0, bad=0):
+    """n rays from one eye into a 40-degree cone, in random order; the first ``bad`` get a NaN
+    or zero direction."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-0.35, 0.35, size=(n, 2))
+    directions = np.column_stack([xy, -np.ones(n)]) * rng.uniform(0.5, 2.0, size=(n, 1))
+    origins = np.tile([0.1, 0.2, 3.0], (n, 1))
+    directions[:bad:2] = np.nan
+    directions[1:bad:2] = 0.0
+    return origins, directions
+
+
+def unit(d):
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def test_coherent_order_makes_neighbours_of_rays_from_one_eye():
+    origins, directions = eye_rays(40000, bad=10)
+    order = coherent_order(origins, directions, np.zeros(3), 1.0)
+    assert np.array_equal(np.sort(order), np.arange(len(order)))
+    assert set(order[-10:].tolist()) == set(range(10))  # bad rays last
+    good = unit(directions[order[:-10]])
+    shuffled_step = np.median(np.linalg.norm(np.diff(unit(directions[10:]), axis=0), axis=1))
+    sorted_step = np.median(np.linalg.norm(np.diff(good, axis=0), axis=1))
+    assert sorted_step < 0.02 * shuffled_step
+    # Blocks of 64 sorted neighbours: each spans a small part of the cone.
+    blocks = good[: len(good) // 64 * 64].reshape(-1, 64, 3)
+    assert np.median(1 - np.linalg.norm(blocks.mean(axis=1), axis=1)) < 1e-3
+
+
+def test_coherent_order_sorts_parallel_rays_by_origin_and_leaves_identical_rays_alone():
+    rng = np.random.default_rng(1)
+    origins = np.column_stack([rng.uniform(-1, 1, size=(20000, 2)), np.full(20000, 5.0)])
+    directions = np.tile([0.0, 0.0, -2.0], (20000, 1))
+    order = coherent_order(origins, directions, np.zeros(3), 2.0)
+    step = np.median(np.linalg.norm(np.diff(origins[order], axis=0), axis=1))
+    assert step < 0.02 * np.median(np.linalg.norm(np.diff(origins, axis=0), axis=1))
+    same = coherent_order(np.ones((100, 3)), np.tile([0.0, 1.0, 0.0], (100, 1)), np.zeros(3), 1.0)
+    assert np.array_equal(same, np.arange(100))
+
+
+def test_ray_order_keys_put_bad_rays_last_with_the_radix_sort():
+    origins, directions = eye_rays(5000, seed=2, bad=4)
+    keys = np.empty(len(origins), np.uint64)
+    ray_keys_kernel(origins, directions, np.zeros(3), 1.0, keys)
+    assert (keys[:4] == BAD_RAY_KEY).all() and (keys[4:] < BAD_RAY_KEY).all()
+    order = ray_order(origins, directions, np.zeros(3), 1.0)
+    assert np.array_equal(order, np.argsort(keys, kind="stable"))
