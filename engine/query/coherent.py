@@ -82,6 +82,21 @@ TYPICAL_STEPS = 2048
 SAMPLED_BLOCKS = 256
 
 
+@njit(cache=True, inline="always")
+def spread_terms(origins, directions, i, first):
+    """(good, ux, uy, uz, away2): ray i's unit direction and the squared distance of its origin
+    from ray ``first``'s, the terms of a spread; good False for a zero or non-finite direction."""
+    norm = np.sqrt(directions[i, 0] ** 2 + directions[i, 1] ** 2 + directions[i, 2] ** 2)
+    if not (norm > 0.0 and np.isfinite(norm)):
+        return False, 0.0, 0.0, 0.0, 0.0
+    inverse = 1.0 / norm  # a measure, not an answer: one division a ray, not three
+    dx = origins[i, 0] - origins[first, 0]
+    dy = origins[i, 1] - origins[first, 1]
+    dz = origins[i, 2] - origins[first, 2]
+    return True, directions[i, 0] * inverse, directions[i, 1] * inverse, directions[i, 2] * inverse, \
+        dx * dx + dy * dy + dz * dz
+
+
 @njit(cache=True, parallel=True)
 def block_spreads(origins, directions, scale, block, step, rows, out_dir, out_org):
     """For sampled block b, the block of ``block`` consecutive rays starting at ray b * step *
@@ -99,19 +114,14 @@ def block_spreads(origins, directions, scale, block, step, rows, out_dir, out_or
         hi = min(n, lo + block)
         first = rows[lo] if ordered else lo
         for k in range(lo, hi):
-            i = rows[k] if ordered else k
-            norm = np.sqrt(directions[i, 0] ** 2 + directions[i, 1] ** 2 + directions[i, 2] ** 2)
-            if not (norm > 0.0 and np.isfinite(norm)):
+            good, ux, uy, uz, away2 = spread_terms(origins, directions, rows[k] if ordered else k, first)
+            if not good:
                 bad = True
                 continue
-            inverse = 1.0 / norm  # a measure, not an answer: one division a ray, not three
-            sx += directions[i, 0] * inverse
-            sy += directions[i, 1] * inverse
-            sz += directions[i, 2] * inverse
-            dx = origins[i, 0] - origins[first, 0]
-            dy = origins[i, 1] - origins[first, 1]
-            dz = origins[i, 2] - origins[first, 2]
-            far2 = max(far2, dx * dx + dy * dy + dz * dz)
+            sx += ux
+            sy += uy
+            sz += uz
+            far2 = max(far2, away2)
         count = hi - lo
         mean = np.sqrt(sx * sx + sy * sy + sz * sz) / count
         far = np.sqrt(far2)
@@ -131,20 +141,14 @@ def batch_spread(origins, directions, scale, samples):
     first = -1
     count = 0
     for i in range(0, n, step):
-        norm = np.sqrt(directions[i, 0] ** 2 + directions[i, 1] ** 2 + directions[i, 2] ** 2)
-        if not (norm > 0.0 and np.isfinite(norm) and np.isfinite(origins[i, 0]) and np.isfinite(origins[i, 1])
-                and np.isfinite(origins[i, 2])):
+        good, ux, uy, uz, away2 = spread_terms(origins, directions, i, i if first < 0 else first)
+        if not (good and np.isfinite(away2)):
             continue
-        if first < 0:
-            first = i
-        inverse = 1.0 / norm
-        sx += directions[i, 0] * inverse
-        sy += directions[i, 1] * inverse
-        sz += directions[i, 2] * inverse
-        dx = origins[i, 0] - origins[first, 0]
-        dy = origins[i, 1] - origins[first, 1]
-        dz = origins[i, 2] - origins[first, 2]
-        far2 = max(far2, dx * dx + dy * dy + dz * dz)
+        first = i if first < 0 else first
+        sx += ux
+        sy += uy
+        sz += uz
+        far2 = max(far2, away2)
         count += 1
     if count == 0:
         return 1.0, 1.0
