@@ -82,3 +82,25 @@ def test_ray_order_keys_put_bad_rays_last_with_the_radix_sort():
     assert (keys[:4] == BAD_RAY_KEY).all() and (keys[4:] < BAD_RAY_KEY).all()
     order = ray_order(origins, directions, np.zeros(3), 1.0)
     assert np.array_equal(order, np.argsort(keys, kind="stable"))
+
+
+def test_packing_verdicts_on_batches_of_every_shape():
+    """``engine.query.coherent.packing``: the caller's order for blocks tighter than the batch,
+    a sort for batches tight in origin or direction as a whole, nothing for the rest."""
+    from engine.query.coherent import MIN_RAYS, PACK_INPUT, PACK_NONE, PACK_SORTED, packing
+
+    n = 20000
+    origins, directions = eye_rays(n)
+    assert packing(origins, directions, 1.0) == PACK_SORTED  # one eye, shuffled
+    image = np.lexsort((directions[:, 0] / -directions[:, 2], np.round(directions[:, 1] / -directions[:, 2], 2)))
+    assert packing(origins[image], directions[image], 1.0) == PACK_INPUT  # the same rays in rows
+    rng = np.random.default_rng(5)
+    sweep_origins = np.column_stack([rng.uniform(-1, 1, size=(n, 2)), np.full(n, 5.0)])
+    sweep = np.tile([0.0, 0.0, -1.0], (n, 1))
+    assert packing(sweep_origins, sweep, 1.0) == PACK_SORTED  # parallel rays, shuffled origins
+    scattered_o = rng.normal(size=(n, 3)) * 3
+    scattered_d = rng.normal(size=(n, 3))
+    assert packing(scattered_o, scattered_d, 1.0) == PACK_NONE  # spread in both
+    assert packing(np.ones((n, 3)), np.tile([1.0, 0.0, 0.0], (n, 1)), 1.0) == PACK_INPUT  # one ray, n times
+    assert packing(origins[: MIN_RAYS - 1], directions[: MIN_RAYS - 1], 1.0) == PACK_NONE  # too few
+    assert packing(origins, np.full((n, 3), np.nan), 1.0) == PACK_NONE  # every ray bad
