@@ -86,7 +86,7 @@ def test_ray_order_keys_put_bad_rays_last_with_the_radix_sort():
 
 def test_packing_verdicts_on_batches_of_every_shape():
     """``engine.query.coherent.packing``: the caller's order for blocks tighter than the batch,
-    a sort for batches tight in origin or direction as a whole, nothing for the rest."""
+    a sort for batches from one eye, nothing for the rest (parallel sweeps included)."""
     from engine.query.coherent import MIN_RAYS, PACK_INPUT, PACK_NONE, PACK_SORTED, packing
 
     n = 20000
@@ -97,7 +97,7 @@ def test_packing_verdicts_on_batches_of_every_shape():
     rng = np.random.default_rng(5)
     sweep_origins = np.column_stack([rng.uniform(-1, 1, size=(n, 2)), np.full(n, 5.0)])
     sweep = np.tile([0.0, 0.0, -1.0], (n, 1))
-    assert packing(sweep_origins, sweep, 1.0) == PACK_SORTED  # parallel rays, shuffled origins
+    assert packing(sweep_origins, sweep, 1.0) == PACK_NONE  # parallel rays: origins spread, not sorted
     scattered_o = rng.normal(size=(n, 3)) * 3
     scattered_d = rng.normal(size=(n, 3))
     assert packing(scattered_o, scattered_d, 1.0) == PACK_NONE  # spread in both

@@ -163,8 +163,8 @@ class RayMeshIntersector:
                kept as ``self.mesh`` and followed as it changes.
     leaf_size, bins  BVH build settings.
     order      "input" (default): rays are walked in the order given, except that first and
-               any hits of a batch that is coherent as a whole but shuffled (rays from one eye
-               or sensor in a random order, parallel sweeps) are sorted into packets first
+               any hits of a batch from one eye or sensor given in a shuffled order are sorted
+               into packets first
                (``engine.query.coherent.packing``); "morton": the per-ray walk takes every
                batch sorted by direction octant and a Morton code of the origin
                (``engine.query.order``, numba, parallel). On random rays that sort cost more
@@ -293,11 +293,12 @@ class RayMeshIntersector:
         how = packing(rays.origins, rays.directions, s.frame.scale)
         rows = rays.rows
         if how == PACK_SORTED:
-            # Shuffled rays from one eye, parallel sweeps: sorted, neighbours make packets (and
-            # otherwise the per-ray walk still likes the order).
+            # Shuffled rays from one eye: sorted, neighbours make packets. When they do not (too
+            # few rays for their spread), the per-ray walk keeps the caller's order: it reads
+            # the rays and writes the answers in sequence, which a sorted order does not.
             rows = coherent_order(rays.origins, rays.directions, s.frame.center, s.frame.scale, allocate)
             if not coherent_blocks(block_medians(rays.origins, rays.directions, s.frame.scale, rows)):
-                how = PACK_NONE
+                how, rows = PACK_NONE, rays.rows
         if how == PACK_INPUT:
             width = row_length(rays.directions) if self._order == "input" else 0
             if width:  # an image given row by row: walked in tiles, as the render path walks it
