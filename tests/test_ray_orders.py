@@ -98,6 +98,8 @@ def test_packing_verdicts_on_batches_of_every_shape():
     sweep_origins = np.column_stack([rng.uniform(-1, 1, size=(n, 2)), np.full(n, 5.0)])
     sweep = np.tile([0.0, 0.0, -1.0], (n, 1))
     assert packing(sweep_origins, sweep, 1.0) == PACK_NONE  # parallel rays: origins spread, not sorted
+    to_light = np.array([4.0, 5.0, 6.0]) - sweep_origins  # spread origins, one far point
+    assert packing(sweep_origins, to_light, 1.0) == PACK_NONE
     scattered_o = rng.normal(size=(n, 3)) * 3
     scattered_d = rng.normal(size=(n, 3))
     assert packing(scattered_o, scattered_d, 1.0) == PACK_NONE  # spread in both
