@@ -106,3 +106,39 @@ def test_packing_verdicts_on_batches_of_every_shape():
     assert packing(np.ones((n, 3)), np.tile([1.0, 0.0, 0.0], (n, 1)), 1.0) == PACK_INPUT  # one ray, n times
     assert packing(origins[: MIN_RAYS - 1], directions[: MIN_RAYS - 1], 1.0) == PACK_NONE  # too few
     assert packing(origins, np.full((n, 3), np.nan), 1.0) == PACK_NONE  # every ray bad
+
+
+@pytest.mark.parametrize("varying", [1, 2, 3, 6])
+def test_coherent_keys_interleave_the_varying_coordinates_bit_by_bit(varying):
+    """The batch-scaled key of ``coherent_order`` against a Python interleave of the quantised
+    coordinates, for one to six coordinates that vary (six: 10 bits each, where a byte table's
+    third lookup would shift past 64 bits)."""
+    from engine.query.order import coherent_keys_kernel, spread_table
+
+    rng = np.random.default_rng(varying)
+    n = 500
+    origins = np.zeros((n, 3))
+    directions = np.tile([0.0, 0.0, 1.0], (n, 1))
+    axes = list(range(6))[:varying] if varying != 1 else [0]
+    for k in axes:
+        if k < 3:
+            origins[:, k] = rng.uniform(-1, 1, n)
+        else:
+            directions[:, k - 3] = rng.uniform(0.5, 1.0, n)  # positive: components of the unit vector vary
+    unit_d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    coords = np.column_stack([origins, unit_d])
+    axes = np.array([k for k in range(6) if np.ptp(coords[:, k]) > 1e-9], np.int64)
+    m = len(axes)
+    bits = min(24, 60 // m)
+    low = coords.min(axis=0)
+    cells = np.zeros(6)
+    cells[axes] = ((1 << bits) - 1) / np.ptp(coords[:, axes], axis=0)
+    keys = np.empty(n, np.uint64)
+    coherent_keys_kernel(origins, directions, np.zeros(3), 1.0, low, cells, axes, bits, spread_table(m), keys)
+    for i in range(0, n, 37):
+        expected = 0
+        for j, k in enumerate(axes):
+            q = min(max(int((coords[i, k] - low[k]) * cells[k] + 0.5), 0), (1 << bits) - 1)
+            for b in range(bits):
+                expected |= ((q >> b) & 1) << (b * m + j)
+        assert int(keys[i]) == expected, (i, m)

@@ -155,8 +155,13 @@ def coherent_keys_kernel(origins, directions, center, inverse_scale, low, cells,
             k = axes[j]
             c = coordinate(k, x, y, z, dx, dy, dz)
             q = np.uint64(min(max(int((c - low[k]) * cells[k] + 0.5), 0), top))
-            spread = table[q & np.uint64(255)] | (table[(q >> np.uint64(8)) & np.uint64(255)] << np.uint64(8 * m)) \
-                | (table[(q >> np.uint64(16)) & np.uint64(255)] << np.uint64(16 * m))
+            spread = table[q & np.uint64(255)]
+            # Higher bytes only where there are any: a shift by 64 or more (8 * m with many
+            # axes) is undefined in LLVM even when the byte is zero.
+            if bits > 8:
+                spread |= table[(q >> np.uint64(8)) & np.uint64(255)] << np.uint64(8 * m)
+            if bits > 16:
+                spread |= table[(q >> np.uint64(16)) & np.uint64(255)] << np.uint64(16 * m)
             code |= spread << np.uint64(j)
         keys[i] = code
 
