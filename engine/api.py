@@ -48,7 +48,7 @@ from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch, Triangles, emp
 from engine.packet.compact import inverse_component
 from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
 from engine.query.intersector import RayMeshIntersector
-from engine.query.radix import radix_argsort
+from engine.core.radix import radix_argsort
 
 __all__ = ["RayTracer", "RayMeshIntersector", "RayInputError", "RayInputTypeError", "ApiArgumentError",
            "QueryInputError", "QueryTypeError", "BadRayWarning"]

@@ -1,10 +1,9 @@
 """The ray orders of the mesh queries (engine.query.order) and the radix sort behind them."""
-import numba
 import numpy as np
 import pytest
 
 from engine.query.order import BAD_RAY_KEY, coherent_order, ray_keys_kernel, ray_order, spread_bits, spread_table
-from engine.query.radix import MIN_PART, radix_argsort
+from engine.core.radix import MIN_PART, radix_argsort
 
 
 @pytest.mark.parametrize("n", [0, 1, 7, 1000, 2 * MIN_PART + 13])
@@ -18,14 +17,13 @@ def test_radix_argsort_is_numpys_stable_argsort(n, top):
     assert np.array_equal(keys, before)  # the caller's keys are left as given
 
 
-def test_radix_argsort_sorts_in_parts_on_every_thread():
-    """With two or more threads the batch is cut into parts whose counts must combine stably:
-    many equal keys spread over both parts keep their input order."""
-    if numba.get_num_threads() < 2:
-        pytest.skip("needs two numba threads")
+@pytest.mark.parametrize("parts", [1, 2, 3, 7])
+def test_radix_argsort_in_parts_keeps_equal_keys_in_input_order(parts):
+    """The batch is cut into parts (one per thread) whose counts must combine stably: many
+    equal keys spread over every part keep their input order, whatever the number of parts."""
     keys = np.repeat(np.arange(5, dtype=np.uint64)[::-1], 3 * MIN_PART)
-    order = radix_argsort(keys)
-    assert np.array_equal(order, np.argsort(keys, kind="stable"))
+    keys[::7] = np.uint64(2 ** 40 + 3)  # a second digit that varies
+    assert np.array_equal(radix_argsort(keys, parts=parts), np.argsort(keys, kind="stable"))
 
 
 @pytest.mark.parametrize("stride", range(1, 7))

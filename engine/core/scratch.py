@@ -23,6 +23,12 @@ PAGE = mmap.PAGESIZE
 SERIAL_TOUCH_BYTES = 1 << 20
 
 
+def new_array(name, rows, tail=(), dtype=np.float32):
+    """The default ``allocate(name, rows, tail, dtype)``, the signature of ``Scratch.allocator``'s
+    functions: a new uninitialised array of shape (rows, *tail)."""
+    return np.empty((rows,) + tuple(tail), dtype)
+
+
 @njit(cache=True, parallel=True)
 def touch_pages(flat, step):
     """Store a zero at flat[0], flat[step], flat[2 step], ... and flat[-1] (flat: u8[n], n >

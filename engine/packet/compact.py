@@ -28,6 +28,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from engine.core.scratch import new_array  # noqa: F401  (the default ``allocate``, imported from here too)
 from engine.core.triangle import HUGE_INV
 
 
@@ -75,11 +76,6 @@ def next_flagged(flags, i, end):
     while i < end and not flags[i]:
         i += 1
     return i
-
-
-def new_array(name, rows, tail=(), dtype=np.float32):
-    """The default ``allocate``: a new uninitialised array of shape (rows, *tail)."""
-    return np.empty((rows,) + tuple(tail), dtype)
 
 
 #: Runs of planned tiles per thread in ``fill_packets``: several, so that a thread whose runs

@@ -1,6 +1,6 @@
 """Rays put in an order the walks like: neighbours start near each other and point the same way.
 
-Two orders, each a key per ray sorted by ``engine.query.radix.radix_argsort`` (stable, parallel):
+Two orders, each a key per ray sorted by ``engine.core.radix.radix_argsort`` (stable, parallel):
 
 - ``ray_order`` (``order="morton"``): for the per-ray walk, so that consecutive rays on a thread
   touch the same BVH nodes (cache-warm). The key (u64): direction octant (3 bits) above a 30-bit
@@ -17,7 +17,8 @@ Two orders, each a key per ray sorted by ``engine.query.radix.radix_argsort`` (s
 import numpy as np
 from numba import njit, prange
 
-from engine.query.radix import radix_argsort
+from engine.core.radix import radix_argsort
+from engine.core.scratch import new_array
 
 ORIGIN_BITS, DIRECTION_BITS = 10, 4
 #: ``ray_order``'s key of a bad ray: above every good key (45 bits), so it sorts last and the
@@ -171,10 +172,10 @@ BOUND_SAMPLES = 4096
 
 
 def coherent_order(origins: np.ndarray, directions: np.ndarray, center: np.ndarray, scale: float,
-                   allocate=None) -> np.ndarray:
+                   allocate=new_array) -> np.ndarray:
     """i64[n]: world rays (f64[n,3] each) ordered by the batch-scaled Morton key described in the
     module doc (the mesh's frame: center f64[3], scale), bad rays last; the input order when no
-    coordinate varies. allocate: ``radix_argsort``'s (None: new arrays)."""
+    coordinate varies. allocate: for the keys and ``radix_argsort``'s arrays (default: new ones)."""
     n = origins.shape[0]
     inverse_scale = 1.0 / float(scale)
     low, high = np.empty(6), np.empty(6)
@@ -189,7 +190,7 @@ def coherent_order(origins: np.ndarray, directions: np.ndarray, center: np.ndarr
     bits = max(1, min(24, key_bits // axes.size))
     cells = np.zeros(6)
     cells[axes] = ((1 << bits) - 1) / extent[axes]
-    keys = np.empty(n, np.uint64) if allocate is None else allocate("order_keys", n, (), np.uint64)
+    keys = allocate("order_keys", n, (), np.uint64)
     coherent_keys_kernel(origins, directions, center, inverse_scale, np.where(np.isfinite(low), low, 0.0), cells,
                          axes, bits, spread_table(axes.size), keys)
-    return radix_argsort(keys) if allocate is None else radix_argsort(keys, allocate)
+    return radix_argsort(keys, allocate)

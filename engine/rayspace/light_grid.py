@@ -30,6 +30,7 @@ import numpy as np
 from numba import njit, prange
 
 from engine.core.checked import one_of
+from engine.core.radix import radix_argsort
 
 #: The layouts ``[options.rayspace] shadow_grid`` takes: "light" (this module) or "pixel" (the
 #: paper's: shadow rays at their ancestral pixels).
@@ -180,7 +181,7 @@ def place_by_keys(keys: np.ndarray) -> tuple[np.ndarray, int]:
     order), the k-th at Morton position k of a ``side x side`` screen; -1 where key < 0.
     keys: i64[R]."""
     order = np.flatnonzero(keys >= 0)
-    order = order[np.argsort(keys[order], kind="stable")]
+    order = order[radix_argsort(keys[order].astype(np.uint64))]  # stable, as numpy's kind="stable"
     side = grid_side(order.shape[0])
     out = np.full(keys.shape[0], -1, np.int32)
     _rank_pixels(order, side, out)

@@ -20,7 +20,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from engine.packet.compact import new_array
+from engine.core.scratch import new_array
 
 DIGIT_BITS = 11
 DIGITS = 1 << DIGIT_BITS
@@ -84,8 +84,10 @@ def copy_with_index(keys, keys_out, index_out):
         index_out[i] = i
 
 
-def radix_argsort(keys: np.ndarray, allocate=new_array) -> np.ndarray:
+def radix_argsort(keys: np.ndarray, allocate=new_array, parts: int | None = None) -> np.ndarray:
     """i64[n]: the stable order of ``keys`` (u64[n], left as given) from the smallest key up.
+    parts: how many contiguous parts the counts and moves are split into (None: one per numba
+    thread, at least MIN_PART keys each); any number gives the same order.
 
     Its four working arrays (keys and indices, twice; the answer is one of them) come from
     ``allocate(name, rows, tail, dtype)``: the intersectors hand in their reused scratch, since
@@ -93,7 +95,8 @@ def radix_argsort(keys: np.ndarray, allocate=new_array) -> np.ndarray:
     arrays in a new process, 1.3 ms in reused ones)."""
     keys = np.ascontiguousarray(keys, dtype=np.uint64)
     n = keys.shape[0]
-    parts = max(1, min(numba.get_num_threads(), n // MIN_PART))
+    if parts is None:
+        parts = max(1, min(numba.get_num_threads(), n // MIN_PART))
     counts = np.empty((parts, DIGITS), np.int64)
     starts = np.empty((parts, DIGITS), np.int64)
     current, keys_out = allocate("radix_keys", n, (), np.uint64), allocate("radix_keys_out", n, (), np.uint64)
