@@ -156,6 +156,7 @@ def batch_spread(origins, directions, scale, samples):
 
 #: ``block_spreads``' rows for the caller's order.
 NO_ROWS = np.zeros(0, np.int64)
+NO_ROWS.flags.writeable = False  # shared by every query: nobody writes it
 #: How a batch is packed for the packet walk (``packing``).
 PACK_NONE, PACK_INPUT, PACK_SORTED = 0, 1, 2
 #: Rays ``batch_spread`` samples.
