@@ -133,6 +133,14 @@ def crowded(rays: RayBatch) -> RayBatch:
                                         rays.pixel).astype(np.int32))
 
 
+def one_direction(rays: RayBatch) -> RayBatch:
+    """The queue with every ray leaving in ray 0's direction: on the direction grid all live rays
+    share one key, so the device's fill puts them in its slots in the atomics' order and only the
+    rank count restores the CPU's stable order."""
+    dirs = np.repeat(rays.dir[:1], len(rays.dir), axis=0)
+    return rays._replace(dir=dirs, inv_dir=safe_inverse(dirs))
+
+
 def reference(rays: RayBatch, tris: Triangles, n=None):
     """(t f32[n], prim i32[n]): the shared kernel over every triangle (tests/brute_force.py)."""
     n = rays.org.shape[0] if n is None else n
@@ -188,6 +196,7 @@ def run(tmp_path_factory):
     _case(cases, "shadow_forward", shadow, "occluded", len(shadow.org))
     _case(cases, "shadow_elsewhere", unbounded_some(shadow), "occluded", ELSEWHERE_RAYS, light=ELSEWHERE)
     _case(cases, "crowded", crowded(secondary), "closest", len(secondary.org) - GARBAGE)
+    _case(cases, "one_direction", one_direction(secondary), "closest", len(secondary.org) - GARBAGE, secondary=True)
     _case(cases, "batches", shadow, "closest", len(shadow.org), light=rays.light, budget=SMALL_BUDGET)
     _case(cases, "too_small", rays.primary, "closest", len(rays.primary.org), budget=1)
     count = len(rays.primary.org)
@@ -312,6 +321,21 @@ def test_secondary_rays_on_the_direction_grid(run):
     stats = ok(answers, "secondary_direction")
     for key in ("pairs_before", "pairs_after", "cone_sphere_tests"):
         assert np.allclose(stats[key], cpu.extra["rayspace"][key], rtol=0.01), (key, stats[key])
+
+
+def test_one_direction_cell_keeps_the_cpus_ray_order(run):
+    """Every live ray in one direction-grid key: the device ranks them as the CPU's stable sort
+    does (a pixel each, in ray order), whatever order its atomics filled the key's slots in."""
+    rays, answers, extra = run
+    batch = one_direction(extra["secondary"])
+    n = len(batch.org) - GARBAGE
+    part = RayBatch(*(a[:n] if isinstance(a, np.ndarray) else a for a in batch))
+    cpu_pixels, side = direction_grid_pixels(part.dir, part.tmin, part.tmax, part.pixel, SIZE, SIZE)
+    live = cpu_pixels >= 0
+    assert live.sum() > 60  # several of the simulator's 32-thread blocks fill the one key
+    assert np.array_equal(cpu_pixels[live], [rank_pixel(k, side) for k in range(live.sum())])
+    assert np.array_equal(answers["one_direction_grid_pixel"], cpu_pixels)
+    assert_closest(answers, "one_direction", batch, rays.tris, n)
 
 
 def test_a_block_of_more_rays_than_the_survivor_mask_holds(run):

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 KERNELS = {"_expand", "_root_pairs", "nearest_t", "nearest_prim", "merge_batch", "any_hit", "reset_answers",
            "reset_flags", "_count_blocks", "_fill_slots", "_order_blocks", "_leaves", "_inner", "_spheres",
            "_node_scale", "fill_array", "_scan_blocks", "_scan_sums", "_add_offsets", "_bounds", "_count_keys",
-           "_fill_cells", "_rank_pixels"}
+           "_fill_cells", "_place_ranked"}
 
 
 class TimedKernel:

@@ -6,9 +6,18 @@ device twins, so every ray gets the CPU's pixel.
 
 Keys: for the light grid ``_bounds`` first reduces the live rays' map rectangle (per thread over a
 grid stride, per block in shared memory, one atomic per block and bound); ``_count_keys`` keys
-each live ray by its light-grid cell or by its tile and direction, and counts the keys; a scan, ``_fill_cells`` and the build's ``_order_blocks`` (a key's rays by ray id, as
-the CPU's stable sort leaves them) make the sorted order, and ``_rank_pixels`` writes the k-th
-ray's pixel. One host wait: the scan's total, which sizes the screen.
+each live ray by its light-grid cell or by its tile and direction, and counts the keys; a scan
+gives each key its first slot, ``_fill_cells`` puts a key's rays in its slots in whatever order
+the atomics ran, and ``_place_ranked`` gives each ray the rank the CPU's stable sort gives it
+(its key's first slot plus the rays of its key with a smaller id) and writes the pixel of that
+rank. One host wait: the scan's total, which sizes the screen.
+
+The rank is counted, not sorted: one thread a ray, each reading its key's slots (the threads of a
+warp mostly share a key, so the reads are broadcasts). A key's rays were first sorted in place,
+one thread a key (insertion sort): a mirror's 32 x 32 tile sends up to 2,048 rays into one
+direction cell, and that one thread's k^2/4 dependent steps made the sort the largest kernel of a
+kitchen-paper frame on an H100 (55 ms of 133 ms, session 36). Counting costs k steps a ray, in
+parallel; a key holding most of a queue (every ray in one direction) still costs k^2 in all.
 """
 from __future__ import annotations
 
@@ -16,7 +25,6 @@ import numpy as np
 
 from engine.gpu.device import BLOCK, blocks, require_cuda
 from engine.gpu.fill import fill_array
-from engine.gpu.rayspace.hierarchy import _order_blocks
 from engine.gpu.twin import device_twin
 from engine.rayspace import direction_grid, light_grid
 from engine.rayspace.direction_grid import key_bits, tile_size
@@ -100,10 +108,18 @@ def _fill_cells(keys, n, cell_start, fill, order):
 
 
 @cuda.jit
-def _rank_pixels(order, n_live, side, out):
+def _place_ranked(keys, order, cell_start, n_live, side, out):
+    """out[ray] = the pixel of the ray's rank in the stable order by key, for the ray in slot k
+    (``order`` i32[n_live] as ``_fill_cells`` left it; cell_start i32[cells+1])."""
     k = cuda.grid(1)
     if k < n_live:
-        out[order[k]] = _rank_pixel(k, side)
+        ray = order[k]
+        key = keys[ray]
+        rank = cell_start[key]
+        for j in range(cell_start[key], cell_start[key + 1]):
+            if order[j] < ray:
+                rank += 1
+        out[ray] = _rank_pixel(rank, side)
 
 
 def _key_arrays(scratch, n: int, n_cells: int):
@@ -132,8 +148,7 @@ def _place_by_keys(scratch, scanner, keys, count, bad, n: int, n_cells: int, wid
     if n_live:
         order = scratch.get("grid_order", n_live, np.int32)
         _fill_cells[blocks(n), BLOCK](keys, n, start, fill, order)
-        _order_blocks[blocks(n_cells), BLOCK](start, n_cells, order)  # a key's rays by ray id
-        _rank_pixels[blocks(n_live), BLOCK](order, n_live, side, out)
+        _place_ranked[blocks(n_live), BLOCK](keys, order, start, n_live, side, out)
     return out, side
 
 
