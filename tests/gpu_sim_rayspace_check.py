@@ -6,10 +6,11 @@ tests/test_gpu_rayspace.py, which sets NUMBA_ENABLE_CUDASIM=1 for it alone).
 CASES.npz holds the scene (``tri_<field>`` for every ``Triangles`` field) and, for each case
 ``<name>_<key>``: org, dir f32[C,3], tmin, tmax f32[C], pixel i32[C], and a JSON ``<name>_spec``
 (query "closest" | "occluded", n, width, height, light or null, pair_budget, shadow_grid,
-secondary_grid, secondary). OUT.npz gets the answers (``<name>_t/prim/u/v`` or ``<name>_occluded``,
+secondary_grid, secondary, again: run the call a second time with the same tracer). OUT.npz gets the answers (``<name>_t/prim/u/v`` or ``<name>_occluded``,
 the full output arrays, whose rows past n must keep their sentinel), ``<name>_grid_pixel`` (the
 device's grid pixels of rays 0 .. n-1, for a case placed on the light or the direction grid) and
-``<name>_report`` (JSON: stats, seconds, or the error raised).
+``<name>_report`` (JSON: stats, seconds, or the error raised; with ``again``, the second call's
+answers ``<name>_again_<key>`` and its launches found prepared or not, ``again``).
 """
 from __future__ import annotations
 
@@ -53,11 +54,13 @@ def main(cases_path: str, out_path: str) -> None:
             if spec["query"] == "closest":
                 answers = {"t": np.full(size, SENTINEL_T), "prim": np.full(size, SENTINEL_PRIM, np.int32),
                            "u": np.full(size, SENTINEL_T), "v": np.full(size, SENTINEL_T)}
+                initial = answers
                 dev = {key: cuda.to_device(value) for key, value in answers.items()}
                 tracer.closest(*rays, spec["n"], spec["width"], spec["height"], dev["t"], dev["prim"], dev["u"],
                                dev["v"], light=spec["light"], secondary=secondary)
             else:
-                dev = {"occluded": cuda.to_device(np.full(size, 7, np.uint8))}
+                initial = {"occluded": np.full(size, 7, np.uint8)}
+                dev = {"occluded": cuda.to_device(initial["occluded"])}
                 tracer.occluded(*rays, spec["n"], spec["width"], spec["height"], dev["occluded"],
                                 light=spec["light"])
             for key, array in dev.items():
@@ -66,6 +69,23 @@ def main(cases_path: str, out_path: str) -> None:
             if placed and spec["n"]:
                 out[f"{name}_grid_pixel"] = tracer.scratch.get("grid_pixel", spec["n"], np.int32).copy_to_host()
             report["stats"] = tracer.last
+            if spec.get("again"):
+                # The same call into the same answer arrays (as the next frame of a static view makes):
+                # every launch should find itself prepared (the same views, the same sizes).
+                hits, misses = tracer.scratch.launch.hits, tracer.scratch.launch.misses
+                again = dev
+                for key, array in again.items():  # back to the sentinels: the call must write it all again
+                    array.copy_to_device(initial[key])
+                if spec["query"] == "closest":
+                    tracer.closest(*rays, spec["n"], spec["width"], spec["height"], again["t"], again["prim"],
+                                   again["u"], again["v"], light=spec["light"], secondary=secondary)
+                else:
+                    tracer.occluded(*rays, spec["n"], spec["width"], spec["height"], again["occluded"],
+                                    light=spec["light"])
+                for key, array in again.items():
+                    out[f"{name}_again_{key}"] = array.copy_to_host()
+                report["again"] = {"hits": tracer.scratch.launch.hits - hits,
+                                   "misses": tracer.scratch.launch.misses - misses, "first_misses": misses}
         except Exception as error:  # reported to the parent test, which decides
             report["error"] = f"{type(error).__name__}: {error}"
         report["seconds"] = time.perf_counter() - clock

@@ -83,6 +83,9 @@ def main(argv=None) -> int:
     print(f"compile {renderer.warm_up():.1f} s", flush=True)
     times = [renderer.render().seconds["total"] for _ in range(args.frames)]
     print("frames ms", [round(t * 1e3, 1) for t in times], "median", round(statistics.median(times) * 1e3, 1))
+    cache = getattr(getattr(renderer.traversal["primary"], "scratch", None), "launch", None)
+    if cache is not None:  # the traversal's prepared launches (engine.gpu.launch.LaunchCache)
+        print(f"prepared launches: {cache.hits} replayed, {cache.misses} prepared, {len(cache.entries)} held")
 
     totals = defaultdict(lambda: [0.0, 0])
     for module in (stream, final, hierarchy, ray_grids, scan):

@@ -376,6 +376,10 @@ class GpuWhittedRenderer:
                 held.counts.shape[0] < 2 * (depth + 2) or held.secondary < self.secondary_per_pixel * pixels:
             secondary = self.secondary_per_pixel * pixels
             self.arrays = None  # let the old arrays go before the new ones are asked for
+            for traversal in self.traversal.values():  # and the launches a traversal prepared over them
+                forget = getattr(traversal, "forget_launches", None)
+                if forget is not None:
+                    forget()
             check_device_memory(frame_bytes(pixels, self.n_lights, secondary), pixels)
             self.arrays = FrameArrays(pixels, self.n_lights, depth, secondary)
             self._plan_key = None

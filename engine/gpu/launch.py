@@ -13,8 +13,14 @@ the ordinary ``kernel[blocks, threads](*args)`` (as does the simulator).
 from __future__ import annotations
 
 import functools
+from collections import OrderedDict
+
+import numpy as np
 
 from engine.gpu.device import simulated
+
+#: Scalar argument types keyed by value (everything else, device arrays above all, by identity).
+_SCALARS = (bool, int, float, np.bool_, np.integer, np.floating)
 
 
 class PreparedLaunch:
@@ -60,3 +66,47 @@ def _prepare(dispatcher, blocks: int, threads: int, args: tuple):
                                            **{flag: kernel.cooperative})
     stream = driver._to_core_stream(0)  # the default stream, as an ordinary launch gets it
     return functools.partial(numba_dispatcher.launch, stream, config, function.kernel, *converted)
+
+
+class LaunchCache:
+    """Launches prepared on first use and replayed when the same kernel is launched again with
+    the same grid and the same arguments: device arrays (any object that is not a scalar) by
+    identity, scalars by type and value. ``cache(kernel, blocks, threads, *args)`` launches.
+
+    For launch sequences whose arguments differ from call to call but repeat from frame to frame
+    (the ray-space traversal's levels and generations): a static view's frames find every launch
+    prepared. Each entry holds its arguments, so an identity cannot be reused while it is cached;
+    at most ``limit`` entries, the least recently used dropped first. The owner clears it before
+    it frees arrays that entries may hold (``drop_using``; ``engine.gpu.rayspace.scratch.Scratch``
+does).
+    ``hits`` and ``misses`` count launches."""
+
+    def __init__(self, limit: int = 4096):
+        self.limit = limit
+        self.entries: OrderedDict = OrderedDict()
+        self.hits = self.misses = 0
+
+    def __call__(self, kernel, blocks: int, threads: int, *args) -> None:
+        key = (id(kernel), blocks, threads) + tuple(
+            (type(a), a) if isinstance(a, _SCALARS) else id(a) for a in args)
+        launch = self.entries.get(key)
+        if launch is None:
+            self.misses += 1
+            launch = PreparedLaunch(kernel, blocks, threads, args)
+            self.entries[key] = launch
+            if len(self.entries) > self.limit:
+                self.entries.popitem(last=False)
+        else:
+            self.hits += 1
+            self.entries.move_to_end(key)
+        launch()
+
+    def clear(self) -> None:
+        """Forget every prepared launch (and the arrays they hold)."""
+        self.entries.clear()
+
+    def drop_using(self, objects) -> None:
+        """Forget the prepared launches that hold any of ``objects`` (arrays about to be freed)."""
+        gone = {id(o) for o in objects}
+        for key in [k for k, launch in self.entries.items() if any(id(a) in gone for a in launch.args)]:
+            del self.entries[key]

@@ -80,13 +80,21 @@ def _add_offsets(out, n, block_sums, total_in):
         out[n] = total_in[0]
 
 
-class Scanner:
-    """Reusable scratch for exclusive scans of up to ``capacity`` items (grows on demand)."""
+def _ordinary_launch(kernel, blocks: int, threads: int, *args) -> None:
+    kernel[blocks, threads](*args)
 
-    def __init__(self):
+
+class Scanner:
+    """Reusable scratch for exclusive scans of up to ``capacity`` items (grows on demand).
+
+    launch: how kernels are launched, ``launch(kernel, blocks, threads, *args)`` (an
+    ``engine.gpu.launch.LaunchCache``, say); by default numba's ordinary launch."""
+
+    def __init__(self, launch=None):
         self.capacity = 0
         self.block_sums = None
         self.total = cuda.device_array(1, np.int32)
+        self.launch = launch if launch is not None else _ordinary_launch
 
     def exclusive_scan(self, values, n: int, out) -> int:
         """out[:n+1] = exclusive prefix sums of values[:n] (i32 device arrays; out holds n+1);
@@ -96,8 +104,11 @@ class Scanner:
             return 0
         nb = blocks(n)
         if self.block_sums is None or self.block_sums.shape[0] < nb:
+            drop_using = getattr(self.launch, "drop_using", None)
+            if drop_using is not None and self.block_sums is not None:
+                drop_using([self.block_sums])  # prepared launches hold the old block sums
             self.block_sums = cuda.device_array(nb, np.int32)
-        _scan_blocks[nb, BLOCK](values, n, out, self.block_sums)
-        _scan_sums[1, BLOCK](self.block_sums, nb, self.total)
-        _add_offsets[nb, BLOCK](out, n, self.block_sums, self.total)
+        self.launch(_scan_blocks, nb, BLOCK, values, n, out, self.block_sums)
+        self.launch(_scan_sums, 1, BLOCK, self.block_sums, nb, self.total)
+        self.launch(_add_offsets, nb, BLOCK, out, n, self.block_sums, self.total)
         return int(self.total.copy_to_host()[0])

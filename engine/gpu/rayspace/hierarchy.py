@@ -191,6 +191,13 @@ def _node_scale(centre, radius, count, scale):
         cuda.atomic.max(scale, 0, shared[0])
 
 
+def _uploaded(scratch: Scratch, name: str, host: np.ndarray):
+    """``host`` (1-d) copied into the scratch array ``name``: the same view for the same length."""
+    view = scratch.get(name, host.shape[0], host.dtype)
+    view.copy_to_device(np.ascontiguousarray(host))
+    return view
+
+
 def build(scratch: Scratch, scanner: Scanner, tris, org, dirs, tmin, tmax, pixel, n: int, width: int,
           height: int, light=None) -> DeviceHierarchy:
     """The hierarchy over rays 0 .. n-1 (device org, dirs f32[C,3]; tmin, tmax f32[C]; pixel i32[C]
@@ -205,10 +212,12 @@ def build(scratch: Scratch, scanner: Scanner, tris, org, dirs, tmin, tmax, pixel
     block_count = scratch.get("block_count", n_blocks, np.int32)
     fill = scratch.get("block_fill", n_blocks, np.int32)
     bad = scratch.get("bad_pixel", 1, np.int32)
-    fill_array[blocks(n_blocks), BLOCK](block_count, n_blocks, 0)
-    fill_array[blocks(n_blocks), BLOCK](fill, n_blocks, 0)
-    fill_array[1, BLOCK](bad, 1, -1)
-    _count_blocks[blocks(n), BLOCK](pixel, tmin, tmax, n, width, width * height, int(widths[1]), block_count, bad)
+    launch = scratch.launch
+    launch(fill_array, blocks(n_blocks), BLOCK, block_count, n_blocks, 0)
+    launch(fill_array, blocks(n_blocks), BLOCK, fill, n_blocks, 0)
+    launch(fill_array, 1, BLOCK, bad, 1, -1)
+    launch(_count_blocks, blocks(n), BLOCK, pixel, tmin, tmax, n, width, width * height, int(widths[1]), block_count,
+           bad)
     block_start = scratch.get("block_start", n_blocks + 1, np.int32)
     n_slots = scanner.exclusive_scan(block_count, n_blocks, block_start)
     worst = int(bad.copy_to_host()[0])
@@ -216,8 +225,8 @@ def build(scratch: Scratch, scanner: Scanner, tris, org, dirs, tmin, tmax, pixel
         raise ValueError(f"ray pixel {worst} is outside the {width}x{height} screen grid")
     slot_ray = scratch.get("slot_ray", n_slots, np.int32)
     if n_slots:
-        _fill_slots[blocks(n), BLOCK](pixel, tmin, tmax, n, width, int(widths[1]), block_start, fill, slot_ray)
-        _order_blocks[blocks(n_blocks), BLOCK](block_start, n_blocks, slot_ray)
+        launch(_fill_slots, blocks(n), BLOCK, pixel, tmin, tmax, n, width, int(widths[1]), block_start, fill, slot_ray)
+        launch(_order_blocks, blocks(n_blocks), BLOCK, block_start, n_blocks, slot_ray)
 
     sizes = [n_slots] + [int(w * h) for w, h in zip(widths[1:], heights[1:])]
     level_offset = np.zeros(levels + 2, np.int64)
@@ -228,24 +237,25 @@ def build(scratch: Scratch, scanner: Scanner, tris, org, dirs, tmin, tmax, pixel
     h = DeviceHierarchy(
         scratch.get("centre", m, f32, 3), scratch.get("radius", m, f32), scratch.get("axis", m, f32, 3),
         scratch.get("alpha", m, f32), scratch.get("cos_a", m, f32), scratch.get("sin_a", m, f32),
-        scratch.get("far", m, f32), cuda.to_device(level_offset), level_offset, cuda.to_device(widths),
-        cuda.to_device(heights), block_start, slot_ray, scratch.get("sphere_c", tris.count, f32, 3),
+        scratch.get("far", m, f32), _uploaded(scratch, "level_offset", level_offset), level_offset,
+        _uploaded(scratch, "level_width", widths), _uploaded(scratch, "level_height", heights), block_start, slot_ray, scratch.get("sphere_c", tris.count, f32, 3),
         scratch.get("sphere_r", tris.count, f32), n_slots, int(levels), sizes, np.float32(0))
     node_arrays = (h.centre, h.radius, h.axis, h.alpha, h.cos_a, h.sin_a, h.far)
     if n_slots:
         # The light as the CPU stores a shared apex: a float32 point, used in float64.
         a = np.zeros(3) if light is None else np.asarray(light, np.float32).astype(np.float64)
-        _leaves[blocks(n_slots), BLOCK](*node_arrays, slot_ray, n_slots, org, dirs, tmin, tmax, light is not None,
-                                        float(a[0]), float(a[1]), float(a[2]))
+        launch(_leaves, blocks(n_slots), BLOCK, *node_arrays, slot_ray, n_slots, org, dirs, tmin, tmax,
+               light is not None, float(a[0]), float(a[1]), float(a[2]))
     for level in range(1, levels + 1):
-        _inner[blocks(sizes[level]), BLOCK](*node_arrays, h.level_offset, block_start, h.level_width,
-                                            h.level_height, level, sizes[level])
+        launch(_inner, blocks(sizes[level]), BLOCK, *node_arrays, h.level_offset, block_start, h.level_width,
+               h.level_height, level, sizes[level])
 
     scale = scratch.get("scale", 3, f32)
     scale.copy_to_device(np.zeros(3, f32))
-    _node_scale[blocks(m), BLOCK](h.centre, h.radius, m, scale)
+    launch(_node_scale, blocks(m), BLOCK, h.centre, h.radius, m, scale)
     if tris.count:
-        _spheres[blocks(tris.count), BLOCK](tris.v0, tris.v1, tris.v2, tris.count, h.sphere_c, h.sphere_r, scale)
+        launch(_spheres, blocks(tris.count), BLOCK, tris.v0, tris.v1, tris.v2, tris.count, h.sphere_c, h.sphere_r,
+               scale)
     s = scale.copy_to_host()
     # As ``absolute_slack``: the spheres' bound is a float32 sum, the product float64.
     h.abs_tol = np.float32(float(TEST_SLACK) * max(float(s[0]), float(s[1] + s[2])))

@@ -127,8 +127,8 @@ def _key_arrays(scratch, n: int, n_cells: int):
     keys = scratch.get("grid_key", n, np.int32)
     count = scratch.get("grid_cell_count", n_cells, np.int32)
     bad = scratch.get("grid_bad_pixel", 1, np.int32)
-    fill_array[blocks(n_cells), BLOCK](count, n_cells, 0)
-    fill_array[1, BLOCK](bad, 1, -1)
+    scratch.launch(fill_array, blocks(n_cells), BLOCK, count, n_cells, 0)
+    scratch.launch(fill_array, 1, BLOCK, bad, 1, -1)
     return keys, count, bad
 
 
@@ -137,9 +137,10 @@ def _place_by_keys(scratch, scanner, keys, count, bad, n: int, n_cells: int, wid
     out = scratch.get("grid_pixel", n, np.int32)
     fill = scratch.get("grid_cell_fill", n_cells, np.int32)
     start = scratch.get("grid_cell_start", n_cells + 1, np.int32)
-    fill_array[blocks(n_cells), BLOCK](fill, n_cells, 0)
+    launch = scratch.launch
+    launch(fill_array, blocks(n_cells), BLOCK, fill, n_cells, 0)
     if n:
-        fill_array[blocks(n), BLOCK](out, n, -1)
+        launch(fill_array, blocks(n), BLOCK, out, n, -1)
     n_live = scanner.exclusive_scan(count, n_cells, start)
     worst = int(bad.copy_to_host()[0])
     if worst >= 0:
@@ -147,8 +148,8 @@ def _place_by_keys(scratch, scanner, keys, count, bad, n: int, n_cells: int, wid
     side = grid_side(n_live)
     if n_live:
         order = scratch.get("grid_order", n_live, np.int32)
-        _fill_cells[blocks(n), BLOCK](keys, n, start, fill, order)
-        _place_ranked[blocks(n_live), BLOCK](keys, order, start, n_live, side, out)
+        launch(_fill_cells, blocks(n), BLOCK, keys, n, start, fill, order)
+        launch(_place_ranked, blocks(n_live), BLOCK, keys, order, start, n_live, side, out)
     return out, side
 
 
@@ -163,9 +164,9 @@ def light_grid_pixels(scratch, scanner, dirs, tmin, tmax, pixel, n: int, width: 
     bounds.copy_to_device(_EMPTY_BOUNDS)
     keys, count, bad = _key_arrays(scratch, n, n_cells)
     if n:
-        _bounds[min(REDUCE_BLOCKS, blocks(n)), BLOCK](dirs, tmin, tmax, pixel, n, bounds)
-        _count_keys[blocks(n), BLOCK](dirs, tmin, tmax, pixel, n, int(width) * int(height), LIGHT_CELL, bounds, bits,
-                                      0, 0, keys, count, bad)
+        scratch.launch(_bounds, min(REDUCE_BLOCKS, blocks(n)), BLOCK, dirs, tmin, tmax, pixel, n, bounds)
+        scratch.launch(_count_keys, blocks(n), BLOCK, dirs, tmin, tmax, pixel, n, int(width) * int(height), LIGHT_CELL,
+                       bounds, bits, 0, 0, keys, count, bad)
     return _place_by_keys(scratch, scanner, keys, count, bad, n, n_cells, int(width), int(height))
 
 
@@ -177,6 +178,6 @@ def direction_grid_pixels(scratch, scanner, dirs, tmin, tmax, pixel, n: int, wid
     keys, count, bad = _key_arrays(scratch, n, n_cells)
     if n:
         bounds = scratch.get("light_bounds", 4, np.float64)  # not read for this kind
-        _count_keys[blocks(n), BLOCK](dirs, tmin, tmax, pixel, n, int(width) * int(height), TILE_DIRECTION, bounds,
-                                      0, int(width), tile_size(int(width), int(height)), keys, count, bad)
+        scratch.launch(_count_keys, blocks(n), BLOCK, dirs, tmin, tmax, pixel, n, int(width) * int(height),
+                       TILE_DIRECTION, bounds, 0, int(width), tile_size(int(width), int(height)), keys, count, bad)
     return _place_by_keys(scratch, scanner, keys, count, bad, n, n_cells, int(width), int(height))

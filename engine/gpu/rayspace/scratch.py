@@ -1,10 +1,21 @@
 """Device buffers kept between calls and grown on demand (a generation's sizes vary; cudaMalloc
-per level and per call would cost more than the kernels on small queues)."""
+per level and per call would cost more than the kernels on small queues), and the launches
+prepared over them.
+
+The same request (name, rows) returns the same view object, so a kernel launched again over the
+same views, as the next frame of a static view does generation by generation, finds its launch
+prepared in ``launch`` (``engine.gpu.launch.LaunchCache``): numba's dispatcher converts every
+argument at every ordinary launch, tens of microseconds a launch, and a ray-space frame makes
+hundreds of launches."""
 from __future__ import annotations
 
 import numpy as np
 
 from engine.gpu.device import DeviceUnavailable, require_cuda
+from engine.gpu.launch import LaunchCache
+
+#: Views kept per buffer (one per row count asked for); past it, the buffer's views start over.
+VIEWS_PER_BUFFER = 64
 
 
 class Scratch:
@@ -15,7 +26,10 @@ class Scratch:
 
     def __init__(self, hint: str = "render smaller"):
         self._arrays: dict = {}
+        self._views: dict = {}     # name -> {rows: view}
+        self._prefixes: dict = {}  # (id(view), rows) -> (view, view[:rows])
         self.hint = hint
+        self.launch = LaunchCache()
 
     def rows(self, name: str) -> int:
         """Rows the array ``name`` holds now (0 before its first ``get``)."""
@@ -41,7 +55,35 @@ class Scratch:
             grown = max(rows, 2 * (held.shape[0] if held is not None else 0))
             if grown * row_bytes > free:
                 grown = rows
+            # Nothing may keep the old buffer alive: its views, their prefixes, the launches over them.
             self._arrays[name] = held = None
+            self._forget_views(name)
             held = cuda.device_array((grown,) + ((cols,) if cols else ()), dtype)
             self._arrays[name] = held
-        return held[:rows]
+        views = self._views.setdefault(name, {})
+        view = views.get(rows)
+        if view is None:
+            if len(views) >= VIEWS_PER_BUFFER:
+                self._forget_views(name)
+                views = self._views.setdefault(name, {})
+            view = views[rows] = held[:rows]
+        return view
+
+    def _forget_views(self, name: str) -> None:
+        """Drop the views of buffer ``name``, their prefixes and the launches that hold either."""
+        views = list(self._views.pop(name, {}).values())
+        parents = {id(v) for v in views}
+        for key in [k for k in self._prefixes if k[0] in parents]:
+            views.append(self._prefixes.pop(key)[1])
+        self.launch.drop_using(views)
+
+    def prefix(self, view, rows: int):
+        """``view[:rows]`` of a view this scratch returned, the same object for the same request."""
+        key = (id(view), int(rows))
+        kept = self._prefixes.get(key)
+        if kept is None or kept[0] is not view:
+            if len(self._prefixes) >= VIEWS_PER_BUFFER * 4:
+                self.launch.drop_using([p for _, p in self._prefixes.values()])
+                self._prefixes.clear()
+            kept = self._prefixes[key] = (view, view[:rows])
+        return kept[1]

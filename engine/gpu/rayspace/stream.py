@@ -165,7 +165,8 @@ class Stream:
         count = last - first
         capacity = max(budget, count)
         source, target = self._pairs("a", capacity), self._pairs("b", capacity)
-        _root_pairs[blocks(count), BLOCK](first, count, *source)
+        launch = self.scratch.launch
+        launch(_root_pairs, blocks(count), BLOCK, first, count, *source)
         level_kept = self.scratch.get("level_kept", h.levels + 1, np.int64)
         start = np.zeros(h.levels + 1, np.int64)
         start[h.levels] = count
@@ -174,9 +175,8 @@ class Stream:
             base = int(h.level_offset_host[level - 1])
             # At most every triangle against every node of the level, and no more than fit.
             most = min(capacity, count * int(h.level_sizes[level]))
-            _expand[min(GRID_BLOCKS, blocks(most)), BLOCK](
-                *source, level, base, *h.nodes(), *h.layout(), h.sphere_c, h.sphere_r, h.abs_tol, *target, capacity,
-                work, level_kept)
+            launch(_expand, min(GRID_BLOCKS, blocks(most)), BLOCK, *source, level, base, *h.nodes(), *h.layout(),
+                   h.sphere_c, h.sphere_r, h.abs_tol, *target, capacity, work, level_kept)
             source, target = target, source
         kept = level_kept.copy_to_host()
         pairs_after[h.levels] += count
@@ -187,4 +187,4 @@ class Stream:
             pairs_after[level] += int(kept[level])
             peak = max(peak, int(kept[level]))
         final = int(kept[0])
-        return source[0][:final], source[1][:final], final, None, peak
+        return self.scratch.prefix(source[0], final), self.scratch.prefix(source[1], final), final, None, peak

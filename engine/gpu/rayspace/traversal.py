@@ -90,7 +90,7 @@ class DeviceRaySpace:
         self.secondary_grid = checked_secondary_grid(secondary_grid)
         self.scratch = Scratch(hint=f"lower [options.rayspace] pair_budget (now {int(pair_budget):,} pairs; "
                                     "both pair buffers hold it) or render smaller")
-        self.scanner = Scanner()
+        self.scanner = Scanner(self.scratch.launch)
         self.stream = Stream(self.scratch)
         self.stats = new_record(0)
         self.last = new_record(0)
@@ -108,20 +108,21 @@ class DeviceRaySpace:
         secondary: the rays are reflections and refractions (grouped by ``secondary_grid``).
         """
         n = int(n)
+        launch = self.scratch.launch
         best_t = self.scratch.get("best_t", n, np.float32)
         best_prim = self.scratch.get("best_prim", n, np.int32)
         if n:
-            final.reset_answers[blocks(n), BLOCK](n, t_out, prim_out, u_out, v_out, best_t, best_prim)
+            launch(final.reset_answers, blocks(n), BLOCK, n, t_out, prim_out, u_out, v_out, best_t, best_prim)
         tris = self.tris
 
         def finish(slots, cand, count):
             pair_t = self.scratch.get("pair_t", count, np.float32)
             args = (slots, cand, count, self._h.slot_ray)
-            final.nearest_t[blocks(count), BLOCK](*args, org, dirs, tmin, tmax, tris.v0, tris.v1, tris.v2, pair_t,
-                                                  best_t)
-            final.nearest_prim[blocks(count), BLOCK](*args, pair_t, best_t, best_prim)
-            final.merge_batch[blocks(n), BLOCK](n, org, dirs, tmin, tmax, tris.v0, tris.v1, tris.v2, best_t,
-                                                best_prim, t_out, prim_out, u_out, v_out)
+            launch(final.nearest_t, blocks(count), BLOCK, *args, org, dirs, tmin, tmax, tris.v0, tris.v1, tris.v2,
+                   pair_t, best_t)
+            launch(final.nearest_prim, blocks(count), BLOCK, *args, pair_t, best_t, best_prim)
+            launch(final.merge_batch, blocks(n), BLOCK, n, org, dirs, tmin, tmax, tris.v0, tris.v1, tris.v2, best_t,
+                   best_prim, t_out, prim_out, u_out, v_out)
 
         self._trace(org, dirs, tmin, tmax, pixel, n, width, height, light, finish, secondary)
 
@@ -135,15 +136,21 @@ class DeviceRaySpace:
         their direction from it. Any point is correct; only culling depends on it.
         """
         n = int(n)
+        launch = self.scratch.launch
         if n:
-            final.reset_flags[blocks(n), BLOCK](n, out)
+            launch(final.reset_flags, blocks(n), BLOCK, n, out)
         tris = self.tris
 
         def finish(slots, cand, count):
-            final.any_hit[blocks(count), BLOCK](slots, cand, count, self._h.slot_ray, org, dirs, tmin, tmax,
-                                                tris.v0, tris.v1, tris.v2, out)
+            launch(final.any_hit, blocks(count), BLOCK, slots, cand, count, self._h.slot_ray, org, dirs, tmin, tmax,
+                   tris.v0, tris.v1, tris.v2, out)
 
         self._trace(org, dirs, tmin, tmax, pixel, n, width, height, light, finish)
+
+    def forget_launches(self) -> None:
+        """Drop the prepared launches (``scratch.launch``), and with them every array they hold:
+        the caller is about to free the queues it passed in."""
+        self.scratch.launch.clear()
 
     # -- the work ----------------------------------------------------------------------
     def _trace(self, org, dirs, tmin, tmax, pixel, n, width, height, light, finish, secondary=False) -> None:
