@@ -498,7 +498,7 @@ class RayTracer:
             if device == "cuda":
                 from engine.render.device_names import device_traversal_name
 
-                if device_traversal_name(traversal) != "bvh":
+                if device_traversal_name(traversal) not in ("bvh", "wide"):
                     raise ApiArgumentError(f"RayTracer(device='cuda') traces with the device's bvh traversal; "
                                            f"got traversal={traversal!r}")
                 traversal = "single" if traversal == "bvh" else traversal  # the CPU side's reference

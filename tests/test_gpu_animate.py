@@ -22,6 +22,20 @@ def test_animation_on_the_device_refits_and_matches_the_cpu_frames(tmp_path):
     assert "0 mismatches" in run.stdout
 
 
+def test_the_wide_tree_is_refitted_with_the_binary_one(tmp_path):
+    """``wide`` on both devices: the device's 8-wide tree is collapsed again from each refitted
+    host tree and its boxes copied in place; the frames equal the CPU ``wide`` frames and every
+    device ray agrees with Embree (stale boxes would lose the moved triangles' hits)."""
+    run = simulated("-m", "tests.gpu_sim_animate_check", str(tmp_path), "wide")
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert result["codes"] == {"cpu": 0, "cuda": 0}
+    assert result["policies"] == ["rebuild", "refit", "refit"]
+    assert result["rays"] == result["cpu_rays"]
+    assert result["png_difference"] == 0
+    assert "0 mismatches" in run.stdout and " mismatch" not in run.stdout.replace("0 mismatches", "")
+
+
 def test_device_refit_equals_the_cpu_refit():
     run = simulated("-m", "tests.gpu_sim_refit_check")
     assert run.returncode == 0, run.stderr[-3000:]

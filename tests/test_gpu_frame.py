@@ -107,6 +107,7 @@ def test_device_names_are_checked_without_cuda():
 
     assert device_traversal_name(config.traversal.primary) == "bvh"
     assert device_traversal_name("rayspace") == "rayspace"
+    assert device_traversal_name("wide") == "wide"  # the 8-wide tree on both targets
 
 
 def test_cpu_only_commands_refuse_the_gpu(tmp_path):
@@ -148,6 +149,18 @@ def test_gpu_frame_with_the_ray_space_hierarchy():
     assert run.returncode == 0, run.stderr[-3000:]
     result = json.loads(run.stdout.strip().splitlines()[-1])
     assert result["traversal"] == dict.fromkeys(("primary", "shadow", "reflection", "refraction"), "rayspace")
+    assert result["rays_gpu"] == result["rays_cpu"] and result["rays_cpu"]["shadow"] > 0
+    assert result["max_abs_difference"] <= 1e-5 and result["pixels_over_1_255"] == 0
+    assert result["audit_mismatches"] == 0 and result["audit_checked"] == sum(result["rays_gpu"].values())
+
+
+def test_gpu_frame_with_the_wide_tree():
+    """``wide`` on the device (the CPU's 8-wide tree, one thread a ray): the same rays, image and
+    audit as the CPU frame."""
+    run = simulated("-m", "tests.gpu_sim_frame_check", "13", "11", "wide", "3")
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert result["traversal"] == dict.fromkeys(("primary", "shadow", "reflection", "refraction"), "wide")
     assert result["rays_gpu"] == result["rays_cpu"] and result["rays_cpu"]["shadow"] > 0
     assert result["max_abs_difference"] <= 1e-5 and result["pixels_over_1_255"] == 0
     assert result["audit_mismatches"] == 0 and result["audit_checked"] == sum(result["rays_gpu"].values())

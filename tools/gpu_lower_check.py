@@ -67,7 +67,7 @@ def _workloads() -> None:
     from scenes.catalog import load_named
 
     scene = load_named("whitted", {"checks": 2, "subdivisions": 0})
-    for traversal, depth, options in (("bvh", 3, ()), ("rayspace", 2, ()),
+    for traversal, depth, options in (("bvh", 3, ()), ("wide", 3, ()), ("rayspace", 2, ()),
                                       ("rayspace", 2, (("rayspace", (("secondary_grid", "pixel"),)),))):
         config = Config(render=RenderConfig(width=5, height=4, max_depth=depth, packet=4, device="cuda"),
                         traversal=PerKind(*[traversal] * 4), frustum=PerKind("none", "none", "none", "none"),

@@ -64,7 +64,7 @@ def check_matrix(data: dict, source: str) -> None:
         _fail(source, "top level", "needs at least one [[scene]] and one [[variant]]")
     for i, variant in enumerate(data["variant"]):
         if set(variant) - VARIANT_KEYS or "traversal" not in variant:
-            _fail(source, f"variant {i + 1}", f"needs label and traversal (bvh or rayspace), got {sorted(variant)}")
+            _fail(source, f"variant {i + 1}", f"needs label and traversal (bvh, wide or rayspace), got {sorted(variant)}")
         traversal = variant["traversal"]
         if isinstance(traversal, dict):
             if set(traversal) != set(RAY_KINDS) or not all(isinstance(v, str) for v in traversal.values()):

@@ -334,6 +334,11 @@ class GpuWhittedRenderer:
             replaced = True
         if not replaced and self.device_bvh.same_topology(self.bvh):
             self.device_refit.refit(self.device_tris)  # the boxes recomputed on the GPU
+            self.device_bvh.host_bvh = self.bvh
+            for traversal in set(self.traversal.values()):  # the 8-wide tree, collapsed again
+                refit_from = getattr(traversal, "refit_from", None)
+                if refit_from is not None:
+                    refit_from(self.bvh)
         else:
             self.device_bvh = DeviceBVH.from_host(self.bvh, self.tris)
             self.device_refit = DeviceRefit(self.bvh, self.device_bvh)

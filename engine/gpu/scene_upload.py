@@ -95,7 +95,8 @@ class DeviceBVH:
     child_boxes f32[N,12] (``child_box_table``); links i32[N,2]: (first, count) of each node as
     the CPU tree has them; prim i32[P]; leaf_tris f32[3,P,3]: the corners v0, v1, v2 of
     triangle prim[i] at row i, so a leaf's triangles are read from consecutive rows; root_row
-    f32[1,6] the root's box (min xyz, max xyz); depth (host int).
+    f32[1,6] the root's box (min xyz, max xyz); depth (host int). host_bvh: the host tree it
+    holds (the device ``wide`` traversal collapses it), host_prim: that tree's ``prim``.
     """
 
     child_boxes: object
@@ -111,6 +112,7 @@ class DeviceBVH:
         made = cls(upload(child_box_table(bvh)), upload(links), upload(bvh.prim, np.int32),
                    upload(_leaf_corners(bvh, tris)), upload(_root_row(bvh)), int(bvh.depth))
         made.host_prim = bvh.prim
+        made.host_bvh = bvh
         return made
 
     def same_topology(self, bvh) -> bool:
@@ -121,3 +123,4 @@ class DeviceBVH:
     def __post_init__(self):
         self.v0, self.v1, self.v2 = (self.leaf_tris[k] for k in range(3))
         self.host_prim = None
+        self.host_bvh = None

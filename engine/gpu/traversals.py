@@ -76,13 +76,20 @@ class HostCounted:
 
 def make_device_traversal(name: str, device_bvh, device_tris, host_tris, options: dict | None = None,
                           far_first: bool = False):
-    """One device traversal by name ("bvh", "rayspace", or a CPU BVH traversal name); far_first:
-    the BVH walk's occlusion order (see ``WALKS_FAR_FIRST``)."""
+    """One device traversal by name ("bvh", "wide", "rayspace", or a CPU BVH traversal name);
+    far_first: the binary BVH walk's occlusion order (see ``WALKS_FAR_FIRST``; ``wide`` visits
+    a node's children nearest first)."""
     name = device_traversal_name(name)
     if name == "bvh":
         from engine.gpu.bvh_trace import DeviceBVHTraversal
 
         return DeviceBVHTraversal(device_bvh, device_tris, far_first)
+    if name == "wide":
+        from engine.gpu.wide_trace import DeviceWideTraversal
+
+        if device_bvh.host_bvh is None:
+            raise ValueError("the device wide traversal needs the host tree the DeviceBVH was uploaded from")
+        return DeviceWideTraversal(device_bvh, device_tris, device_bvh.host_bvh)
     from engine.gpu.rayspace import DeviceRaySpace
 
     return HostCounted(DeviceRaySpace(device_tris, host_tris, **(options or {})))
