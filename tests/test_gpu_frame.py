@@ -142,25 +142,15 @@ def test_gpu_frame_with_textures_equals_the_cpu_frame(frame_check):
     assert result["audit_mismatches"] == 0
 
 
-def test_gpu_frame_with_the_ray_space_hierarchy():
+@pytest.mark.parametrize("width, height, traversal, depth", [(9, 7, "rayspace", 2), (13, 11, "wide", 3)])
+def test_gpu_frame_with_another_device_traversal(width, height, traversal, depth):
     """The same frame with ``rayspace`` for every ray kind (hierarchies built per generation on
-    the device, shadow rays reversed to leave the one light): same rays, image and audit."""
-    run = simulated("-m", "tests.gpu_sim_frame_check", "9", "7", "rayspace", "2")
+    the device, shadow rays reversed to leave the one light), or with ``wide`` (the CPU's 8-wide
+    tree, one thread a ray): the same rays, image and audit as the CPU frame."""
+    run = simulated("-m", "tests.gpu_sim_frame_check", str(width), str(height), traversal, str(depth))
     assert run.returncode == 0, run.stderr[-3000:]
     result = json.loads(run.stdout.strip().splitlines()[-1])
-    assert result["traversal"] == dict.fromkeys(("primary", "shadow", "reflection", "refraction"), "rayspace")
-    assert result["rays_gpu"] == result["rays_cpu"] and result["rays_cpu"]["shadow"] > 0
-    assert result["max_abs_difference"] <= 1e-5 and result["pixels_over_1_255"] == 0
-    assert result["audit_mismatches"] == 0 and result["audit_checked"] == sum(result["rays_gpu"].values())
-
-
-def test_gpu_frame_with_the_wide_tree():
-    """``wide`` on the device (the CPU's 8-wide tree, one thread a ray): the same rays, image and
-    audit as the CPU frame."""
-    run = simulated("-m", "tests.gpu_sim_frame_check", "13", "11", "wide", "3")
-    assert run.returncode == 0, run.stderr[-3000:]
-    result = json.loads(run.stdout.strip().splitlines()[-1])
-    assert result["traversal"] == dict.fromkeys(("primary", "shadow", "reflection", "refraction"), "wide")
+    assert result["traversal"] == dict.fromkeys(("primary", "shadow", "reflection", "refraction"), traversal)
     assert result["rays_gpu"] == result["rays_cpu"] and result["rays_cpu"]["shadow"] > 0
     assert result["max_abs_difference"] <= 1e-5 and result["pixels_over_1_255"] == 0
     assert result["audit_mismatches"] == 0 and result["audit_checked"] == sum(result["rays_gpu"].values())

@@ -46,6 +46,17 @@ def _slab(ox, oy, oz, ix, iy, iz, t_lo, t_hi, box, row, at):
 
 
 @cuda.jit(device=True)
+def ray_setup(org, dirs, r):
+    """What a walk of ray r computes once: its origin, the inverse of its direction (the box
+    test's), the watertight test's shear (kx, ky, kz, sx, sy, sz) and the origin in the shear's
+    axis order (okx, oky, okz). Shared by the binary and the 8-wide walk."""
+    dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
+    kx, ky, kz, sx, sy, sz = _shear(dx, dy, dz)
+    return (org[r, 0], org[r, 1], org[r, 2], _inverse(dx), _inverse(dy), _inverse(dz), kx, ky, kz, sx, sy, sz,
+            org[r, kx], org[r, ky], org[r, kz])
+
+
+@cuda.jit(device=True)
 def _walk(org, dirs, tmin, tmax, r, any_hit, far_first, child_boxes, links, prim, v0, v1, v2, root):
     """(t, prim, u, v) of ray r's closest hit (any_hit: some hit), (inf, -1, 0, 0) if none.
     v0, v1, v2: the corners in leaf order (row i holds triangle prim[i]). far_first: the child
@@ -59,11 +70,7 @@ def _walk(org, dirs, tmin, tmax, r, any_hit, far_first, child_boxes, links, prim
     t_hi = tmax[r]
     if not t_lo <= t_hi:
         return best_t, best_prim, best_u, best_v
-    ox, oy, oz = org[r, 0], org[r, 1], org[r, 2]
-    dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
-    ix, iy, iz = _inverse(dx), _inverse(dy), _inverse(dz)
-    kx, ky, kz, sx, sy, sz = _shear(dx, dy, dz)
-    okx, oky, okz = org[r, kx], org[r, ky], org[r, kz]
+    ox, oy, oz, ix, iy, iz, kx, ky, kz, sx, sy, sz, okx, oky, okz = ray_setup(org, dirs, r)
     stack = cuda.local.array(STACK, np.int32)
     top = 0
     if _slab(ox, oy, oz, ix, iy, iz, t_lo, t_hi, root, 0, 0) < F32_INF:  # root: f32[1,6]

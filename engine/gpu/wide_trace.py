@@ -23,22 +23,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.core.triangle import F32_INF, closer, intersect_triangle, ray_shear, slab_interval
+from engine.core.triangle import F32_INF, closer, intersect_triangle, slab_interval
 from engine.core.types import MAX_BVH_DEPTH
-from engine.gpu.bvh_trace import launch_grid
+from engine.gpu.bvh_trace import DeviceBVHTraversal, launch_grid, ray_setup
 from engine.gpu.device import BLOCK, require_cuda
 from engine.gpu.launch import PreparedLaunch
 from engine.gpu.scene_upload import upload
 from engine.gpu.twin import device_twin
-from engine.packet.compact import inverse_component
 from engine.query.wide import WIDTH, collapse
 
 cuda = require_cuda()
 
-_shear = device_twin(ray_shear)
 _triangle = device_twin(intersect_triangle)
 _closer = device_twin(closer)
-_inverse = device_twin(inverse_component)
 _slab_interval = device_twin(slab_interval)
 
 #: Stack entries per thread: a node pushes at most WIDTH entries and pops one, at most
@@ -57,11 +54,7 @@ def _walk(org, dirs, tmin, tmax, r, any_hit, box, meta, prim, v0, v1, v2):
     t_hi = tmax[r]
     if not t_lo <= t_hi:
         return best_t, best_prim, best_u, best_v
-    ox, oy, oz = org[r, 0], org[r, 1], org[r, 2]
-    dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
-    ix, iy, iz = _inverse(dx), _inverse(dy), _inverse(dz)
-    kx, ky, kz, sx, sy, sz = _shear(dx, dy, dz)
-    okx, oky, okz = org[r, kx], org[r, ky], org[r, kz]
+    ox, oy, oz, ix, iy, iz, kx, ky, kz, sx, sy, sz, okx, oky, okz = ray_setup(org, dirs, r)
     stack_node = cuda.local.array(STACK, np.int32)
     stack_size = cuda.local.array(STACK, np.int32)
     stack_t = cuda.local.array(STACK, np.float32)
@@ -147,16 +140,16 @@ def wide_tables(bvh) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(box, np.float32), np.ascontiguousarray(np.stack([child, size], axis=1), np.int32)
 
 
-class DeviceWideTraversal:
-    """The device ``wide`` traversal: ``engine.gpu.bvh_trace.DeviceBVHTraversal``'s interface
-    over the 8-wide tree of ``host_bvh`` (the tree ``device_bvh`` was uploaded from, whose
-    leaf-ordered triangles it reads)."""
+class DeviceWideTraversal(DeviceBVHTraversal):
+    """The device ``wide`` traversal: ``DeviceBVHTraversal``'s interface (its host-count
+    ``closest`` / ``occluded`` go through the queue methods below) over the 8-wide tree of
+    ``host_bvh``, the tree ``device_bvh`` was uploaded from, whose leaf-ordered triangles it reads.
+    A node's children are visited nearest first for every query (no far-first order)."""
 
     name = "wide"
-    uses_bvh = True
 
     def __init__(self, device_bvh, tris, host_bvh):
-        self.bvh, self.tris = device_bvh, tris
+        super().__init__(device_bvh, tris, far_first=False)
         box, meta = wide_tables(host_bvh)
         self.box, self.meta = upload(box), upload(meta)
         self.nodes = box.shape[0]
@@ -187,15 +180,3 @@ class DeviceWideTraversal:
         """A prepared launch of ``closest_queue`` / ``occluded_queue`` on fixed arrays (as ``bvh``'s)."""
         kernel = closest_kernel if query == "closest" else occluded_kernel
         return PreparedLaunch(kernel, launch_grid(bound), BLOCK, (*self._args(org, dirs, tmin, tmax, count), *out))
-
-    def closest(self, org, dirs, tmin, tmax, pixel, n, width, height, t_out, prim_out, u_out, v_out) -> None:
-        """Closest hits of the first n rays (host int) into t_out, prim_out (-1: miss), u_out, v_out."""
-        if n > 0:
-            self.closest_queue(org, dirs, tmin, tmax, pixel, cuda.to_device(np.array([n], np.int32)), n, width,
-                               height, t_out, prim_out, u_out, v_out)
-
-    def occluded(self, org, dirs, tmin, tmax, pixel, n, width, height, out) -> None:
-        """out[r] = 1 where ray r (< n, host int) is blocked within [tmin, tmax], else 0 (u8)."""
-        if n > 0:
-            self.occluded_queue(org, dirs, tmin, tmax, pixel, cuda.to_device(np.array([n], np.int32)), n, width,
-                                height, out)
