@@ -82,3 +82,20 @@ def test_entries_hold_their_arrays_until_dropped():
     assert watch() is None
     cache.clear()
     assert not cache.entries
+
+
+def test_dropping_finds_every_entry_of_an_array_and_no_other():
+    """``drop_using`` through its index: all the launches holding the array go (whatever else
+    they hold), the others stay, and an evicted entry leaves nothing behind in the index."""
+    kernel, cache = RecordingKernel(), LaunchCache(limit=3)
+    a, b, c = Buffer(), Buffer(), Buffer()
+    cache(kernel, 1, 32, a, b)
+    cache(kernel, 1, 32, b, 1)
+    cache(kernel, 1, 32, c)
+    cache.drop_using([b])
+    assert len(cache.entries) == 1
+    cache(kernel, 1, 32, c)
+    assert cache.hits == 1
+    for i in range(5):          # evictions of entries holding only fresh buffers
+        cache(kernel, 1, 32, Buffer(), i)
+    assert len(cache.entries) == 3 and len(cache._by_object) == 3

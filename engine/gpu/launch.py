@@ -76,14 +76,15 @@ class LaunchCache:
     For launch sequences whose arguments differ from call to call but repeat from frame to frame
     (the ray-space traversal's levels and generations): a static view's frames find every launch
     prepared. Each entry holds its arguments, so an identity cannot be reused while it is cached;
-    at most ``limit`` entries, the least recently used dropped first. The owner clears it before
-    it frees arrays that entries may hold (``drop_using``; ``engine.gpu.rayspace.scratch.Scratch``
-does).
-    ``hits`` and ``misses`` count launches."""
+    at most ``limit`` entries, the least recently used dropped first. The owner drops the entries
+    that hold arrays it is about to free (``drop_using``, which finds them through an index by
+    argument, so an animation that makes new views every frame does not scan the whole cache);
+    ``engine.gpu.rayspace.scratch.Scratch`` does. ``hits`` and ``misses`` count launches."""
 
     def __init__(self, limit: int = 4096):
         self.limit = limit
         self.entries: OrderedDict = OrderedDict()
+        self._by_object: dict = {}  # id of a non-scalar argument -> keys of the entries holding it
         self.hits = self.misses = 0
 
     def __call__(self, kernel, blocks: int, threads: int, *args) -> None:
@@ -94,19 +95,34 @@ does).
             self.misses += 1
             launch = PreparedLaunch(kernel, blocks, threads, args)
             self.entries[key] = launch
+            for a in args:
+                if not isinstance(a, _SCALARS):
+                    self._by_object.setdefault(id(a), set()).add(key)
             if len(self.entries) > self.limit:
-                self.entries.popitem(last=False)
+                self._forget(next(iter(self.entries)))
         else:
             self.hits += 1
             self.entries.move_to_end(key)
         launch()
 
+    def _forget(self, key) -> None:
+        launch = self.entries.pop(key, None)
+        if launch is None:
+            return
+        for a in launch.args:
+            held = self._by_object.get(id(a))
+            if held is not None:
+                held.discard(key)
+                if not held:
+                    del self._by_object[id(a)]
+
     def clear(self) -> None:
         """Forget every prepared launch (and the arrays they hold)."""
         self.entries.clear()
+        self._by_object.clear()
 
     def drop_using(self, objects) -> None:
         """Forget the prepared launches that hold any of ``objects`` (arrays about to be freed)."""
-        gone = {id(o) for o in objects}
-        for key in [k for k, launch in self.entries.items() if any(id(a) in gone for a in launch.args)]:
-            del self.entries[key]
+        for o in objects:
+            for key in list(self._by_object.get(id(o), ())):
+                self._forget(key)
