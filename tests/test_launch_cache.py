@@ -99,3 +99,12 @@ def test_dropping_finds_every_entry_of_an_array_and_no_other():
     for i in range(5):          # evictions of entries holding only fresh buffers
         cache(kernel, 1, 32, Buffer(), i)
     assert len(cache.entries) == 3 and len(cache._by_object) == 3
+
+
+def test_a_disabled_cache_launches_the_ordinary_way_and_keeps_nothing():
+    kernel, cache, a = RecordingKernel(), LaunchCache(), Buffer()
+    cache.enabled = False
+    cache(kernel, 2, 64, a, 5)
+    cache(kernel, 2, 64, a, 5)
+    assert kernel.calls == [(2, 64, (a, 5))] * 2
+    assert not cache.entries and cache.hits == cache.misses == 0

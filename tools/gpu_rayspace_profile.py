@@ -60,6 +60,9 @@ def main(argv=None) -> int:
     parser.add_argument("--recursion", default="kitchen-paper")
     parser.add_argument("--size", type=int, default=1024)
     parser.add_argument("--frames", type=int, default=5)
+    parser.add_argument("--compare-prepared", action="store_true",
+                        help="also render --frames frames alternating with the rayspace launches prepared "
+                             "(engine.gpu.launch.LaunchCache) and through numba's dispatcher, and print both medians")
     parser.add_argument("--pair-budget", type=int, default=268435456)
     parser.add_argument("--shadow-grid", default="light", help="options.rayspace.shadow_grid: light or pixel")
     parser.add_argument("--secondary-grid", default="direction",
@@ -83,9 +86,22 @@ def main(argv=None) -> int:
     print(f"compile {renderer.warm_up():.1f} s", flush=True)
     times = [renderer.render().seconds["total"] for _ in range(args.frames)]
     print("frames ms", [round(t * 1e3, 1) for t in times], "median", round(statistics.median(times) * 1e3, 1))
-    cache = getattr(getattr(renderer.traversal["primary"], "scratch", None), "launch", None)
-    if cache is not None:  # the traversal's prepared launches (engine.gpu.launch.LaunchCache)
+    caches = {id(c): c for c in (getattr(getattr(t, "scratch", None), "launch", None)
+                                 for t in renderer.traversal.values()) if c is not None}
+    for cache in caches.values():  # the traversal's prepared launches (engine.gpu.launch.LaunchCache)
         print(f"prepared launches: {cache.hits} replayed, {cache.misses} prepared, {len(cache.entries)} held")
+    if args.compare_prepared and caches:
+        paired = {True: [], False: []}
+        for _ in range(args.frames):
+            for enabled in (True, False):
+                for cache in caches.values():
+                    cache.enabled = enabled
+                paired[enabled].append(renderer.render().seconds["total"])
+        for cache in caches.values():
+            cache.enabled = True
+        print("alternating frames ms: prepared", [round(t * 1e3, 1) for t in paired[True]], "median",
+              round(statistics.median(paired[True]) * 1e3, 1), "| dispatcher", [round(t * 1e3, 1) for t in paired[False]],
+              "median", round(statistics.median(paired[False]) * 1e3, 1))
 
     totals = defaultdict(lambda: [0.0, 0])
     for module in (stream, final, hierarchy, ray_grids, scan):

@@ -79,15 +79,22 @@ class LaunchCache:
     at most ``limit`` entries, the least recently used dropped first. The owner drops the entries
     that hold arrays it is about to free (``drop_using``, which finds them through an index by
     argument, so an animation that makes new views every frame does not scan the whole cache);
-    ``engine.gpu.rayspace.scratch.Scratch`` does. ``hits`` and ``misses`` count launches."""
+    ``engine.gpu.rayspace.scratch.Scratch`` does. ``hits`` and ``misses`` count launches.
+    ``enabled = False`` launches every kernel the ordinary way instead (and counts nothing): the
+    same frames with and without it, for a measurement in one process
+    (``tools/gpu_rayspace_profile.py --compare-prepared``)."""
 
     def __init__(self, limit: int = 4096):
+        self.enabled = True
         self.limit = limit
         self.entries: OrderedDict = OrderedDict()
         self._by_object: dict = {}  # id of a non-scalar argument -> keys of the entries holding it
         self.hits = self.misses = 0
 
     def __call__(self, kernel, blocks: int, threads: int, *args) -> None:
+        if not self.enabled:
+            kernel[blocks, threads](*args)
+            return
         key = (id(kernel), blocks, threads) + tuple(
             (type(a), a) if isinstance(a, _SCALARS) else id(a) for a in args)
         launch = self.entries.get(key)
