@@ -335,10 +335,7 @@ class GpuWhittedRenderer:
         if not replaced and self.device_bvh.same_topology(self.bvh):
             self.device_refit.refit(self.device_tris)  # the boxes recomputed on the GPU
             self.device_bvh.host_bvh = self.bvh
-            for traversal in set(self.traversal.values()):  # the 8-wide tree, collapsed again
-                refit_from = getattr(traversal, "refit_from", None)
-                if refit_from is not None:
-                    refit_from(self.bvh)
+            self._tell_traversals("refit_from", self.bvh)  # the 8-wide tree, collapsed again
         else:
             self.device_bvh = DeviceBVH.from_host(self.bvh, self.tris)
             self.device_refit = DeviceRefit(self.bvh, self.device_bvh)
@@ -374,6 +371,14 @@ class GpuWhittedRenderer:
             self.observer = observer
         return time.perf_counter() - start
 
+    def _tell_traversals(self, method: str, *args) -> None:
+        """Call ``method(*args)`` once on each distinct traversal of the frame that has it (kinds
+        that name the same traversal share one instance)."""
+        for traversal in {id(t): t for t in self.traversal.values()}.values():
+            call = getattr(traversal, method, None)
+            if call is not None:
+                call(*args)
+
     def _frame_arrays(self, pixels: int) -> FrameArrays:
         depth = self.config.render.max_depth
         held = self.arrays
@@ -381,10 +386,7 @@ class GpuWhittedRenderer:
                 held.counts.shape[0] < 2 * (depth + 2) or held.secondary < self.secondary_per_pixel * pixels:
             secondary = self.secondary_per_pixel * pixels
             self.arrays = None  # let the old arrays go before the new ones are asked for
-            for traversal in self.traversal.values():  # and the launches a traversal prepared over them
-                forget = getattr(traversal, "forget_launches", None)
-                if forget is not None:
-                    forget()
+            self._tell_traversals("forget_launches")  # and the launches a traversal prepared over them
             check_device_memory(frame_bytes(pixels, self.n_lights, secondary), pixels)
             self.arrays = FrameArrays(pixels, self.n_lights, depth, secondary)
             self._plan_key = None
