@@ -126,7 +126,8 @@ def _segment_bound(name: str, value, n: int, default: float) -> np.ndarray:
     bad = np.isnan(arr)
     if bad.any():
         raise RayInputError(f"{name}[{int(np.flatnonzero(bad)[0])}] is NaN")
-    return np.ascontiguousarray(arr.astype(np.float32))
+    with np.errstate(over="ignore"):  # beyond float32's range is +-inf, as a bound means
+        return np.ascontiguousarray(arr.astype(np.float32))
 
 
 def check_rays(origins, directions, tmin=None, tmax=None):
@@ -477,7 +478,7 @@ class RayTracer:
 
     def __init__(self, mesh_or_scene, traversal: str = "partition", frustum: str = "general",
                  packet: int = 8, *, threads: int = 0, leaf_size: int = 4, bins: int = 16, device: str = "cpu"):
-        from engine.core.bvh import build_bvh, scene_bounds
+        from engine.core.bvh import build_bvh, check_build_settings, scene_bounds
         from engine.packet.layout import check_packet_size
         from engine.render.plugins import make_frustum, make_traversal
         from engine.render.tracer import Tracer
@@ -504,6 +505,7 @@ class RayTracer:
                 traversal = "single" if traversal == "bvh" else traversal  # the CPU side's reference
             self.traversal = make_traversal(traversal)
             self.frustum = make_frustum(frustum)
+            leaf_size, bins = check_build_settings(leaf_size, bins)
         except ConfigError as exc:
             if isinstance(exc, (ApiArgumentError, TypeError)):
                 raise

@@ -147,8 +147,30 @@ def _load_scene(config, strict: bool = False):
     return scene
 
 
+def _distinct_outputs(*named) -> None:
+    """(option, path or None) pairs: no two options name the same file, or the later write would
+    replace the earlier output."""
+    def resolved(path) -> Path:
+        try:
+            return Path(path).resolve()
+        except (OSError, RuntimeError):  # a link loop: the output check names it next
+            return Path(path).absolute()
+
+    # Devices (/dev/null) take any number of writes: only files a write would replace count.
+    given = [(option, resolved(path)) for option, path in named if path and not atomic.is_device(resolved(path))]
+    for i, (option, path) in enumerate(given):
+        for other, other_path in given[:i]:
+            if path == other_path:
+                raise ConfigError(f"{other} and {option} both write {str(path)!r}: give each its own path")
+
+
 def _check_outputs(*named) -> None:
-    """(option, path or None) pairs: each given file can be written, checked before the work."""
+    """(option, path or None) pairs: each given file can be written and no two are the same,
+    checked before the work."""
+    for option, path in named:
+        if path is not None and not str(path).strip():
+            raise ConfigError(f"{option} needs a file name, got an empty one")
+    _distinct_outputs(*named)
     for option, path in named:
         if path:
             atomic.output_file(path, option)
@@ -287,10 +309,13 @@ def _run_audit(scene, config, image_path, json_path, report_dir, stats_path, ora
 
 def cmd_audit(args) -> int:
     config = _config_from(args)
-    _check_outputs(("--json", args.json))
     if args.report:
         from validation.report import REPORT_FILES
 
+        _distinct_outputs(("--json", args.json), ("--report", args.report),
+                          *(("--report", Path(args.report) / name) for name in REPORT_FILES))
+    _check_outputs(("--json", args.json))
+    if args.report:
         atomic.output_folder(args.report, "--report")
         _check_outputs(*(("--report", Path(args.report) / name) for name in REPORT_FILES))
     scene = _load_scene(config, args.strict)

@@ -696,11 +696,15 @@ class Parser:
 
     def _sphere(self, line):
         x, y, z, r = self.tok.numbers(4, "'s' (centre x y z, radius)")
+        if r < 0:
+            raise SceneError(f"{self.path}:{line}: 's' radius must be >= 0, got {r:g}")
         corners, normals = sphere_triangles((x, y, z), r, self.tessellation)
         self.ops.append(("geometry", Geometry("s", corners, normals), line))
 
     def _cone(self, line):
         v = self.tok.numbers(8, "'c' (base x y z, base radius, apex x y z, apex radius)")
+        if v[3] < 0 or v[7] < 0:
+            raise SceneError(f"{self.path}:{line}: 'c' radii must be >= 0, got {v[3]:g} and {v[7]:g}")
         corners, normals = cone_triangles(v[0:3], v[3], v[4:7], v[7], self.tessellation)
         self.ops.append(("geometry", Geometry("c", corners, normals), line))
 

@@ -110,6 +110,10 @@ def material_from_mtl(name: str, p: dict) -> Material:
                     texture=texture, texture_name=str(p["map_Kd"][0]) if "map_Kd" in p else "")
 
 
+#: OBJ lines of numbers: the word, what it is called in a message, and how many it needs.
+OBJ_NUMBERS = {"v": ("vertex", 3), "vn": ("normal", 3), "vt": ("texture coordinate", 1)}
+
+
 def checked_obj_text(path: Path) -> str:
     """The OBJ's text with every relative (negative) face index made absolute; a malformed
     line is rejected with file:line before trimesh sees it.
@@ -125,15 +129,17 @@ def checked_obj_text(path: Path) -> str:
         if not words:
             continue
         key = words[0]
-        if key == "v":
-            if len(words) < 4:
-                raise SceneError(f"{path}:{number}: vertex {raw.strip()!r} has fewer than 3 coordinates")
+        if key in OBJ_NUMBERS:
+            what, least = OBJ_NUMBERS[key]
+            if len(words) < 1 + least:
+                raise SceneError(f"{path}:{number}: {what} {raw.strip()!r} has fewer than {least} coordinates")
+            # Every coordinate, used by a face or not (a NaN normal was read without a word).
             for w in words[1:4]:
                 try:
                     float(w)
                 except ValueError:
-                    raise SceneError(f"{path}:{number}: bad vertex {raw.strip()!r}: expected 3 numbers") from None
-                checked.parse_float(w, f"{path}:{number}: vertex {raw.strip()!r}", error=SceneError)
+                    raise SceneError(f"{path}:{number}: bad {what} {raw.strip()!r}: expected {least} numbers") from None
+                checked.parse_float(w, f"{path}:{number}: {what} {raw.strip()!r}", error=SceneError)
         if key in counts:
             counts[key] += 1
         elif key == "f":
@@ -142,6 +148,23 @@ def checked_obj_text(path: Path) -> str:
             corners = [_absolute_corner(path, number, raw, word, counts) for word in words[1:]]
             lines[number - 1] = "f " + " ".join(corners)
     return "\n".join(lines) + "\n"
+
+
+def check_off(path: Path) -> None:
+    """An OFF file's header, checked before trimesh reads it (trimesh's own errors on a bad one
+    are numpy's: "cannot reshape array of size 3 into shape (99999999999,3)"): the word OFF, then
+    the vertex, face and edge counts, and at least three numbers a vertex after them."""
+    words = [w for line in path.read_text(errors="replace").splitlines() for w in line.split("#", 1)[0].split()]
+    if not words or not words[0].upper().endswith("OFF"):
+        raise SceneError(f"{path}: not an OFF file: expected the word OFF first, got "
+                         f"{words[0][:20]!r}" if words else f"{path}: not an OFF file: it is empty")
+    counts = words[1:4]
+    if len(counts) < 3 or not all(w.isdigit() for w in counts):
+        raise SceneError(f"{path}: expected three counts (vertices faces edges) after OFF, got {' '.join(counts)!r}")
+    vertices = int(counts[0])
+    if len(words) - 4 < 3 * vertices:
+        raise SceneError(f"{path}: the header declares {vertices:,} vertices, but the file holds "
+                         f"{len(words) - 4:,} numbers after it")
 
 
 def _absolute_corner(path: Path, number: int, raw: str, word: str, counts: dict) -> str:
@@ -195,6 +218,8 @@ def load_mesh_scene(files, params, time):
     if suffix == ".obj":
         obj_text = checked_obj_text(path)
         mtl = read_mtllibs(path, warnings)
+    elif suffix == ".off":
+        check_off(path)
     try:
         if suffix == ".obj":
             loaded = trimesh.load(io.StringIO(obj_text), file_type="obj", process=False, maintain_order=True,

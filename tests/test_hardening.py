@@ -581,3 +581,152 @@ def test_nan_vertices_name_the_first_bad_one():
     mesh = trimesh.Trimesh(vertices, [[0, 1, 2], [0, 2, 3]], process=False)
     with pytest.raises(QueryInputError, match=r"mesh.vertices\[1\] = \[nan, 0.0, 0.0\] is not finite \(3 such"):
         RayMeshIntersector(mesh).intersects_first([[0, 0, 5]], [[0, 0, -1]])
+
+
+# Session 37's sweep: each of these was a traceback, a silent wrong answer or a lost output -----
+@pytest.mark.parametrize("keyword, fragment", [({"packet": 8.0}, "render.packet"), ({"packet": np.int64(16)}, None),
+                                               ({"leaf_size": "4"}, "leaf_size"), ({"leaf_size": 1.5}, "leaf_size"),
+                                               ({"bins": None}, "bins"), ({"leaf_size": True}, "leaf_size")])
+def test_ray_tracer_settings_must_be_integers(keyword, fragment):
+    """Before: packet=8.0 was kept and the first query died in numba's typing (a TypingError of
+    many lines); leaf_size="4" was Python's own TypeError from a comparison, naming nothing."""
+    import trimesh
+    from engine import RayTracer
+
+    box = trimesh.creation.box()
+    if fragment is None:
+        assert RayTracer(box, **keyword).intersects_first([[0, 0, 5]], [[0, 0, -1]]).tolist() == [4]
+        return
+    with pytest.raises((ValueError, TypeError), match=fragment) as info:
+        RayTracer(box, **keyword)
+    assert isinstance(info.value, PacketrtError) and "\n" not in str(info.value)
+
+
+def test_intersector_build_settings_are_checked_when_made():
+    """Before: RayMeshIntersector(mesh, leaf_size="x") was accepted and its first query raised
+    Python's comparison TypeError."""
+    import trimesh
+    from engine import RayMeshIntersector
+    from engine.query.errors import QueryInputError, QueryTypeError
+
+    with pytest.raises(QueryTypeError, match="leaf_size"):
+        RayMeshIntersector(trimesh.creation.box(), leaf_size="x")
+    with pytest.raises(QueryInputError, match="bins must be in 2..256"):
+        RayMeshIntersector(trimesh.creation.box(), bins=1)
+
+
+@pytest.mark.parametrize("dtype", [complex, str, object])
+def test_vertices_must_be_real_numbers(dtype):
+    """Before: complex vertices lost their imaginary part with only numpy's warning, and string
+    or object vertices were parsed."""
+    import trimesh
+    from engine import RayTracer
+    from engine.core.errors import SceneTypeError
+
+    box = trimesh.creation.box()
+    with pytest.raises(SceneTypeError, match="vertices must be real numbers"):
+        RayTracer((np.asarray(box.vertices).astype(dtype), box.faces))
+
+
+@pytest.mark.parametrize("scale, refused", [(1e-6, False), (1e-10, False), (1e-11, True), (1e-20, True)])
+def test_a_scene_too_small_for_float32_is_refused_not_missed(scale, refused):
+    """Before: a box 1e-20 across answered every ray as a miss (Embree's answers too), and at
+    1e-15 the hits named other faces than Embree's; RayMeshIntersector rescales and answers."""
+    import trimesh
+    from engine import RayMeshIntersector, RayTracer
+
+    box = trimesh.creation.box()
+    mesh = trimesh.Trimesh(box.vertices * scale, box.faces, process=False)
+    origin, direction = [[0.1 * scale, 0.2 * scale, 5 * scale]], [[0, 0, -1.0]]
+    assert RayMeshIntersector(mesh).intersects_first(origin, direction).tolist() == [4]
+    if refused:
+        with pytest.raises(SceneError, match="across; packetrt's float32 kernels need"):
+            RayTracer(mesh)
+    else:
+        assert RayTracer(mesh).intersects_first(origin, direction).tolist() == [4]
+
+
+def test_a_far_bound_is_infinite_without_a_warning():
+    """Before: tmax=1e300 answered right but printed numpy's overflow warning from the cast."""
+    import warnings
+
+    import trimesh
+    from engine import RayTracer
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        hits = RayTracer(trimesh.creation.box()).intersect([[0, 0, 5]], [[0, 0, -1]], tmax=1e300)
+    assert hits.prim.tolist() == [4]
+
+
+def test_two_outputs_on_one_path_stop_before_the_work(tmp_path, capsys, monkeypatch):
+    """Before: -o and --stats on one path exited 0 with the image replaced by the JSON; audit's
+    --json on its --report folder failed only after the audit, leaving the folder made."""
+    import engine.cli as cli
+
+    monkeypatch.setattr(cli, "_load_scene", lambda *a: pytest.fail("the scene was loaded before the check"))
+    same = tmp_path / "x.png"
+    one_error(["render", *TINY, "-o", same, "--stats", tmp_path / "." / "x.png"], capsys, "-o and --stats both write")
+    one_error(["render", *TINY, "-o", ""], capsys, "-o needs a file name")
+    report = tmp_path / "report"
+    one_error(["audit", *TINY, "--json", report, "--report", report], capsys, "--json and --report both write")
+    one_error(["audit", *TINY, "--json", report / "audit.json", "--report", report], capsys, "audit.json")
+    assert not same.exists() and not report.exists()
+
+
+def test_a_resumed_bench_names_the_lines_it_measures_again(tmp_path, monkeypatch, capsys):
+    """Before: unreadable lines of results.jsonl were dropped (and a torn tail cut off) without
+    a word, the run exiting 0."""
+    from engine.bench import runner
+
+    def stop(todo, source=None):
+        raise PacketrtError("stopped before any work")
+
+    monkeypatch.setattr(runner, "preflight", stop)
+    (tmp_path / "results.jsonl").write_text('{garbage\n[1, 2]\n{"id": "x", "seconds": "x"}\n{"id": "tor')
+    code, lines = run(["bench", SMOKE, "--out", tmp_path, "--resume"], capsys)
+    assert code == 2 and lines[-1] == "packetrt: error: stopped before any work"
+    warning = [line for line in lines if "warning" in line]
+    assert len(warning) == 1 and "3 unreadable line(s) skipped (line 1, 2, 3)" in warning[0], lines
+    assert "a torn last line of 11 bytes cut off" in warning[0]  # {"id": "tor
+
+
+@pytest.mark.parametrize("text, fragment", [("", "not an OFF file: it is empty"),
+                                            ("PLY\n3 1 0\n", "expected the word OFF first, got 'PLY'"),
+                                            ("OFF\n3 x 0\n", "expected three counts"),
+                                            ("OFF\n99999999999 1 0\n0 0 0\n", "declares 99,999,999,999 vertices")])
+def test_a_bad_off_header_says_what_was_expected(tmp_path, capsys, text, fragment):
+    """Before: numpy's words ("not enough values to unpack", "cannot reshape array of size 3")."""
+    one_error(["render", "--scene", obj(tmp_path, text, "m.off"), *TINY, "-o", tmp_path / "x.png"], capsys,
+              "m.off", fragment)
+
+
+@pytest.mark.parametrize("line, fragment", [("vn nan 0 1", ":4: normal 'vn nan 0 1'"),
+                                            ("vt nan 0", ":4: texture coordinate 'vt nan 0'"),
+                                            ("vn 0 1", ":4: normal 'vn 0 1' has fewer than 3")])
+def test_every_obj_number_is_checked_used_or_not(tmp_path, capsys, line, fragment):
+    """Before: a NaN normal, or a NaN texture coordinate no face used, rendered with exit 0."""
+    text = "v 0 0 0\nv 1 0 0\nv 0 1 0\n" + line + "\nf 1 2 3\n"
+    one_error(["render", "--scene", obj(tmp_path, text), *TINY, "-o", tmp_path / "x.png"], capsys, "m.obj", fragment)
+
+
+@pytest.mark.parametrize("body, fragment", [("s 0 0 0 -1\n", ":4: 's' radius must be >= 0, got -1"),
+                                            ("c 0 0 0 1 0 1 0 -0.5\n", ":4: 'c' radii must be >= 0")])
+def test_negative_radii_in_an_aff_are_one_line(tmp_path, capsys, body, fragment):
+    one_error(["render", "--scene", obj(tmp_path, AFF_HEAD + body, "s.aff"), *TINY, "-o", tmp_path / "x.png"],
+              capsys, fragment)
+
+
+def test_a_damaged_frame_image_is_rendered_again_on_resume(tmp_path, capsys):
+    """Before: --resume over a truncated frame PNG failed at the end with Pillow's "image file is
+    truncated", naming no file."""
+    scene = obj(tmp_path, AFF_HEAD + "a 0 1 2\nk m { transl 2 0 0 0 0 0 0 0 1 1 0 0 0 0 0 }\nx m { s 0 0 0 1 }\n", "moving.aff")
+    out = tmp_path / "anim"
+    argv = ["animate", "--scene", scene, *TINY, "-o", out]
+    assert run(argv, capsys)[0] == 0
+    frame = sorted(out.glob("frame_*.png"))[1]
+    frame.write_bytes(frame.read_bytes()[:100])
+    code, _ = run(argv + ["--resume", "--stats", tmp_path / "s.json"], capsys)
+    assert code == 0
+    stats = json.loads((tmp_path / "s.json").read_text())
+    assert stats["frames_rendered"] == 1 and stats["frames_resumed"] == 1

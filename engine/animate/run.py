@@ -54,12 +54,30 @@ def _load_records(out: Path, identity: dict, resume: bool) -> dict:
         data = json.loads(file.read_text(encoding="utf-8"))
         frames = {int(k): v for k, v in data["frames"].items()}
         earlier = data["identity"]
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise PacketrtError(f"{file}: not a packetrt animation record ({exc}); choose another folder") from None
+    except OSError as exc:
+        raise PacketrtError(f"{file}: cannot read ({exc.strerror or exc}); choose another folder") from None
+    except (ValueError, KeyError, TypeError, AttributeError):
+        raise PacketrtError(f"{file}: not a packetrt animation record (expected a JSON object with \"identity\" "
+                            f"and \"frames\": {{index: record}}); choose another folder") from None
     if earlier != json.loads(json.dumps(identity)):
         raise PacketrtError(f"{out} holds frames of a different animation (config or frame times differ); "
                             f"choose another folder")
-    return {i: r for i, r in frames.items() if _well_formed(r) and (out / FRAME_NAME.format(i)).is_file()}
+    return {i: r for i, r in frames.items() if _well_formed(r) and _readable_image(out / FRAME_NAME.format(i))}
+
+
+def _readable_image(path: Path) -> bool:
+    """Whether an earlier frame's PNG is there and decodes whole (a run cut off mid-write, or a
+    damaged file: the frame is rendered again rather than failing the preview at the end)."""
+    from PIL import Image
+
+    if not path.is_file():
+        return False
+    try:
+        with Image.open(path) as picture:
+            picture.load()
+    except Exception:  # Pillow raises many types (OSError, SyntaxError, ValueError ...) for a bad file
+        return False
+    return True
 
 
 def _well_formed(record) -> bool:

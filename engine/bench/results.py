@@ -54,22 +54,39 @@ SCHEMA = 1
 
 def read_results(path: Path) -> tuple[list, int]:
     """(records, bytes of complete lines) of a results.jsonl; a torn or unreadable line, or a record
-    the tables cannot read (``_readable``), is skipped."""
+    the tables cannot read (``_readable``), is skipped (``skipped_lines`` says which)."""
+    records, complete, _ = _read(path)
+    return records, complete
+
+
+def skipped_lines(path: Path) -> tuple[list, int]:
+    """(numbers of the complete lines ``read_results`` skips, bytes of a torn last line): what a
+    ``--resume`` measures again, for its warning."""
     if not path.is_file():
         return [], 0
+    _, complete, skipped = _read(path)
+    return skipped, path.stat().st_size - complete
+
+
+def _read(path: Path) -> tuple[list, int, list]:
+    if not path.is_file():
+        return [], 0, []
     data = path.read_bytes()
     complete = data.rfind(b"\n") + 1  # anything after the last newline is a torn write
-    records = []
-    for line in data[:complete].splitlines():
+    records, skipped = [], []
+    for number, line in enumerate(data[:complete].split(b"\n"), 1):
         if not line.strip():
             continue
         try:
             record = json.loads(line)
         except ValueError:
+            skipped.append(number)
             continue
         if isinstance(record, dict) and "id" in record and _readable(record):
             records.append(record)
-    return records, complete
+        else:
+            skipped.append(number)
+    return records, complete, skipped
 
 
 def _readable(record: dict) -> bool:

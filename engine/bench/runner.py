@@ -517,6 +517,13 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
     path = out / results_io.RESULTS
     output_file(path, "--out")  # a folder in its place is one line now, not after the first cell
     if resume:
+        skipped, torn = results_io.skipped_lines(path)
+        if skipped or torn:
+            lines = ", ".join(map(str, skipped[:10])) + (" ..." if len(skipped) > 10 else "")
+            print(f"packetrt bench: warning: {path}: " + "; ".join(
+                  ([f"{len(skipped)} unreadable line(s) skipped (line {lines})"] if skipped else [])
+                  + ([f"a torn last line of {torn} bytes cut off"] if torn else []))
+                  + "; their cells are measured again", file=sys.stderr)
         results_io.repair(path)
     elif path.is_file() and path.stat().st_size:
         backup = free_backup_name(path)

@@ -48,6 +48,15 @@ def _special_target(target: Path) -> bool:
     raise PacketrtError(f"cannot write {str(target)!r}: it is {what}, not a file")
 
 
+def is_device(path) -> bool:
+    """Whether ``path`` is a character device (``/dev/null``): written into, never replaced, so
+    two outputs may name it. False for anything else, or a path that cannot be looked at."""
+    try:
+        return stat.S_ISCHR(Path(path).stat().st_mode)
+    except OSError:
+        return False
+
+
 def _followed(path) -> Path:
     """``path`` with a symbolic link at its end followed: writing to a link writes the file it
     points to and leaves the link in place (a rename would replace the link itself)."""

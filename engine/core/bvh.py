@@ -13,7 +13,7 @@ import time
 import numpy as np
 from numba import njit
 
-from engine.core.errors import ConfigError
+from engine.core.errors import ConfigError, ConfigTypeError
 from engine.core.types import BVH, MAX_BVH_DEPTH, Triangles
 
 #: Relative cost of one node traversal step against one ray-triangle test.
@@ -201,15 +201,26 @@ def _pad_boxes(bmin, bmax, pmin, pmax) -> None:
     bmax += pad
 
 
+def check_build_settings(leaf_size, bins) -> tuple[int, int]:
+    """(leaf_size, bins) as ints if each is an integer in its range (leaf_size 1..255, bins
+    2..256); else a ConfigTypeError (not an integer: a float, string, bool or None) or a
+    ConfigError (out of range), one line naming the setting."""
+    settings = []
+    for name, value, lo, hi in (("leaf_size", leaf_size, 1, 255), ("bins", bins, 2, 256)):
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+            raise ConfigTypeError(f"bvh {name} must be an integer in {lo}..{hi}, got {value!r}")
+        if not lo <= value <= hi:
+            raise ConfigError(f"bvh {name} must be in {lo}..{hi}, got {value}")
+        settings.append(int(value))
+    return settings[0], settings[1]
+
+
 def build_bvh(tris: Triangles, *, leaf_size: int = 4, bins: int = 16, split: str = "sah") -> BVH:
     """Build a BVH over ``tris``: binned SAH with ``bins`` bins, leaves of <= ``leaf_size``.
 
     ``split = "median"`` builds an object-median tree instead (a baseline for SAH quality).
     """
-    if not 1 <= leaf_size <= 255:
-        raise ConfigError(f"bvh leaf_size must be in 1..255, got {leaf_size}")
-    if not 2 <= bins <= 256:
-        raise ConfigError(f"bvh bins must be in 2..256, got {bins}")
+    leaf_size, bins = check_build_settings(leaf_size, bins)
     methods = {"sah": SPLIT_SAH, "median": SPLIT_MEDIAN}
     if split not in methods:
         raise ConfigError(f"bvh split must be one of {sorted(methods)}, got {split!r}")

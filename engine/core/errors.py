@@ -18,6 +18,10 @@ class SceneError(PacketrtError):
     """A scene file is missing or malformed; the message names file and line."""
 
 
+class SceneTypeError(SceneError, TypeError):
+    """Geometry of the wrong type (vertices of strings, objects or complex numbers)."""
+
+
 class ConfigError(PacketrtError):
     """A config key, value or plugin name is not allowed; the message lists what is."""
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from engine.core import checked
 from engine.core.checked import COORDINATE_LIMIT
-from engine.core.errors import SceneError
+from engine.core.errors import SceneError, SceneTypeError
 from engine.core.types import Triangles
 
 
@@ -105,6 +105,10 @@ class Scene:
 def checked_vertices(vertices, faces: np.ndarray, source: str) -> np.ndarray:
     """f64[V,3] ``vertices`` if they are finite, within float32's reach (+-COORDINATE_LIMIT)
     and every index of ``faces`` (i64[T,3]) names one of them; else a SceneError naming ``source``."""
+    kind = np.asarray(vertices).dtype.kind
+    if kind not in "iuf":  # float64 would drop an imaginary part or parse strings
+        raise SceneTypeError(f"{source}: vertices must be real numbers (an integer or float array), "
+                             f"got {np.asarray(vertices).dtype}")
     vertices = np.asarray(vertices, np.float64)
     if vertices.ndim != 2 or vertices.shape[1] != 3:
         raise SceneError(f"{source}: vertices must have shape (V, 3), got {vertices.shape}")
@@ -234,6 +238,11 @@ RECENTRE_RATIO = 1e3
 #: away, still fits): float32 rays, frusta and squared distances stay well inside their range.
 MAX_CENTRED = 1e12
 MAX_GEOMETRY = MAX_CENTRED / 10
+#: The least size (the longest side of its box) of a scene with any extent: the watertight test
+#: multiplies three coordinates, and below about 1e-12 those products leave float32's normal
+#: range (a sphere of radius 1e-13 got hit distances 1e-3 off, at 1e-20 every ray missed, Embree's
+#: as ours); 1e-10 keeps two decades from that. RayMeshIntersector rescales and has no limit.
+MIN_GEOMETRY = 1e-10
 
 
 def recentring(lo: np.ndarray, hi: np.ndarray) -> Optional[np.ndarray]:
@@ -386,6 +395,12 @@ def check_scene(scene: Scene, materials: bool = True) -> Scene:
         raise SceneError(f"{where}: the geometry reaches {reach:.3g} from the scene's centre; packetrt supports "
                          f"geometry within +-{MAX_GEOMETRY:.0e} of it and cameras and lights within "
                          f"+-{MAX_CENTRED:.0e} (float32 rays; a scene merely far from the origin is re-centred)")
+    lo, hi = np.asarray(scene.bounds(), np.float64)
+    size = float((hi - lo).max())
+    if 0.0 < size < MIN_GEOMETRY:
+        raise SceneError(f"{where}: the geometry is {size:.3g} across; packetrt's float32 kernels need a scene at "
+                         f"least {MIN_GEOMETRY:.0e} across (scale it up, or query it through RayMeshIntersector, "
+                         f"which rescales)")
     points = {"camera eye": scene.camera.eye, "camera look_at": scene.camera.look_at,
               **{f"light {k + 1}": light.position for k, light in enumerate(scene.lights)}}
     for what, point in points.items():

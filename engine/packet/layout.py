@@ -25,9 +25,11 @@ PACKET_SIZES = (2, 4, 8, 16, 32)
 
 
 def check_packet_size(n: int) -> int:
-    if n not in PACKET_SIZES:
+    """``n`` as an int if it is one of PACKET_SIZES; else a ConfigError (a float such as 8.0 is
+    refused too: the kernels size their arrays with it)."""
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n not in PACKET_SIZES:
         raise ConfigError(f"render.packet must be one of {', '.join(map(str, PACKET_SIZES))}, got {n!r}")
-    return n
+    return int(n)
 
 
 @njit(cache=True, parallel=True)

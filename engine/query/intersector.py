@@ -44,9 +44,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from engine.core.bvh import build_bvh
+from engine.core.bvh import build_bvh, check_build_settings
 from engine.core.bvh_refit import refit_bvh
-from engine.core.errors import memory_errors_as
+from engine.core.errors import ConfigError, ConfigTypeError, memory_errors_as
 from engine.core.scratch import Scratch
 from engine.core.scene import make_triangles
 from engine.core.threads import at_own_threads
@@ -181,6 +181,12 @@ class RayMeshIntersector:
             raise QueryTypeError(f"threads must be an integer >= 0 (0 = all cores), got {threads!r}")
         if threads < 0:
             raise QueryInputError(f"threads must be >= 0 (0 = all cores), got {threads}")
+        try:  # checked here, not at the first query that builds the tree
+            leaf_size, bins = check_build_settings(leaf_size, bins)
+        except ConfigTypeError as exc:
+            raise QueryTypeError(str(exc)) from None
+        except ConfigError as exc:
+            raise QueryInputError(str(exc)) from None
         self.mesh = mesh
         self.threads = int(threads)
         self._leaf_size, self._bins, self._order = leaf_size, bins, order
