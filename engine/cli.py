@@ -164,6 +164,13 @@ def _distinct_outputs(*named) -> None:
                 raise ConfigError(f"{other} and {option} both write {str(path)!r}: give each its own path")
 
 
+def _png_output(option: str, path) -> None:
+    """``path`` (an image output) ends in .png, or is a device such as /dev/null: the image is
+    always a PNG, and x.jpg would hold PNG bytes under a JPEG name."""
+    if path and Path(str(path)).suffix.lower() != ".png" and not atomic.is_device(path):
+        raise ConfigError(f"{option} writes a PNG image; give a name ending in .png, got {str(path)!r}")
+
+
 def _check_outputs(*named) -> None:
     """(option, path or None) pairs: each given file can be written and no two are the same,
     checked before the work."""
@@ -185,6 +192,7 @@ def cmd_render(args) -> int:
     from engine.render.image import save_png
 
     config = _config_from(args)
+    _png_output("-o", args.output)
     _check_outputs(("-o", args.output), ("--stats", args.stats))
     scene = _load_scene(config, args.strict)
     if args.audit:
@@ -213,6 +221,8 @@ def cmd_animate(args) -> int:
     from engine.animate.run import run_animation
     from engine.render.config import validate
 
+    if args.time is not None:
+        raise ConfigError("animate renders the scene's path from --start to --end; --time (one moment) is for render")
     config = _config_from(args)
     _check_outputs(("--stats", args.stats))
     if args.accel is not None:
@@ -239,6 +249,7 @@ def cmd_show(args) -> int:
     if not (64 <= size[0] <= 4096 and 64 <= size[1] <= 4096):
         raise ConfigError(f"--picture must be between 64x64 and 4096x4096, got {size[0]}x{size[1]}")
     config = _cpu_only(_config_from(args), "show")
+    _png_output("-o", args.output)
     _check_outputs(("-o", args.output))
     scene = _load_scene(config, args.strict)
     summary = write_show(scene, config, args.kind, args.packet_index, args.output, size)
@@ -318,6 +329,9 @@ def cmd_audit(args) -> int:
     if args.report:
         atomic.output_folder(args.report, "--report")
         _check_outputs(*(("--report", Path(args.report) / name) for name in REPORT_FILES))
+    if args.scheduler is None and (args.tiles is not None or args.workers is not None):
+        raise ConfigError("--tiles and --workers split the audit over a --scheduler; give --scheduler too, "
+                          "or leave them out")
     scene = _load_scene(config, args.strict)
     tiled = None
     if args.scheduler is not None:  # bands of rows as Dask tasks, merged into one report

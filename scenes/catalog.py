@@ -26,6 +26,7 @@ The scene search path is ``PACKETRT_SCENE_PATH`` (colon-separated folders).
 """
 from __future__ import annotations
 
+import errno
 import os
 import tomllib
 from dataclasses import dataclass, field, replace
@@ -220,13 +221,26 @@ def load_named(name: str, params: dict | None = None, time: float = 0.0) -> Scen
     return _as_entry(LOADERS[entry.loader](files, merged, time), entry)
 
 
+def missing_file(file: Path) -> str:
+    """Why ``file`` (not a regular file) cannot be read as a scene, for a message."""
+    if file.is_dir():
+        return "is a folder, not a file"
+    try:
+        file.stat()
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return "is a loop of symbolic links"
+        return "does not exist"
+    return "is not a regular file"
+
+
 def load_path(path: str, time: float = 0.0) -> Scene:
     """Load a scene file by its own path: .obj/.ply/.stl/.off through trimesh, .aff by the
     BART loader (when registered)."""
     _load_loader_modules()
     file = Path(path).expanduser()
     if not file.is_file():
-        raise SceneError(f"scene file {path!r} does not exist")
+        raise SceneError(f"scene file {path!r} {missing_file(file)}")
     suffix = file.suffix.lower()
     loader = "aff" if suffix == ".aff" else "mesh"
     if loader not in LOADERS:
@@ -299,7 +313,7 @@ def open_path(scene_config, override: str = "none") -> ScenePath:
                               f"scenes only, not to path = {scene_config.path!r}")
         file = Path(scene_config.path).expanduser()
         if not file.is_file():
-            raise SceneError(f"scene file {scene_config.path!r} does not exist")
+            raise SceneError(f"scene file {scene_config.path!r} {missing_file(file)}")
         loader, files, params, entry, name = ("aff" if file.suffix.lower() == ".aff" else "mesh"), [file], {}, None, str(file)
     else:
         entry, params, files = _resolve(scene_config.name, dict(scene_config.params))

@@ -730,3 +730,37 @@ def test_a_damaged_frame_image_is_rendered_again_on_resume(tmp_path, capsys):
     assert code == 0
     stats = json.loads((tmp_path / "s.json").read_text())
     assert stats["frames_rendered"] == 1 and stats["frames_resumed"] == 1
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["render", *TINY, "-o", "x.jpg"], "-o writes a PNG image; give a name ending in .png"),
+    (["render", *TINY, "--traversal", "=single"], "no ray kind before '='"),
+    (["audit", *TINY, "--tiles", "3"], "--tiles and --workers split the audit over a --scheduler"),
+    (["bench", SMOKE, "--workers", "2"], "--workers sizes the local Dask cluster of --scheduler"),
+    (["animate", *TINY, "--time", "0.5"], "--time (one moment) is for render"),
+])
+def test_options_that_would_be_ignored_or_misread_are_one_line(tmp_path, capsys, monkeypatch, argv, fragment):
+    """Before: each was accepted with exit 0 -- a PNG written as x.jpg, '=single' taken for every
+    kind, --tiles / --workers / --time silently ignored."""
+    monkeypatch.chdir(tmp_path)
+    one_error(argv, capsys, fragment)
+    assert not (tmp_path / "x.jpg").exists()
+
+
+@pytest.mark.parametrize("table, fragment", [('path = ""', "path is empty"),
+                                             ('name = "whitted"\npath = "m.obj"', "name (a catalog scene) or path"),
+                                             ('path = "folder"', "is a folder, not a file")])
+def test_a_scene_table_that_names_no_one_scene_is_one_line(tmp_path, capsys, table, fragment):
+    """Before: path = "" rendered the default scene, name and path both let the path win, and
+    a folder was said not to exist."""
+    (tmp_path / "folder").mkdir()
+    config = obj(tmp_path, f"[scene]\n{table}\n", "c.toml")
+    one_error(["render", config, *TINY, "-o", tmp_path / "x.png"], capsys, fragment)
+
+
+def test_a_config_with_a_byte_order_mark_is_read(tmp_path, capsys):
+    """Before: "not valid TOML: Invalid statement (at line 1, column 1)" for a BOM an editor wrote."""
+    config = tmp_path / "c.toml"
+    config.write_bytes("\ufeff[render]\nwidth = 16\nheight = 16\nmax_depth = 1\n".encode("utf-8"))
+    code, _ = run(["render", config, "-o", tmp_path / "x.png"], capsys)
+    assert code == 0 and (tmp_path / "x.png").is_file()

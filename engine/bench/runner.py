@@ -625,6 +625,9 @@ def cmd_bench(args) -> int:
                           f"run around a cell), got {steady}")
     if isinstance(retries, bool) or not isinstance(retries, int) or not 0 <= retries <= 10:
         raise ConfigError(f"--retries must be an integer in 0..10, got {retries}")
+    if getattr(args, "workers", None) is not None and getattr(args, "scheduler", None) is None:
+        raise ConfigError("--workers sizes the local Dask cluster of --scheduler; give --scheduler too, or leave "
+                          "--workers out (cells run here one at a time)")
     if steady is not None and getattr(args, "scheduler", None) is not None:
         raise ConfigError("--steady measures cells here, one after another; it does not combine with --scheduler")
     summary = run_matrix(matrix, out, resume=args.resume, scheduler=getattr(args, "scheduler", None),

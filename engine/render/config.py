@@ -232,6 +232,12 @@ def from_dict(data: dict, source: str = "<dict>") -> Config:
         if not isinstance(data[section], dict):
             raise ConfigError(f"{source}: [{section}] must be a table")
     scene_table = dict(data.get("scene", {}))
+    if source != "<dict>" and "path" in scene_table:  # a written config; a dict may be a to_dict() round trip
+        if isinstance(scene_table["path"], str) and not scene_table["path"].strip():
+            raise ConfigError(f"{source} [scene]: path is empty; give a scene file, or leave path out for a "
+                              f"catalog name")
+        if "name" in scene_table:
+            raise ConfigError(f"{source} [scene]: give name (a catalog scene) or path (a scene file), not both")
     scene = SceneConfig(
         name=_check_type(f"{source} [scene]", "name", scene_table.pop("name", "whitted"), str),
         path=_check_type(f"{source} [scene]", "path", scene_table.pop("path", ""), str),
@@ -287,7 +293,7 @@ def read_toml(path: str, what: str) -> dict:
             "is not a regular file" if file.exists() else "does not exist"
         raise ConfigError(f"{what} file {path!r} {state}")
     try:
-        return tomllib.loads(file.read_bytes().decode("utf-8"))
+        return tomllib.loads(file.read_bytes().decode("utf-8-sig"))  # a byte-order mark is only a mark
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}); TOML files must be UTF-8") from None
     except OSError as exc:
@@ -307,7 +313,9 @@ def with_overrides(config: Config, *, scene=None, traversal=(), frustum=(), pack
     def apply(per_kind: PerKind, specs, what):
         values = {k: per_kind.get(k) for k in RAY_KINDS}
         for spec in specs:
-            kind, _, name = spec.rpartition("=")
+            kind, equals, name = spec.rpartition("=")
+            if equals and not kind:
+                raise ConfigError(f"--{what} {spec!r}: no ray kind before '='; give KIND=NAME or NAME")
             if kind and kind not in RAY_KINDS:
                 raise ConfigError(f"--{what} {spec!r}: unknown ray kind {kind!r}; allowed: {', '.join(RAY_KINDS)}")
             for k in ([kind] if kind else RAY_KINDS):
