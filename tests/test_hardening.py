@@ -764,3 +764,15 @@ def test_a_config_with_a_byte_order_mark_is_read(tmp_path, capsys):
     config.write_bytes("\ufeff[render]\nwidth = 16\nheight = 16\nmax_depth = 1\n".encode("utf-8"))
     code, _ = run(["render", config, "-o", tmp_path / "x.png"], capsys)
     assert code == 0 and (tmp_path / "x.png").is_file()
+
+
+@pytest.mark.parametrize("traversal, fragment", [
+    ('[{label = "a\\nb", primary = "single"}]', "printable characters without '|'"),
+    ('[{label = "a|b", primary = "single"}]', "printable characters without '|'"),
+    ('[{label = "a", primary = "single"}, {label = "a", primary = "ranged"}]', "label 'a' is already that of"),
+])
+def test_bench_labels_name_one_row_each(tmp_path, capsys, traversal, fragment):
+    """Before: a label with a newline or '|' broke summary.md's table, and two variants labelled
+    alike gave rows nobody could tell apart."""
+    text = MATRIX.format(name="t", res="16").replace('traversal = ["single"]', f"traversal = {traversal}")
+    one_error(["bench", obj(tmp_path, text, "m.toml"), "--out", tmp_path / "o"], capsys, "m.toml", fragment)

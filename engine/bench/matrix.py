@@ -218,6 +218,15 @@ def _fail(source: str, where: str, message: str):
     raise ConfigError(f"{source}: {where}: {message}")
 
 
+def _check_label(source: str, where: str, label) -> None:
+    """A label names a row of the Markdown tables and a series of the plots: a string of 1 to 80
+    printable characters, none of them '|' (a table's column break)."""
+    if not isinstance(label, str):
+        _fail(source, where, f"must be a string, got {label!r}")
+    if not 1 <= len(label) <= 80 or not label.isprintable() or "|" in label:
+        _fail(source, where, f"must be 1 to 80 printable characters without '|', got {label!r}")
+
+
 def _type_name(value) -> str:
     return type(value).__name__
 
@@ -253,8 +262,7 @@ def _plugin(source, where, value, what: str) -> PluginSpec:
                                  f"{', '.join(sorted(extra))}")
         names = tuple(check(value.get(k, PAPER[what][k]), f"{where}.{k}") for k in RAY_KINDS)
         label = value.get("label", ",".join(f"{k}={value[k]}" for k in RAY_KINDS if k in value) or "paper")
-        if not isinstance(label, str):
-            _fail(source, f"{where}.label", f"must be a string, got {label!r}")
+        _check_label(source, f"{where}.label", label)
         return PluginSpec(label, names, _options(source, f"{where}.options", value.get("options", {})))
     _fail(source, where, f"must be a {what} name or a table ({allowed}), got {value!r} ({_type_name(value)})")
 
@@ -323,8 +331,8 @@ def _scene(source, where, value) -> SceneSpec:
                                             f"got {val!r} ({_type_name(val)})")
     if label is None:
         label = name + ("(" + ",".join(f"{k}={v}" for k, v in sorted(table.items())) + ")" if table else "")
-    elif not isinstance(label, str):
-        _fail(source, f"{where}.label", f"must be a string, got {label!r}")
+    else:
+        _check_label(source, f"{where}.label", label)
     return SceneSpec(name, tuple(sorted(table.items())), float(time), label)
 
 
@@ -379,6 +387,11 @@ def _axes(source, table: dict, where: str, required: bool) -> dict:
             _fail(source, f"{where}{axis}", "axis is empty; give at least one value"
                                             + (f" ({hint[axis]})" if axis in hint else ""))
         parsed[axis] = [_axis_value(source, f"{where}{axis}[{i}]", axis, v) for i, v in enumerate(values)]
+        labels = [getattr(v, "label", None) for v in parsed[axis]]
+        for i, label in enumerate(labels):
+            if label is not None and label in labels[:i]:  # two rows of a table or plot would read alike
+                _fail(source, f"{where}{axis}[{i}]", f"label {label!r} is already that of {axis}[{labels.index(label)}]; "
+                                                     f"give each value its own label")
     return parsed
 
 
