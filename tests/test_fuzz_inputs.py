@@ -1,5 +1,7 @@
 """Property-based hardening (issue 16): malformed and extreme OBJ, MTL, PLY, .aff and TOML
-inputs and absurd numbers, run through the CLI's ``main()`` in this process.
+inputs and absurd numbers, run through the CLI's ``main()`` in this process; and odd values for
+every argument of ``RayTracer`` and ``RayMeshIntersector`` and their query keywords (session 37),
+which must be answered or refused as one-line packetrt errors.
 
 Whatever the input, the promise is: exit code 0 or 2; for 2, exactly one stderr line
 ``packetrt: error: ...``; never a traceback; the output path holds either the earlier file,
@@ -21,7 +23,7 @@ from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from engine.cli import main
@@ -190,3 +192,73 @@ def test_absurd_numbers_on_the_command_line(fresh, param, value, option, number)
     argv = ["render", "--param", f"{param}={value}", *SMALL, option, number, "-o", out]
     code, err = run_cli(argv, out)
     assert_promise(code, err, out)
+
+
+# -- the Python API's arguments ------------------------------------------------------------------
+import numpy as np  # noqa: E402
+
+ODD_VALUES = st.one_of(st.sampled_from([None, True, False, "", "8", "x", "partition", "general", "cpu", 8.0, 1.5,
+                                        float("nan"), float("inf"), -1, 0, 1, 2, 3, 4, 8, 16, 32, 256, 10**19,
+                                        np.int64(8), np.float32(4), np.bool_(True), [8], (4,), {"a": 1},
+                                        b"8", 1j]),
+                       st.integers(-10**6, 10**6), st.floats(allow_nan=True, allow_infinity=True),
+                       st.text(max_size=6))
+TRACER_ARGUMENTS = ["traversal", "frustum", "packet", "threads", "leaf_size", "bins"]
+INTERSECTOR_ARGUMENTS = ["leaf_size", "bins", "order", "threads"]
+
+
+def made_or_refused(make, query):
+    """``make()`` answers a query, or refuses in one line as a packetrt error (a ValueError, or
+    also a TypeError for a wrong type): never numba's typing errors, Python's own comparison
+    TypeErrors or a mesh silently built wrong (what session 37's hand sweep found)."""
+    from engine.core.errors import PacketrtError
+
+    try:
+        made = make()
+    except PacketrtError as exc:
+        assert "\n" not in str(exc) and str(exc), repr(exc)
+        return
+    assert query(made) == [4]
+
+
+@given(st.sampled_from(TRACER_ARGUMENTS), ODD_VALUES)
+@example("packet", 8.0).via("session 37: kept, then numba's TypingError at the first query")
+@example("leaf_size", "4").via("session 37: Python's comparison TypeError")
+@example("traversal", [8]).via("session 37 (profile long): 'unhashable type: list' in the registry")
+def test_ray_tracer_arguments(argument, value):
+    import trimesh
+    from engine import RayTracer
+
+    box = trimesh.creation.box()
+    made_or_refused(lambda: RayTracer(box, **{argument: value}),
+                    lambda tracer: tracer.intersects_first([[0.1, 0.2, 5]], [[0, 0, -1]]).tolist())
+
+
+@given(st.sampled_from(INTERSECTOR_ARGUMENTS), ODD_VALUES)
+def test_intersector_arguments(argument, value):
+    import trimesh
+    from engine import RayMeshIntersector
+
+    box = trimesh.creation.box()
+    made_or_refused(lambda: RayMeshIntersector(box, **{argument: value}),
+                    lambda intersector: intersector.intersects_first([[0.1, 0.2, 5]], [[0, 0, -1]]).tolist())
+
+
+@given(st.sampled_from(["tmin", "tmax", "multiple_hits", "max_hits", "return_locations"]), ODD_VALUES)
+def test_query_keywords(keyword, value):
+    """A query's keywords: answered or refused in one line, on both faces of the API."""
+    import trimesh
+    from engine import RayMeshIntersector, RayTracer
+    from engine.core.errors import PacketrtError
+
+    box = trimesh.creation.box()
+    origin, direction = [[0.1, 0.2, 5]], [[0, 0, -1]]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a bad ray is a counted miss (BadRayWarning), not a failure
+        try:
+            if keyword in ("tmin", "tmax"):
+                RayTracer(box).intersect(origin, direction, **{keyword: value})
+            else:
+                RayMeshIntersector(box).intersects_id(origin, direction, **{keyword: value})
+        except PacketrtError as exc:
+            assert "\n" not in str(exc) and str(exc), repr(exc)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from importlib import metadata
 
-from engine.core.errors import ConfigError
+from engine.core.errors import ConfigError, ConfigTypeError
 
 TRAVERSALS: dict = {}
 FRUSTA: dict = {}
@@ -50,7 +50,10 @@ def _registrar(table: dict, name: str):
 
 
 def factory(table: dict, name: str, what: str) -> type:
-    """The class registered as ``name`` in ``table``; ConfigError listing the names if unknown."""
+    """The class registered as ``name`` in ``table``; ConfigError listing the names if unknown
+    (ConfigTypeError for a name that is not a string)."""
+    if not isinstance(name, str):
+        raise ConfigTypeError(f"a {what} is named by a string ({', '.join(sorted(table))}), got {name!r}")
     if name not in table:
         allowed = ", ".join(sorted(table))
         raise ConfigError(f"unknown {what} {name!r}; registered {what}s: {allowed}")
