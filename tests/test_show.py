@@ -318,7 +318,9 @@ def test_node_colours_follow_the_live_fraction():
 
 @pytest.mark.parametrize("argv,message", [
     (["--kind", "sideways"], "--kind must be one of primary, shadow, reflection, refraction"),
-    (["--kind", "reflection", "--depth", "0"], "casts no reflection rays"),
+    (["--kind", "reflection", "--depth", "0"], "casts no reflection rays (max depth 0 casts camera rays only"),
+    # before session 37 the refraction one blamed the materials of a scene with a glass sphere
+    (["--kind", "refraction", "--depth", "0"], "casts no refraction rays (max depth 0 casts camera rays only"),
     (["--packet-index", "100000"], "is out of range: the first primary batch has 64 packets (valid 0..63)"),
     (["--picture", "10x10"], "--picture must be between 64x64 and 4096x4096"),
 ])

@@ -343,11 +343,15 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
     renderer = renderer or WhittedRenderer(scene, config)
     captured = capture_batch(renderer, kind)
     if captured is None:
-        hint = {"shadow": "the scene has no lights or nothing is lit",
-                "reflection": "no material reflects; try --override reflective",
-                "refraction": "no material refracts; try --override refractive"}.get(kind, "")
-        depth = f", max depth {config.render.max_depth}" if kind in ("reflection", "refraction") else ""
-        raise PacketrtError(f"this render of {scene.name!r} casts no {kind} rays ({hint}{depth})")
+        secondary = kind in ("reflection", "refraction")
+        if secondary and config.render.max_depth == 0:  # no generation after the camera rays
+            hint = "max depth 0 casts camera rays only; give --depth 1 or more"
+        else:
+            hint = {"shadow": "the scene has no lights or nothing is lit",
+                    "reflection": "no material reflects; try --override reflective",
+                    "refraction": "no material refracts; try --override refractive"}.get(kind, "")
+            hint += f", max depth {config.render.max_depth}" if secondary else ""
+        raise PacketrtError(f"this render of {scene.name!r} casts no {kind} rays ({hint})")
     rays, packets, query, answer, n_batches = captured
     n_packets = len(packets.offsets) - 1
     if packet_index is None:
