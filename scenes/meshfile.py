@@ -167,6 +167,33 @@ def check_off(path: Path) -> None:
                          f"{len(words) - 4:,} numbers after it")
 
 
+def check_ascii_ply(path: Path) -> None:
+    """An ASCII PLY holds a line for every element its header declares (trimesh reads a file cut
+    short as one without faces: "the file holds no triangles"); other PLY files pass unread."""
+    with open(path, "rb") as file:
+        head = file.read(4096)
+    if b"format ascii" not in head.split(b"end_header", 1)[0]:
+        return
+    lines = path.read_text(errors="replace").splitlines()
+    try:
+        end = next(i for i, line in enumerate(lines) if line.strip() == "end_header")
+    except StopIteration:
+        raise SceneError(f"{path}: the PLY header has no end_header line") from None
+    declared = []
+    for line in lines[:end]:
+        words = line.split()
+        if len(words) == 3 and words[0] == "element":
+            if not words[2].isdigit():
+                raise SceneError(f"{path}: element {words[1]!r} has count {words[2]!r}; expected a whole number")
+            declared.append((words[1], int(words[2])))
+    rows = sum(1 for line in lines[end + 1:] if line.strip())
+    wanted = sum(count for _, count in declared)
+    if rows < wanted:
+        counts = ", ".join(f"{name} {count:,}" for name, count in declared)
+        raise SceneError(f"{path}: the header declares element {counts} ({wanted:,} lines), but the file holds "
+                         f"{rows:,} lines after it: is it cut short?")
+
+
 def _absolute_corner(path: Path, number: int, raw: str, word: str, counts: dict) -> str:
     """One face corner ``v[/vt][/vn]`` with negative indices counted back from the lists so far."""
     parts = word.split("/")
@@ -220,6 +247,8 @@ def load_mesh_scene(files, params, time):
         mtl = read_mtllibs(path, warnings)
     elif suffix == ".off":
         check_off(path)
+    elif suffix == ".ply":
+        check_ascii_ply(path)
     try:
         if suffix == ".obj":
             loaded = trimesh.load(io.StringIO(obj_text), file_type="obj", process=False, maintain_order=True,

@@ -776,3 +776,15 @@ def test_bench_labels_name_one_row_each(tmp_path, capsys, traversal, fragment):
     alike gave rows nobody could tell apart."""
     text = MATRIX.format(name="t", res="16").replace('traversal = ["single"]', f"traversal = {traversal}")
     one_error(["bench", obj(tmp_path, text, "m.toml"), "--out", tmp_path / "o"], capsys, "m.toml", fragment)
+
+
+def test_an_ascii_ply_cut_short_says_so(tmp_path, capsys):
+    """Before: trimesh read the file as one without faces: "the file holds no triangles"."""
+    header = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+              "element face 1\nproperty list uchar int vertex_indices\nend_header\n")
+    one_error(["render", "--scene", obj(tmp_path, header + "0 0 0\n1 0 0\n", "m.ply"), *TINY, "-o",
+               tmp_path / "x.png"], capsys, "m.ply: the header declares element vertex 3, face 1 (4 lines), "
+                                            "but the file holds 2 lines after it")
+    code, _ = run(["render", "--scene", obj(tmp_path, header + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", "m.ply"), *TINY,
+                   "-o", tmp_path / "x.png"], capsys)
+    assert code == 0
