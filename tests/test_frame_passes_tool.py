@@ -1,23 +1,12 @@
 """tools/frame_passes.py: every pass is timed and the renderer's kernels are back afterwards."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import engine.render.whitted as whitted
-
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "frame_passes.py"
-
-
-def load_tool():
-    spec = importlib.util.spec_from_file_location("frame_passes", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from tests.tools_loader import load_tool
 
 
 def test_the_passes_of_a_small_frame_are_timed_and_restored(tmp_path, capsys):
-    tool = load_tool()
+    tool = load_tool("frame_passes")
     before = {name: getattr(whitted, name) for name in tool.PASSES}
     config = tmp_path / "c.toml"
     config.write_text("[render]\nwidth = 32\nheight = 32\nmax_depth = 2\n")
@@ -30,5 +19,5 @@ def test_the_passes_of_a_small_frame_are_timed_and_restored(tmp_path, capsys):
 
 
 def test_a_wrong_command_line_prints_the_usage(capsys):
-    assert load_tool().main([]) == 2
+    assert load_tool("frame_passes").main([]) == 2
     assert "frame_passes.py CONFIG.toml" in capsys.readouterr().err

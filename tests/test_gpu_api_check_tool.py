@@ -1,24 +1,13 @@
 """``tools/gpu_api_check.py`` runs only on a GPU machine with torch and CuPy; its ray sets are
 made here, so a change to the camera or the scene API breaks this test rather than a lease."""
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 
 from scenes.catalog import load_named
-
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "gpu_api_check.py"
-
-
-def load_tool():
-    spec = importlib.util.spec_from_file_location("gpu_api_check", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
+from tests.tools_loader import load_tool
 
 def test_the_tools_ray_sets_are_float32_rays_of_the_asked_size():
-    tool = load_tool()
+    tool = load_tool("gpu_api_check")
     scene = load_named("whitted")
     for org, dirs in (tool.camera_rays(scene, 24), tool.incoherent_rays(scene, 576)):
         assert org.shape == dirs.shape == (576, 3)

@@ -2,7 +2,6 @@
 made-up wheels (no network): what is kept and dropped, the drjit pin read from METADATA, and an
 unpack that lands whole, restores modes, replaces an old folder, and refuses a zip built for
 another Python or one whose paths climb out of the folder."""
-import importlib.util
 import json
 import sys
 import zipfile
@@ -11,16 +10,7 @@ from pathlib import Path
 import pytest
 
 from engine.core.errors import PacketrtError
-
-TOOLS = Path(__file__).resolve().parents[1] / "tools"
-
-
-def load_tool(name):
-    spec = importlib.util.spec_from_file_location(f"packetrt_tool_{name}", TOOLS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
+from tests.tools_loader import load_tool
 
 wheels = load_tool("gpu_wheels")
 unpacker = load_tool("gpu_unpack")
