@@ -5,7 +5,6 @@ another Python or one whose paths climb out of the folder."""
 import json
 import sys
 import zipfile
-from pathlib import Path
 
 import pytest
 
