@@ -490,7 +490,7 @@ def test_gpu_variant_may_name_a_traversal_per_ray_kind():
     kind, for frames only; a partial table or one with ray sets is refused, naming the key."""
     from engine.bench.gpu import check_matrix, variant_traversals
 
-    scene = [{"name": "cornell-box"}]
+    scene = [{"name": "cornell-box", "recursion": "render-defaults"}]  # kitchen-paper (the default) limits lights
     per_kind = {"primary": "bvh", "shadow": "rayspace", "reflection": "rayspace", "refraction": "rayspace"}
     check_matrix({"kind": "gpu", "scene": scene, "variant": [{"label": "r", "traversal": per_kind, "rays": False}]},
                  "g.toml")

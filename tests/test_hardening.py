@@ -14,6 +14,7 @@ import resource
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -360,7 +361,7 @@ def test_a_paired_variant_with_unicode_digits_is_one_line(tmp_path, capsys):
 @pytest.mark.parametrize("text,fragment", [
     ('kind = "trimesh"\nmesh = 5\n', "[[mesh]]"),
     ('kind = "trimesh"\nqueries = 5\n[[mesh]]\nscene = "whitted"\n', "queries must be a list"),
-    ('kind = "trimesh"\n[[mesh]]\nscene = "whitted"\nlabel = ["x"]\n', "mesh[0].label must be a string"),
+    ('kind = "trimesh"\n[[mesh]]\nscene = "whitted"\nlabel = ["x"]\n', "mesh[0].label: must be a string"),
 ])
 def test_trimesh_matrix_types_are_checked_before_any_query(tmp_path, capsys, text, fragment):
     """Before: a TypeError traceback (mesh = 5, queries = 5), or every query run and then a
@@ -788,3 +789,117 @@ def test_an_ascii_ply_cut_short_says_so(tmp_path, capsys):
     code, _ = run(["render", "--scene", obj(tmp_path, header + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", "m.ply"), *TINY,
                    "-o", tmp_path / "x.png"], capsys)
     assert code == 0
+
+
+# Session 37's second sweep: the other matrix kinds, and Configs built by hand ------------------
+DYNAMIC = 'kind = "dynamic"\nframes = 2\nresolution = 16\n[[scene]]\n{scene}\n[[variant]]\nlabel = "a"\n{variant}\n'
+
+
+@pytest.mark.parametrize("scene, variant, fragment", [
+    ('name = "bart-museum"\nparams = 5', "", "params: must be a table of the scene's parameters"),
+    ('name = "bart-museum"\nrecursion = []', "", "recursion: unknown preset []"),
+    ('name = "whitted"\nrecursion = "kitchen-paper"', "", "preset 'kitchen-paper' sets how many lights"),
+    ('name = "nosuch"', "", "unknown scene 'nosuch'"),
+    ('name = "bart-museum"\nparams = { lights = 99 }\nrecursion = "shadows"', "", "lights = 99"),
+    ('name = "bart-museum"', 'compare_fresh = "yes"', "compare_fresh: must be true or false"),
+    ('name = "bart-museum"', '[[variant]]\nlabel = "b"', "measures the same as scene[0] variant[0]"),
+])
+def test_a_dynamic_matrix_is_checked_whole_before_any_cell(tmp_path, capsys, scene, variant, fragment):
+    """Before: tracebacks (params = 5, recursion = []), a scene the preset's light count does not
+    fit, a bad scene or light count found only when its cell came up (after the cells before it
+    ran), the same cell measured twice under one id."""
+    matrix = obj(tmp_path, DYNAMIC.format(scene=scene, variant=variant), "d.toml")
+    one_error(["bench", matrix, "--out", tmp_path / "o"], capsys, "d.toml", fragment)
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_dynamic_resolution_of_one_side_is_square():
+    """Before: resolution = [16] ended in "not enough values to unpack"."""
+    from engine.bench.dynamic import load_dynamic
+
+    data = {"kind": "dynamic", "resolution": [16], "scene": [{"name": "bart-museum"}],
+            "variant": [{"label": "a"}]}
+    config = load_dynamic(data, "d.toml")[1][0][3]
+    assert (config.render.width, config.render.height) == (16, 16)
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ('scene = 5\n[[variant]]\nlabel = "a"\ntraversal = "bvh"\n', "needs one or more [[scene]] tables"),
+    ('[[scene]]\nname = "whitted"\nrecursion = "shadows"\nrays = 5\n[[variant]]\nlabel = "a"\ntraversal = "bvh"\n',
+     "rays: must be a list of ray sets"),
+    ('[[scene]]\nname = "whitted"\nrecursion = "shadows"\n[[variant]]\ntraversal = "bvh"\n', "needs label and traversal"),
+    ('[[scene]]\npath = "x.obj"\n[[variant]]\nlabel = "a"\ntraversal = "bvh"\n', "unknown key(s) ['path']"),
+    ('[[scene]]\nname = "whitted"\nrecursion = "shadows"\n[[variant]]\nlabel = "a"\ntraversal = "ranged2"\n',
+     "'ranged2' has no CUDA version"),
+    ('[[scene]]\nname = "whitted"\nrecursion = "nope"\n[[variant]]\nlabel = "a"\ntraversal = "bvh"\n',
+     "unknown preset 'nope'"),
+])
+def test_a_gpu_matrix_is_checked_whole_before_the_gpu_is_asked_for(text, fragment):
+    """Before: scene = 5 or rays = 5 were "'int' object is not iterable", a variant without a
+    label a KeyError, a path scene a KeyError, and unknown names were found when frames began."""
+    import tomllib
+
+    from engine.bench.gpu import check_matrix
+
+    with pytest.raises(ConfigError, match=re.escape(fragment)):
+        check_matrix({"kind": "gpu", **tomllib.loads(text)}, "g.toml")
+
+
+@pytest.mark.parametrize("text, argv, fragment", [
+    ('kind = "Trimesh"\n', [], "kind must be one of gpu, dynamic, trimesh"),
+    ('kind = "trimesh"\nname = "../x"\n[[mesh]]\nscene = "whitted"\n', [], "name: must be 1-100 letters"),
+    ('kind = "trimesh"\nthreads = 100000\n[[mesh]]\nscene = "whitted"\n', [], "threads must be in 0..1024"),
+    ('kind = "trimesh"\n[[mesh]]\nscene = "whitted"\n', ["--resume"], "--resume does not apply"),
+    ('kind = "dynamic"\nname = "a/b"\n', [], "name: must be 1-100 letters"),
+    ('kind = "dynamic"\n', ["--repeat", "3"], "a dynamic matrix sets its own repetitions"),
+])
+def test_every_matrix_kind_checks_its_name_threads_and_options(tmp_path, capsys, text, argv, fragment):
+    """Before: a trimesh or dynamic name could climb out of out/, threads = 100000 was recorded
+    as used, and --resume / --repeat were ignored by the runners that do not take them."""
+    one_error(["bench", obj(tmp_path, text, "m.toml"), "--out", tmp_path / "o", *argv], capsys, fragment)
+
+
+def test_a_trimesh_run_keeps_the_results_it_would_replace(tmp_path, capsys, monkeypatch):
+    """Before: another run's results.jsonl in --out was overwritten."""
+    from engine.bench import trimesh_queries
+
+    monkeypatch.setattr(trimesh_queries, "run", lambda spec, out, progress=None: [])
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "results.jsonl").write_text('{"id": "earlier"}\n')
+    code, lines = run(["bench", obj(tmp_path, 'kind = "trimesh"\n[[mesh]]\nscene = "whitted"\n', "m.toml"),
+                       "--out", out], capsys)
+    assert code == 0 and any("earlier results moved to" in line for line in lines), lines
+    assert (out / "results.jsonl.prev").read_text() == '{"id": "earlier"}\n'
+
+
+@pytest.mark.parametrize("change, fragment", [
+    (lambda c: {"render": None}, "Config.render must be of type RenderConfig"),
+    (lambda c: {"traversal": "single"}, "Config.traversal must be of type PerKind"),
+    (lambda c: {"options": {"a": 1}}, "Config.options must be of type tuple"),
+    (lambda c: {"render": replace(c.render, packet=8.0)}, "render.packet must be one of"),
+    (lambda c: {"render": replace(c.render, width=16.0)}, "render.width must be"),
+])
+def test_a_config_built_by_hand_is_checked_for_types(change, fragment):
+    """Before: RenderConfig(packet=8.0) reached numba (a TypingError of many lines) and
+    render=None an AttributeError, from RayTracer.render and the renderers alike."""
+    import trimesh
+    from engine import RayTracer
+    from engine.render.config import Config
+
+    base = Config()
+    with pytest.raises((ValueError, TypeError), match=re.escape(fragment)) as info:
+        RayTracer(trimesh.creation.box()).render(replace(base, **change(base)))
+    assert isinstance(info.value, PacketrtError)
+
+
+def test_numpy_integers_in_a_config_become_plain_ints():
+    """Before: width=np.int32(16) rendered, and then its --stats dict could not be written as JSON."""
+    import trimesh
+    from engine import RayTracer
+    from engine.render.config import Config
+
+    base = Config()
+    _, stats = RayTracer(trimesh.creation.box()).render(
+        replace(base, render=replace(base.render, width=np.int32(16), height=np.int64(16), max_depth=1)))
+    json.dumps(stats)

@@ -46,13 +46,14 @@ import numpy as np
 
 from engine.bench import results
 from engine.bench.figures import fmt, save, pyplot
-from engine.bench.matrix import PAPER, RECURSION
+from engine.bench.matrix import PAPER, RECURSION, check_labels
 from engine.bench.machine import machine_info
 from engine.core.atomic import output_folder, write_text
-from engine.core.errors import ConfigError
+from engine.core.errors import ConfigError, PacketrtError
 from engine.core.types import RAY_KINDS
 from engine.render.animation import AnimationRenderer, path_summary, plan_times
 from engine.render.config import from_dict
+from scenes.catalog import entries, missing_file
 
 TOP_KEYS = {"kind", "name", "description", "threads", "frames", "resolution", "packet", "scene", "variant"}
 SCENE_KEYS = {"name", "path", "recursion", "params", "label"}
@@ -88,17 +89,35 @@ def _per_kind(value, section) -> dict:
 def cell_config(matrix: dict, scene: dict, variant: dict, source: str):
     """The render Config of one (scene, variant) cell; mistakes name the matrix and key."""
     preset_name = scene.get("recursion", "kitchen-paper")
-    if preset_name not in RECURSION:
+    if not isinstance(preset_name, str) or preset_name not in RECURSION:
         _fail(source, f"scene {_scene_label(scene)!r} recursion", f"unknown preset {preset_name!r}; "
               f"allowed: {', '.join(RECURSION)}")
     preset = RECURSION[preset_name]
-    params = dict(scene.get("params", {}))
-    if not preset.lights:
-        params["lights"] = 0
-    elif preset.max_lights is not None:
-        params["lights"] = preset.max_lights
+    params = scene.get("params", {})
+    if not isinstance(params, dict):
+        _fail(source, f"scene {_scene_label(scene)!r} params", f"must be a table of the scene's parameters "
+              f"(params = {{ lod = 3 }}), got {params!r}")
+    params = dict(params)
+    if "path" in scene and params:
+        _fail(source, f"scene {_scene_label(scene)!r} params", "apply to catalog scenes only, not to a path")
+    catalog = entries()
+    if "name" in scene and scene["name"] not in catalog:
+        _fail(source, f"scene {_scene_label(scene)!r}", f"unknown scene {scene['name']!r}; catalog scenes: "
+              f"{', '.join(sorted(catalog))} (or give path = \"file.aff\")")
+    if "path" in scene and not Path(scene["path"]).expanduser().is_file():
+        _fail(source, f"scene {_scene_label(scene)!r}", f"scene file {scene['path']!r} "
+              f"{missing_file(Path(scene['path']).expanduser())}")
+    # The preset's light count goes to the scene's own `lights` parameter (the BART scenes').
+    if not preset.lights or preset.max_lights is not None:
+        entry = catalog.get(scene.get("name")) if "name" in scene else None
+        if entry is None or "lights" not in entry.params:
+            _fail(source, f"scene {_scene_label(scene)!r} recursion", f"preset {preset_name!r} sets how many "
+                  f"lights cast shadows, which this scene cannot be told (it has no lights parameter); choose a "
+                  f"preset that shades with every light")
+        params["lights"] = 0 if not preset.lights else preset.max_lights
     side = variant.get("resolution", matrix.get("resolution", 1024))
-    width, height = (side, side) if isinstance(side, int) else tuple(side)
+    sides = side if isinstance(side, list) else [side]  # load_dynamic checked: one or two integers
+    width, height = (sides[0], sides[0]) if len(sides) == 1 else sides
     table = {
         "scene": {"path": scene["path"]} if "path" in scene else {"name": scene["name"], **params},
         "render": {"width": width, "height": height, "packet": matrix.get("packet", 16),
@@ -133,16 +152,49 @@ def load_dynamic(data: dict, source: str) -> tuple[dict, list]:
         sides = [side] if not isinstance(side, list) else side
         if len(sides) not in (1, 2) or not all(isinstance(x, int) and not isinstance(x, bool) for x in sides):
             _fail(source, f"{where} resolution", f"must be an integer or [width, height], got {side!r}")
-    cells = []
-    for i, scene in enumerate(_table_list(source, data, "scene", SCENE_KEYS)):
+    cells, where = [], {}
+    scenes, variants = _table_list(source, data, "scene", SCENE_KEYS), _table_list(source, data, "variant", VARIANT_KEYS)
+    for kind, tables in (("scene", scenes), ("variant", variants)):
+        labels = [t["label"] for t in tables if "label" in t]
+        check_labels(source, kind, labels)
+    for k, variant in enumerate(variants):
+        if not isinstance(variant.get("compare_fresh", False), bool):
+            _fail(source, f"variant[{k}] compare_fresh", f"must be true or false, got {variant['compare_fresh']!r}")
+    for i, scene in enumerate(scenes):
         if ("name" in scene) == ("path" in scene):
             _fail(source, f"scene[{i}]", "give a catalog name or a path (one of them)")
-        for variant in _table_list(source, data, "variant", VARIANT_KEYS):
+        for key in ("name", "path"):
+            if key in scene and not isinstance(scene[key], str):
+                _fail(source, f"scene[{i}] {key}", f"must be a string, got {scene[key]!r}")
+        for k, variant in enumerate(variants):
             config = cell_config(data, scene, variant, source)
             frames = variant.get("frames", data.get("frames", 40))
             identity = json.dumps({"config": config.to_dict(), "frames": frames}, sort_keys=True, default=str)
-            cells.append((hashlib.sha1(identity.encode()).hexdigest()[:16], scene, variant, config))
+            cell_id = hashlib.sha1(identity.encode()).hexdigest()[:16]
+            if cell_id in where:  # the same path twice: one record would stand for two rows
+                _fail(source, f"scene[{i}] variant[{k}]", f"measures the same as {where[cell_id]}; give each "
+                                                          f"cell its own settings")
+            where[cell_id] = f"scene[{i}] variant[{k}]"
+            cells.append((cell_id, scene, variant, config))
     return data, cells
+
+
+def preflight(cells: list, source: str) -> None:
+    """Open every distinct scene path of the cells once before any is measured, so that a scene
+    file, parameter or light count the loader refuses is one line naming the matrix now, not
+    after the cells before it ran."""
+    from scenes.catalog import open_path
+
+    seen = set()
+    for _, scene, _, config in cells:
+        key = (config.scene, config.override)
+        if key in seen:
+            continue
+        seen.add(key)
+        try:
+            open_path(config.scene, config.override)
+        except PacketrtError as exc:
+            raise type(exc)(f"{source}: scene {_scene_label(scene)!r}: {exc}") from None
 
 
 def run_cell(matrix: dict, scene: dict, variant: dict, config, cell_id: str, machine: dict) -> dict:
@@ -233,6 +285,7 @@ def run_dynamic(data: dict, source: str, out: Path, resume: bool) -> dict:
     """Run every cell not yet in ``out/results.jsonl`` (all of them unless ``resume``), then
     write dynamic.md and dynamic.png; {"ran", "skipped", "files"}."""
     matrix, cells = load_dynamic(data, source)
+    preflight(cells, source)  # before the output folder is made: a refused scene leaves nothing
     output_folder(out, "--out")
     file = out / results.RESULTS
     done = {r["id"] for r in results.read_results(file)[0]} if resume and file.exists() else set()

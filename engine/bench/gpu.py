@@ -27,15 +27,17 @@ from pathlib import Path
 import numpy as np
 
 from engine.bench.dynamic import cell_config
+from engine.bench.matrix import check_labels
 from engine.bench.gpu_pixels import PixelRecorder, explain
 from engine.bench.gpu_rays import RAY_SETS, ray_sets
 from engine.core import atomic
 from engine.core.errors import ConfigError
 from engine.core.types import RAY_KINDS, Packets
+from engine.render.device_names import device_traversal_name
 
 TOP_KEYS = {"kind", "name", "description", "device", "resolution", "repeat_rays", "repeat_frames", "scene",
             "variant", "audit", "image_check"}
-SCENE_KEYS = {"name", "path", "params", "recursion", "rays", "resolution", "ray_resolutions"}
+SCENE_KEYS = {"name", "params", "recursion", "rays", "resolution", "ray_resolutions"}
 # rays = false: frames only, no ray-set timings; repeat_frames: this variant's frames per scene;
 # options: per-plugin option tables, as a config's [options.NAME]; traversal: one device traversal
 # for every ray kind, or a table naming one per kind (every kind; frames only, rays = false).
@@ -53,17 +55,25 @@ def check_matrix(data: dict, source: str) -> None:
         _fail(source, "top level", f"unknown key(s) {sorted(unknown)}; allowed: {', '.join(sorted(TOP_KEYS))}")
     if data.get("device", "cuda") != "cuda":
         _fail(source, "device", f"a gpu matrix runs on device 'cuda', got {data.get('device')!r}")
-    for i, scene in enumerate(data.get("scene", [])):
+    for key in ("scene", "variant"):
+        tables = data.get(key)
+        if not isinstance(tables, list) or not tables or not all(isinstance(t, dict) for t in tables):
+            _fail(source, "top level", f"needs one or more [[{key}]] tables, got {key} = {tables!r}")
+    for i, scene in enumerate(data["scene"]):
         if set(scene) - SCENE_KEYS:
             _fail(source, f"scene {i + 1}", f"unknown key(s) {sorted(set(scene) - SCENE_KEYS)}; allowed: "
                   f"{', '.join(sorted(SCENE_KEYS))}")
-        for name in scene.get("rays", []):
+        rays = scene.get("rays", [])
+        if not isinstance(rays, list):
+            _fail(source, f"scene {i + 1} rays", f"must be a list of ray sets ({', '.join(RAY_SETS)}), got {rays!r}")
+        for name in rays:
             if name not in RAY_SETS:
                 _fail(source, f"scene {i + 1} rays", f"unknown ray set {name!r}; allowed: {', '.join(RAY_SETS)}")
-    if not data.get("scene") or not data.get("variant"):
-        _fail(source, "top level", "needs at least one [[scene]] and one [[variant]]")
+        if "path" in scene or not isinstance(scene.get("name"), str):  # the ray sets load catalog scenes
+            _fail(source, f"scene {i + 1}", f"needs name = \"<catalog scene>\" (a gpu matrix takes catalog scenes, "
+                                            f"not paths), got {dict(scene)!r}")
     for i, variant in enumerate(data["variant"]):
-        if set(variant) - VARIANT_KEYS or "traversal" not in variant:
+        if set(variant) - VARIANT_KEYS or "traversal" not in variant or "label" not in variant:
             _fail(source, f"variant {i + 1}", f"needs label and traversal (bvh, wide or rayspace), got {sorted(variant)}")
         traversal = variant["traversal"]
         if isinstance(traversal, dict):
@@ -74,6 +84,18 @@ def check_matrix(data: dict, source: str) -> None:
                 _fail(source, f"variant {i + 1}", "a traversal per ray kind times frames only: set rays = false")
         elif not isinstance(traversal, str):
             _fail(source, f"variant {i + 1} traversal", f"must be a name or a table per ray kind, got {traversal!r}")
+        for kind, name in variant_traversals(variant).items():
+            try:
+                device_traversal_name(name, kind)
+            except ConfigError as exc:
+                _fail(source, f"variant {i + 1}", str(exc))
+    check_labels(source, "variant", [variant["label"] for variant in data["variant"]])
+    # Every (scene, variant) frame's config, before any GPU work: scene, preset and options
+    # names fail here, not when that scene's frames start.
+    for scene in data["scene"]:
+        for variant in data["variant"]:
+            cell_config({"resolution": scene.get("resolution", data.get("resolution", 1024))}, scene,
+                        {"label": variant["label"], "options": variant.get("options", {})}, source)
 
 
 def variant_traversals(variant: dict) -> dict:

@@ -218,7 +218,24 @@ def _fail(source: str, where: str, message: str):
     raise ConfigError(f"{source}: {where}: {message}")
 
 
-def _check_label(source: str, where: str, label) -> None:
+def check_matrix_name(source: str, name) -> None:
+    """A matrix's ``name`` names its default output folder (out/bench-NAME): 1-100 letters,
+    digits, '.', '-' or '_', so it can neither climb out of out/ nor be empty. Every matrix kind."""
+    if not isinstance(name, str) or not _FOLDER_NAME.fullmatch(name) or name in (".", ".."):
+        _fail(source, "name", f"must be 1-100 letters, digits, '.', '-' or '_' (it names the output folder), "
+                              f"got {name!r}")
+
+
+def check_labels(source: str, where: str, labels: list) -> None:
+    """Each of ``labels`` a table row's name (``check_label``), none twice."""
+    for i, label in enumerate(labels):
+        check_label(source, f"{where}[{i}].label", label)
+        if label in labels[:i]:
+            _fail(source, f"{where}[{i}].label", f"{label!r} is already the label of {where}[{labels.index(label)}]; "
+                                                 f"give each its own")
+
+
+def check_label(source: str, where: str, label) -> None:
     """A label names a row of the Markdown tables and a series of the plots: a string of 1 to 80
     printable characters, none of them '|' (a table's column break)."""
     if not isinstance(label, str):
@@ -262,7 +279,7 @@ def _plugin(source, where, value, what: str) -> PluginSpec:
                                  f"{', '.join(sorted(extra))}")
         names = tuple(check(value.get(k, PAPER[what][k]), f"{where}.{k}") for k in RAY_KINDS)
         label = value.get("label", ",".join(f"{k}={value[k]}" for k in RAY_KINDS if k in value) or "paper")
-        _check_label(source, f"{where}.label", label)
+        check_label(source, f"{where}.label", label)
         return PluginSpec(label, names, _options(source, f"{where}.options", value.get("options", {})))
     _fail(source, where, f"must be a {what} name or a table ({allowed}), got {value!r} ({_type_name(value)})")
 
@@ -332,7 +349,7 @@ def _scene(source, where, value) -> SceneSpec:
     if label is None:
         label = name + ("(" + ",".join(f"{k}={v}" for k, v in sorted(table.items())) + ")" if table else "")
     else:
-        _check_label(source, f"{where}.label", label)
+        check_label(source, f"{where}.label", label)
     return SceneSpec(name, tuple(sorted(table.items())), float(time), label)
 
 
@@ -407,9 +424,7 @@ def parse_matrix(data: dict, source: str = "<matrix>", repeat: int | None = None
     for key, value in (("name", name), ("description", description)):
         if not isinstance(value, str):
             _fail(source, key, f"must be a string, got {value!r}")
-    if not _FOLDER_NAME.fullmatch(name):  # it names the default output folder
-        _fail(source, "name", f"must be 1-100 letters, digits, '.', '-' or '_' (it names the output folder), "
-                              f"got {name!r}")
+    check_matrix_name(source, name)
     if repeat is None:
         repeat = _int(source, "repeat", data.get("repeat", DEFAULT_REPEAT), f"1..{MAX_REPEAT}")
         where = "repeat"

@@ -52,6 +52,16 @@ CSV = "results.csv"
 SCHEMA = 1
 
 
+def free_backup_name(path: Path) -> Path:
+    """``results.jsonl.prev``, else ``.prev2``, ``.prev3``, ...: the first name not yet taken, so
+    starting afresh again never overwrites an earlier run's backup."""
+    candidate, n = path.with_name(path.name + ".prev"), 1
+    while candidate.exists():
+        n += 1
+        candidate = path.with_name(f"{path.name}.prev{n}")
+    return candidate
+
+
 def read_results(path: Path) -> tuple[list, int]:
     """(records, bytes of complete lines) of a results.jsonl; a torn or unreadable line, or a record
     the tables cannot read (``_readable``), is skipped (``skipped_lines`` says which)."""

@@ -49,7 +49,7 @@ from engine.bench import results as results_io
 from engine.bench.floor import floor_tracer, uses_packet_traversals
 from engine.bench.machine import machine_info
 from engine.bench.cell_scenes import SceneCache, cell_scene
-from engine.bench.matrix import Cell, Matrix, load_matrix
+from engine.bench.matrix import MAX_REPEAT, Cell, Matrix, check_matrix_name, load_matrix
 from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require_open3d
 from engine.bench.yardstick import replay_once
 from engine.core.atomic import output_file, output_folder
@@ -59,6 +59,9 @@ from engine.core.types import RAY_KINDS, copied_batch, empty_hits
 from engine.render.config import read_toml
 from engine.render.plugins import make_traversal
 from engine.render.tracer import Tally
+
+#: The kinds of matrix besides one of cells (no ``kind``): each has its own runner.
+MATRIX_KINDS = ("gpu", "dynamic", "trimesh")
 
 
 # -- measurements --------------------------------------------------------------------------
@@ -98,6 +101,7 @@ class BatchRecorder:
             for array in (rays.org, rays.dir, rays.tmin, rays.tmax, packets.offsets):
                 h.update(np.ascontiguousarray(array).data)
         return h.hexdigest()
+
 
 
 def answer_arrays(batches) -> list:
@@ -465,16 +469,6 @@ def _run_on_dask(matrix: Matrix, todo: list, path: Path, scheduler: str, workers
             cluster.close()
 
 
-def free_backup_name(path: Path) -> Path:
-    """``results.jsonl.prev``, else ``.prev2``, ``.prev3``, ...: the first name not yet taken, so
-    starting afresh again never overwrites an earlier run's backup."""
-    candidate, n = path.with_name(path.name + ".prev"), 1
-    while candidate.exists():
-        n += 1
-        candidate = path.with_name(f"{path.name}.prev{n}")
-    return candidate
-
-
 def steadiest(measure, record: dict, limit: float, retries: int, fastest: dict):
     """(record, fastest): ``record``, or a measurement of the same cell again (``measure()``, at
     most ``retries`` more) when the host ran more than ``limit`` times slower around it than
@@ -526,7 +520,7 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
                   + "; their cells are measured again", file=sys.stderr)
         results_io.repair(path)
     elif path.is_file() and path.stat().st_size:
-        backup = free_backup_name(path)
+        backup = results_io.free_backup_name(path)
         os.replace(path, backup)
         print(f"packetrt bench: starting afresh; earlier results moved to {backup} (--resume keeps them)",
               file=sys.stderr)
@@ -592,6 +586,19 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
 def cmd_bench(args) -> int:
     """The CLI entry: validate the whole matrix, then run it."""
     data = read_toml(args.matrix, "matrix")
+    kind = data.get("kind")
+    if kind is not None and kind not in MATRIX_KINDS:
+        raise ConfigError(f"{args.matrix}: kind must be one of {', '.join(MATRIX_KINDS)} (or left out, for a matrix "
+                          f"of cells), got {kind!r}")
+    repeat = getattr(args, "repeat", None)
+    if repeat is not None:
+        if kind in ("gpu", "dynamic"):
+            raise ConfigError(f"{args.matrix}: --repeat is for matrices of cells and trimesh matrices; a {kind} "
+                              f"matrix sets its own repetitions (repeat_frames, frames)")
+        if not 1 <= repeat <= MAX_REPEAT:
+            raise ConfigError(f"--repeat: must be in 1..{MAX_REPEAT}, got {repeat}")
+    if kind in ("gpu", "dynamic"):  # their name is the default output folder's, as for cells
+        check_matrix_name(args.matrix, data.get("name", Path(args.matrix).stem))
     device = getattr(args, "device", None) or data.get("device", "cpu")
     if data.get("kind") == "gpu" or device == "cuda":  # rays and frames on the CUDA device
         from engine.bench.gpu import run_gpu

@@ -50,6 +50,7 @@ record per mesh, ray set and query, with the host's speed just before and after 
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -57,12 +58,15 @@ from pathlib import Path
 import numpy as np
 
 from engine.bench import host_speed
+from engine.bench.matrix import check_labels, check_matrix_name
 from engine.bench.paired_stats import paired_ratio
-from engine.bench.results import host_slowdown
+from engine.bench.results import free_backup_name, host_slowdown
 from engine.core.atomic import output_folder, plain_json, write_text
 from engine.core.errors import ConfigError
 
 QUERIES = ("first", "any", "all", "contains")
+#: The most numba threads a matrix may ask for, as a config's [render] threads.
+MAX_THREADS = 1024
 KEYS = ("kind", "name", "description", "repeat", "rounds", "threads", "queries", "rays", "all_rays", "points",
         "render_path", "one_thread", "mesh")
 
@@ -83,6 +87,8 @@ def parse(data: dict, source: str, repeat: int | None = None) -> dict:
         value = spec[key]
         if isinstance(value, bool) or not isinstance(value, int) or value < (0 if key == "threads" else 1):
             raise ConfigError(f"{source}: {key} must be a positive integer, got {value!r}")
+    if spec["threads"] > MAX_THREADS:
+        raise ConfigError(f"{source}: threads must be in 0..{MAX_THREADS} (0 = every core), got {spec['threads']}")
     for key in ("render_path", "one_thread"):
         if not isinstance(spec[key], bool):
             raise ConfigError(f"{source}: {key} must be true or false, got {spec[key]!r}")
@@ -98,9 +104,8 @@ def parse(data: dict, source: str, repeat: int | None = None) -> dict:
     if (not isinstance(spec["mesh"], list) or not spec["mesh"]
             or not all(isinstance(m, dict) and isinstance(m.get("scene"), str) for m in spec["mesh"])):
         raise ConfigError(f"{source}: give at least one [[mesh]] table with scene = \"<catalog name>\"")
-    for k, entry in enumerate(spec["mesh"]):
-        if not isinstance(entry.get("label", ""), str):
-            raise ConfigError(f"{source}: mesh[{k}].label must be a string, got {entry['label']!r}")
+    check_matrix_name(source, spec["name"])
+    check_labels(source, "mesh", [entry.get("label", entry["scene"]) for entry in spec["mesh"]])
     return spec
 
 
@@ -285,7 +290,8 @@ def run(spec: dict, out: Path, progress=print) -> list:
     from engine.query.intersector import RayMeshIntersector
     from engine.render.camera import camera_rays
 
-    threads = spec["threads"] or numba.config.NUMBA_NUM_THREADS
+    # numba runs at most its own pool's threads: the records say what ran.
+    threads = min(spec["threads"] or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)
     output_folder(out, "--out")
     records = []
     with numba_threads(threads):  # the render path's trace too; the caller's count comes back
@@ -378,7 +384,15 @@ def _interval(paired) -> str:
 def cmd_trimesh_bench(args, data: dict) -> int:
     """``packetrt bench benchmarks/trimesh.toml``: run a trimesh matrix."""
     spec = parse(data, args.matrix, args.repeat)
+    if getattr(args, "resume", False):
+        raise ConfigError(f"{args.matrix}: a trimesh matrix is measured whole, in alternating rounds; --resume does "
+                          f"not apply (run it again without)")
     out = Path(args.out) if args.out else Path("out") / f"bench-{spec['name']}"
+    earlier = out / "results.jsonl"
+    if earlier.is_file() and earlier.stat().st_size:  # another run's results, as the cell runner keeps them
+        backup = free_backup_name(earlier)
+        os.replace(earlier, backup)
+        print(f"packetrt bench: earlier results moved to {backup}", file=sys.stderr)
     records = run(spec, out, progress=lambda line: print(line, file=sys.stderr))
     print(f"{spec['name']}: {len(records)} queries; wrote {out / 'results.jsonl'}, {out / 'results.md'}")
     return 0

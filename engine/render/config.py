@@ -29,8 +29,8 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 from engine.core import checked
-from engine.core.errors import ConfigError
-from engine.packet.layout import PACKET_SIZES
+from engine.core.errors import ConfigError, ConfigTypeError
+from engine.packet.layout import PACKET_SIZES, check_packet_size
 from engine.core.types import RAY_KINDS
 from engine.render.shadow_order import SHADOW_ORDERS
 
@@ -178,11 +178,47 @@ def _dataclass_from(cls, table: dict, where: str):
     return cls(**kwargs)
 
 
+def _checked_structure(config: Config) -> Config:
+    """``config`` with each part of its own type (a Config built by hand in Python may hold
+    anything: render=None, traversal="single", packet=8.0) and its integers plain ints (numpy
+    integers would reach the --stats JSON); else a ConfigTypeError naming the field."""
+    if not isinstance(config, Config):
+        raise ConfigTypeError(f"expected a packetrt Config, got {type(config).__name__}")
+    parts = {"scene": SceneConfig, "render": RenderConfig, "traversal": PerKind, "frustum": PerKind,
+             "accel": AccelConfig}
+    for name, kind in parts.items():
+        if not isinstance(getattr(config, name), kind):
+            raise ConfigTypeError(f"Config.{name} must be of type {kind.__name__}, got {getattr(config, name)!r}")
+    for name, kind in (("override", str), ("load_entry_points", bool), ("options", tuple), ("source", str)):
+        if not isinstance(getattr(config, name), kind):
+            raise ConfigTypeError(f"Config.{name} must be of type {kind.__name__}, got {getattr(config, name)!r}")
+    for name, options in config.options:
+        if not isinstance(name, str) or not isinstance(options, tuple):
+            raise ConfigTypeError(f"Config.options must be ((plugin name, ((key, value), ...)), ...), got "
+                                  f"{config.options!r}")
+    for kind in RAY_KINDS:
+        for part in ("traversal", "frustum"):
+            if not isinstance(getattr(config, part).get(kind), str):
+                raise ConfigTypeError(f"{part}.{kind} must be a plugin name, got {getattr(config, part).get(kind)!r}")
+    for name in ("name", "path"):
+        if not isinstance(getattr(config.scene, name), str):
+            raise ConfigTypeError(f"scene.{name} must be a string, got {getattr(config.scene, name)!r}")
+    if not isinstance(config.scene.params, tuple):
+        raise ConfigTypeError(f"scene.params must be ((key, value), ...), got {config.scene.params!r}")
+    for name in ("device", "shadow_order"):
+        if not isinstance(getattr(config.render, name), str):
+            raise ConfigTypeError(f"render.{name} must be a string, got {getattr(config.render, name)!r}")
+    integers = {key: checked.to_int(getattr(config.render, key), f"render.{key}", lo, hi)
+                for key, (lo, hi) in RENDER_RANGES.items()}
+    integers["packet"] = check_packet_size(config.render.packet)
+    return replace(config, render=replace(config.render, **integers))
+
+
 def validate(config: Config) -> Config:
-    """Range and name checks shared by files and command-line overrides."""
+    """Range and name checks shared by files and command-line overrides; returns the config
+    (its integers made plain ints)."""
+    config = _checked_structure(config)
     r = config.render
-    for key, (lo, hi) in RENDER_RANGES.items():
-        checked.to_int(getattr(r, key), f"render.{key}", lo, hi)
     needed = r.width * r.height * BYTES_PER_PIXEL
     free = available_memory()
     if needed > free:
@@ -193,8 +229,6 @@ def validate(config: Config) -> Config:
         raise ConfigError(f"render.device must be one of {', '.join(DEVICES)}, got {r.device!r}")
     if r.shadow_order not in SHADOW_ORDERS:
         raise ConfigError(f"render.shadow_order must be one of {', '.join(SHADOW_ORDERS)}, got {r.shadow_order!r}")
-    if r.packet not in PACKET_SIZES:
-        raise ConfigError(f"render.packet must be one of {', '.join(map(str, PACKET_SIZES))}, got {r.packet}")
     if config.accel.update not in ("rebuild", "refit", "auto"):
         raise ConfigError(f"accel.update must be 'rebuild', 'refit' or 'auto', got {config.accel.update!r}")
     checked.to_float(config.accel.degrade, "accel.degrade", 1.0, 100.0)
