@@ -442,6 +442,8 @@ def _as_config(config):
     if isinstance(config, dict):
         return cfg.from_dict(config)
     if isinstance(config, (str, Path)):
+        if not str(config).strip():
+            raise ApiArgumentError("render config path is empty; give a TOML file, a dict or a Config")
         return cfg.load(str(config))
     raise ApiArgumentError(f"render config must be a Config, a dict of TOML tables or a TOML path; "
                       f"got {type(config).__name__}")
@@ -621,6 +623,8 @@ class RayTracer:
         from engine.gpu.choose import new_renderer
         from engine.render.report import stats_dict
 
+        if not isinstance(counters, (bool, np.bool_)):
+            raise ApiArgumentError(f"render: counters must be True or False, got {counters!r}")
         cfg = _as_config(config)
         if self.device == "cuda" and cfg.render.device != "cuda":
             cfg = replace(cfg, render=replace(cfg.render, device="cuda"))
@@ -636,6 +640,9 @@ class RayTracer:
 
 
 def _first_hit_only(multiple_hits: bool, where: str) -> None:
+    if not (isinstance(multiple_hits, (bool, np.bool_)) or (isinstance(multiple_hits, (int, np.integer))
+                                                          and multiple_hits in (0, 1))):
+        raise ApiArgumentError(f"{where}: multiple_hits must be True or False, got {multiple_hits!r}")
     if multiple_hits:
         raise ApiArgumentError(f"{where}: multiple_hits=True is not supported; packetrt answers the first hit "
                           f"per ray (trimesh's multiple_hits=False)")

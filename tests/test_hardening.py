@@ -903,3 +903,36 @@ def test_numpy_integers_in_a_config_become_plain_ints():
     _, stats = RayTracer(trimesh.creation.box()).render(
         replace(base, render=replace(base.render, width=np.int32(16), height=np.int64(16), max_depth=1)))
     json.dumps(stats)
+
+
+@pytest.mark.parametrize("call, fragment", [
+    (lambda i: i.intersects_id([[0, 0, 5]], [[0, 0, -1]], multiple_hits="no"), "multiple_hits must be True or False"),
+    (lambda i: i.intersects_id([[0, 0, 5]], [[0, 0, -1]], multiple_hits=np.array([True])), "multiple_hits must be"),
+    (lambda i: i.intersects_id([[0, 0, 5]], [[0, 0, -1]], return_locations="no"), "return_locations must be"),
+    (lambda i: i.contains_points(np.zeros((3, 0))), "points must have shape (n, 3), got (3, 0)"),
+])
+def test_intersector_flags_and_points_are_what_they_say(call, fragment):
+    """Before: multiple_hits="no" returned every hit (a string is true), an array flag was numpy's
+    "truth value is ambiguous", and contains_points of a (3, 0) array answered 0 points for 3."""
+    import trimesh
+    from engine import RayMeshIntersector
+    from engine.query.errors import QueryInputError
+
+    with pytest.raises(QueryInputError, match=re.escape(fragment)):
+        call(RayMeshIntersector(trimesh.creation.box()))
+    answers = RayMeshIntersector(trimesh.creation.box()).intersects_id([[0, 0, 5]], [[0, 0, -1]], multiple_hits=0)
+    assert [a.tolist() for a in answers] == [[4], [0]]
+
+
+def test_ray_tracer_render_arguments_are_what_they_say():
+    import trimesh
+    from engine import RayTracer
+    from engine.api import ApiArgumentError
+
+    tracer = RayTracer(trimesh.creation.box())
+    with pytest.raises(ApiArgumentError, match="config path is empty"):
+        tracer.render("")
+    with pytest.raises(ApiArgumentError, match="counters must be True or False"):
+        tracer.render({"render": {"width": 8, "height": 8}}, counters="no")
+    with pytest.raises(ApiArgumentError, match="multiple_hits must be True or False"):
+        tracer.intersects_location([[0, 0, 5]], [[0, 0, -1]], multiple_hits="no")

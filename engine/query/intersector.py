@@ -117,11 +117,20 @@ def _points(name: str, value) -> np.ndarray:
         raise QueryTypeError(f"{name} must be a real numeric array of shape (n, 3): {exc}") from None
     if arr.dtype.kind not in "biuf":
         raise QueryTypeError(f"{name} must be a real numeric array of shape (n, 3), got dtype {arr.dtype}")
-    if arr.size == 0 and arr.ndim <= 2:
+    # Nothing to ask: [], shape (0,), (0, 3) -- but (3, 0) is three points of the wrong shape.
+    if arr.size == 0 and (arr.ndim < 2 or (arr.ndim == 2 and arr.shape[0] == 0)):
         return np.zeros((0, 3), np.float64)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise QueryInputError(f"{name} must have shape (n, 3), got {arr.shape}")
     return np.ascontiguousarray(arr, np.float64)
+
+
+def _flag(name: str, value) -> bool:
+    """A yes/no argument: True, False (numpy's too) or 1 / 0, as trimesh's callers pass them; a
+    string or an array is a QueryTypeError ("no" would read as yes)."""
+    if isinstance(value, (bool, np.bool_)) or (isinstance(value, (int, np.integer)) and value in (0, 1)):
+        return bool(value)
+    raise QueryTypeError(f"{name} must be True or False, got {value!r}")
 
 
 def _max_hits(value) -> int:
@@ -366,6 +375,8 @@ class RayMeshIntersector:
         by distance along the ray.
         """
         limit = _max_hits(max_hits)
+        multiple_hits, return_locations = _flag("multiple_hits", multiple_hits), _flag("return_locations",
+                                                                                      return_locations)
         s = self._structure()
         rays = self._rays(s, ray_origins, ray_directions)
         with self._buffers() as allocate:
