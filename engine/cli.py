@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import difflib
+import math
 import json
 import sys
 import warnings
@@ -35,6 +36,8 @@ from engine.render.report import frames_dict, stats_dict
 
 EXIT_USAGE = 2
 EXIT_MISMATCH = 1
+#: The longest a test may keep ``packetrt view`` open (--exit-after): a day.
+MAX_VIEW_SECONDS = 86400.0
 
 
 class UsageError(Exception):
@@ -262,6 +265,10 @@ def cmd_view(args) -> int:
     from engine.debug.view import VIEW_SIZE, display_problem, run_viewer
     from engine.render.config import validate
 
+    exit_after = getattr(args, "exit_after", None)
+    if exit_after is not None and not (math.isfinite(exit_after) and 0 <= exit_after <= MAX_VIEW_SECONDS):
+        raise ConfigError(f"--exit-after must be a number of seconds in 0..{MAX_VIEW_SECONDS:g}, got {exit_after}")
+    _check_outputs(("--status-file", getattr(args, "status_file", None)))
     problem = display_problem()
     if problem:
         raise PacketrtError(problem)
@@ -269,7 +276,7 @@ def cmd_view(args) -> int:
     if args.size is None:
         config = validate(replace(config, render=replace(config.render, width=VIEW_SIZE[0], height=VIEW_SIZE[1])))
     run_viewer(_load_scene(config, args.strict), config, status_file=getattr(args, "status_file", None),
-               exit_after=getattr(args, "exit_after", None))
+               exit_after=exit_after)
     return 0
 
 

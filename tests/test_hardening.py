@@ -936,3 +936,14 @@ def test_ray_tracer_render_arguments_are_what_they_say():
         tracer.render({"render": {"width": 8, "height": 8}}, counters="no")
     with pytest.raises(ApiArgumentError, match="multiple_hits must be True or False"):
         tracer.intersects_location([[0, 0, 5]], [[0, 0, -1]], multiple_hits="no")
+
+
+
+@pytest.mark.parametrize("argv, fragment", [(["--exit-after", "nan"], "--exit-after must be a number of seconds"),
+                                            (["--exit-after", "inf"], "--exit-after must be a number of seconds"),
+                                            (["--status-file", "."], "--status-file '.' is a folder")])
+def test_view_test_options_are_checked_before_the_window(tmp_path, capsys, monkeypatch, argv, fragment):
+    """Before: --exit-after nan or inf never closed the window, and a --status-file that could not
+    be written was reported after every frame while the viewer ran on."""
+    monkeypatch.chdir(tmp_path)
+    one_error(["view", *TINY, *argv], capsys, fragment)
