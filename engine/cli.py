@@ -392,9 +392,20 @@ def cmd_scenes(args) -> int:
     return 0
 
 
+def _version() -> str:
+    """The installed package's version (pyproject.toml), or "(not installed)" from a bare checkout."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("packetrt")
+    except PackageNotFoundError:
+        return "(not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="packetrt", description="Embree-validated Whitted ray tracer "
                                      "with plugin traversals (large ray packets, ray-space hierarchy).")
+    parser.add_argument("--version", action="version", version=f"packetrt {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     parser.commands = sub  # for the nearest-option hint of a mistyped option
     p = sub.add_parser("render", help="render an image")

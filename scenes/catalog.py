@@ -174,7 +174,10 @@ def find_files(entry: SceneEntry, params: dict | None = None) -> tuple[list[Path
 
 
 def missing_message(name: str, missing: list[str]) -> str:
-    folders = [str(p) for p in search_path()] or ["(nothing: PACKETRT_SCENE_PATH is not set)"]
+    def named(folder: Path) -> str:  # a path entry that is no folder is likely the mistake
+        return str(folder) if folder.is_dir() else f"{folder} ({'a file, not a folder' if folder.exists() else 'no such folder'})"
+
+    folders = [named(p) for p in search_path()] or ["(nothing: PACKETRT_SCENE_PATH is not set)"]
     return (f"scene {name!r}: missing file(s) {', '.join(missing)}; looked in {', '.join(folders)}; "
             f"set {SCENE_PATH_VARIABLE} to the folder that holds them (e.g. ../shared/scenes)")
 

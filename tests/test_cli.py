@@ -161,3 +161,9 @@ def test_the_gpus_small_grid_warning_is_not_printed_by_commands(capsys):
                                               "low occupancy."))
         warnings.warn(NumbaPerformanceWarning("some other performance note"))
     assert [str(w.message) for w in seen] == ["some other performance note"]
+
+
+def test_version_names_the_package(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0 and capsys.readouterr().out.startswith("packetrt ")

@@ -947,3 +947,11 @@ def test_view_test_options_are_checked_before_the_window(tmp_path, capsys, monke
     be written was reported after every frame while the viewer ran on."""
     monkeypatch.chdir(tmp_path)
     one_error(["view", *TINY, *argv], capsys, fragment)
+
+
+@pytest.mark.parametrize("entry, fragment", [("file", "(a file, not a folder)"), ("nowhere", "(no such folder)")])
+def test_a_scene_path_entry_that_is_no_folder_is_named(tmp_path, capsys, monkeypatch, entry, fragment):
+    """Before: only "looked in X", whether X was a folder without the files, a file or nothing."""
+    (tmp_path / "file").write_text("not a folder")
+    monkeypatch.setenv("PACKETRT_SCENE_PATH", str(tmp_path / entry))
+    one_error(["render", "--scene", "bunny", *TINY, "-o", tmp_path / "x.png"], capsys, fragment)
