@@ -955,3 +955,9 @@ def test_a_scene_path_entry_that_is_no_folder_is_named(tmp_path, capsys, monkeyp
     (tmp_path / "file").write_text("not a folder")
     monkeypatch.setenv("PACKETRT_SCENE_PATH", str(tmp_path / entry))
     one_error(["render", "--scene", "bunny", *TINY, "-o", tmp_path / "x.png"], capsys, fragment)
+
+
+def test_a_scene_too_large_names_its_geometry_not_its_light(tmp_path, capsys):
+    """Before: a mesh 1e30 across failed on the position of the light placed for it."""
+    mesh = obj(tmp_path, "v -5e29 0 0\nv 5e29 0 0\nv 0 5e29 0\nf 1 2 3\n")
+    one_error(["render", "--scene", mesh, *TINY, "-o", tmp_path / "x.png"], capsys, "the geometry reaches 5e+29")

@@ -385,11 +385,8 @@ def check_scene(scene: Scene, materials: bool = True) -> Scene:
         checked.to_float(m.shininess, f"{named} shininess", 0.0, MAX_COLOUR, error=SceneError)
         checked.to_float(m.transmission, f"{named} transmission", 0.0, 1.0, error=SceneError)
         checked.to_float(m.ior, f"{named} ior", 1e-3, 1e3, error=SceneError)
-    for light in scene.lights:
-        checked_light(light, where)
-    checked_camera(scene.camera, where)
-    checked.vector(scene.background, f"{where}: background", lo=0.0, hi=MAX_COLOUR, error=SceneError)
-    checked.vector(scene.ambient_light, f"{where}: ambient light", lo=0.0, hi=MAX_COLOUR, error=SceneError)
+    # The geometry first: an auto-placed camera or light of a scene too large or too small
+    # fails because of it, and the message should name the cause.
     reach = float(np.abs(np.asarray(scene.bounds(), np.float64)).max())
     if reach > MAX_GEOMETRY:
         raise SceneError(f"{where}: the geometry reaches {reach:.3g} from the scene's centre; packetrt supports "
@@ -401,6 +398,11 @@ def check_scene(scene: Scene, materials: bool = True) -> Scene:
         raise SceneError(f"{where}: the geometry is {size:.3g} across; packetrt's float32 kernels need a scene at "
                          f"least {MIN_GEOMETRY:.0e} across (scale it up, or query it through RayMeshIntersector, "
                          f"which rescales)")
+    for light in scene.lights:
+        checked_light(light, where)
+    checked_camera(scene.camera, where)
+    checked.vector(scene.background, f"{where}: background", lo=0.0, hi=MAX_COLOUR, error=SceneError)
+    checked.vector(scene.ambient_light, f"{where}: ambient light", lo=0.0, hi=MAX_COLOUR, error=SceneError)
     points = {"camera eye": scene.camera.eye, "camera look_at": scene.camera.look_at,
               **{f"light {k + 1}": light.position for k, light in enumerate(scene.lights)}}
     for what, point in points.items():
