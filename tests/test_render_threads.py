@@ -107,3 +107,20 @@ def test_a_benchmark_cell_measures_at_its_count_and_leaves_the_callers(monkeypat
     assert numba.get_num_threads() == callers_count
     assert replayed_at and set(replayed_at) == {1}
     assert record["threads"] == 1
+
+
+def test_stats_record_the_threads_the_kernels_ran_on(tmp_path):
+    """Before: with NUMBA_NUM_THREADS=1 and threads = 2 the --stats document said only 2 (the
+    config's), though every kernel ran on one thread."""
+    import json
+    import subprocess
+    import sys
+
+    stats = tmp_path / "s.json"
+    env = {**__import__("os").environ, "NUMBA_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-m", "engine.cli", "render", "--size", "16x16", "--depth", "1",
+                           "--threads", "2", "--stats", str(stats), "-o", str(tmp_path / "x.png")],
+                          capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0, done.stderr
+    document = json.loads(stats.read_text())
+    assert document["threads"] == 1 and document["config"]["render"]["threads"] == 2

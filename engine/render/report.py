@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from engine.core.threads import thread_count
 from engine.core.types import RAY_KINDS
 
 
@@ -33,6 +34,9 @@ def stats_dict(scene, config, result, frames: list | None = None) -> dict:
         "scene": scene.name, "triangles": scene.n_triangles,
         "width": config.render.width, "height": config.render.height,
         "config": config.to_dict(),
+        # The threads the kernels ran on: the config's count, capped by numba's pool
+        # (NUMBA_NUM_THREADS), which config.render.threads alone does not show.
+        "threads": thread_count(config.render.threads),
         "seconds": result.seconds,
         "rays": result.rays,
         "mrays_per_s": result.mrays_per_s(),
