@@ -961,3 +961,13 @@ def test_a_scene_too_large_names_its_geometry_not_its_light(tmp_path, capsys):
     """Before: a mesh 1e30 across failed on the position of the light placed for it."""
     mesh = obj(tmp_path, "v -5e29 0 0\nv 5e29 0 0\nv 0 5e29 0\nf 1 2 3\n")
     one_error(["render", "--scene", mesh, *TINY, "-o", tmp_path / "x.png"], capsys, "the geometry reaches 5e+29")
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ('[options.pinhole]\na = 1\n', "'pinhole' is a frustum builder, and frustum builders take no options"),
+    ('[traversal]\nprimary = "auto"\n[options.auto]\nmin_live = 2\n', "options.auto.min_live is a fraction"),
+])
+def test_plugin_options_name_what_takes_them(tmp_path, capsys, text, fragment):
+    """Before: [options.pinhole] said "unknown traversal 'pinhole'", and min_live = 2 (documented
+    as a fraction of lanes) was taken."""
+    one_error(["render", obj(tmp_path, text, "c.toml"), *TINY, "-o", tmp_path / "x.png"], capsys, fragment)

@@ -42,6 +42,8 @@ def limits_array(limits: dict, where: str = "options.auto") -> np.ndarray:
         value = limits[name]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
             raise ConfigError(f"{where}.{name} must be a number, got {value!r}")
+        if name == "min_live" and not 0.0 <= value <= 1.0:
+            raise ConfigError(f"{where}.min_live is a fraction of a packet's lanes, in 0..1, got {value!r}")
         out[index] = float(value)
     choice = limits["invalid_frustum"]
     if choice not in CHOSEN_NAMES:

@@ -237,7 +237,7 @@ def validate(config: Config) -> Config:
     checked.to_float(config.accel.budget, "accel.budget", 0.0, 1.0)
     if config.override not in ("none", "reflective", "refractive"):
         raise ConfigError(f"materials.override must be 'none', 'reflective' or 'refractive', got {config.override!r}")
-    from engine.render.plugins import configured, load_entry_points, make_traversal
+    from engine.render.plugins import configured, frustum_names, load_entry_points, make_traversal, traversal_names
 
     if config.load_entry_points:
         load_entry_points()
@@ -252,6 +252,9 @@ def validate(config: Config) -> Config:
     # Throwaway instances: building them checks names, keys and values; nothing is kept.
     configured(config)
     for name, options in config.options:
+        if name in frustum_names() and name not in traversal_names():
+            raise ConfigError(f"[options.{name}]: {name!r} is a frustum builder, and frustum builders take no "
+                              f"options; [options.NAME] configures traversals ({', '.join(traversal_names())})")
         make_traversal(name, dict(options))
     return config
 
