@@ -385,7 +385,8 @@ def cmd_scenes(args) -> int:
     print(f"search path: {':'.join(str(p) for p in search_path()) or '(PACKETRT_SCENE_PATH not set)'}")
     print(f"{'name':<14} {'triangles':>10} {'lights':>6} {'animated':>8}  files")
     for r in rows:
-        files = "found" if r["files_found"] else "missing: " + ", ".join(r["missing"])
+        files = ("missing: " + ", ".join(r["missing"]) if not r["files_found"]
+                 else f"found, but cannot be loaded: {r['error']}" if "error" in r else "found")
         tri = f"{r['triangles']:,}" if r["triangles"] is not None else "-"
         print(f"{r['name']:<14} {tri:>10} {r['lights'] if r['lights'] is not None else '-':>6} "
               f"{'yes' if r['animated'] else 'no':>8}  {files}")

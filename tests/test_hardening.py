@@ -971,3 +971,14 @@ def test_plugin_options_name_what_takes_them(tmp_path, capsys, text, fragment):
     """Before: [options.pinhole] said "unknown traversal 'pinhole'", and min_live = 2 (documented
     as a fraction of lanes) was taken."""
     one_error(["render", obj(tmp_path, text, "c.toml"), *TINY, "-o", tmp_path / "x.png"], capsys, fragment)
+
+
+def test_scenes_lists_a_found_file_that_cannot_be_loaded_as_such(tmp_path, capsys, monkeypatch):
+    """Before: `packetrt scenes` said "found" for garbage at a scene's file name; the load error
+    was in --json only."""
+    (tmp_path / "stanford-bunny").mkdir()
+    (tmp_path / "stanford-bunny" / "bun_zipper.ply").write_bytes(b"not a ply at all")
+    monkeypatch.setenv("PACKETRT_SCENE_PATH", str(tmp_path))
+    assert main(["scenes"]) == 0
+    bunny = [line for line in capsys.readouterr().out.splitlines() if line.startswith("bunny ")]
+    assert len(bunny) == 1 and "found, but cannot be loaded" in bunny[0] and "bun_zipper.ply" in bunny[0]
