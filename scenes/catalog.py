@@ -129,14 +129,26 @@ def check_param(scene: str, key: str, value, default, limit: list):
     if isinstance(value, str) or not bounds:
         if value in words:
             return value
-        allowed = " or ".join([repr(w) for w in words] + ([f"a number in {bounds[0]}..{bounds[1]}"] if bounds else []))
+        integers = bool(bounds) and all(isinstance(b, int) for b in bounds) and isinstance(default, (int, str))
+        kind = "an integer" if integers else "a number"
+        allowed = " or ".join([repr(w) for w in words] + ([f"{kind} in {bounds[0]}..{bounds[1]}"] if bounds else []))
         wrong_type = not words if isinstance(value, str) else not bounds  # e.g. a word where a number belongs
         raise (ConfigTypeError if wrong_type else ConfigError)(f"{where} must be {allowed}, got {value!r}")
     lo, hi = bounds
-    if all(isinstance(x, int) for x in (lo, hi, default)):
-        return checked.to_int(value, where, lo, hi)
-    checked.to_float(value, where, lo, hi)
-    return value
+    # A range of integers when its bounds are, and the default is an integer or one of the words
+    # (the BART scenes' lights = "all" | 0..10000).
+    integers = isinstance(lo, int) and isinstance(hi, int) and isinstance(default, (int, str))
+    try:
+        if integers:
+            return checked.to_int(value, where, lo, hi)
+        checked.to_float(value, where, lo, hi)
+        return value
+    except ConfigError as exc:
+        if not words:
+            raise
+        kind = "an integer" if integers else "a number"
+        raise type(exc)(f"{where} must be {' or '.join(map(repr, words))} or {kind} in {lo}..{hi}, "
+                        f"got {value!r}") from None
 
 
 def check_params(entry: SceneEntry, params: dict) -> dict:

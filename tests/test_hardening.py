@@ -982,3 +982,12 @@ def test_scenes_lists_a_found_file_that_cannot_be_loaded_as_such(tmp_path, capsy
     assert main(["scenes"]) == 0
     bunny = [line for line in capsys.readouterr().out.splitlines() if line.startswith("bunny ")]
     assert len(bunny) == 1 and "found, but cannot be loaded" in bunny[0] and "bun_zipper.ply" in bunny[0]
+
+
+@pytest.mark.parametrize("value", ["-1", "1.0", "10001", "x"])
+def test_the_kitchens_light_count_has_one_message(tmp_path, capsys, value):
+    """Before: -1 and 10001 read "a number in [0, 10000]", 1.0 passed that check and was refused by
+    the loader as "all" or an integer >= 0 -- three answers to one question."""
+    pytest.importorskip("trimesh")
+    one_error(["render", "--scene", "bart-kitchen", "--param", f"lights={value}", *TINY, "-o", tmp_path / "x.png"],
+              capsys, "parameter lights must be 'all' or an integer in 0..10000")
