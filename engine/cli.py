@@ -23,8 +23,8 @@ from __future__ import annotations
 
 import argparse
 import difflib
-import math
 import json
+import math
 import sys
 import warnings
 from pathlib import Path
@@ -327,6 +327,9 @@ def _run_audit(scene, config, image_path, json_path, report_dir, stats_path, ora
 
 def cmd_audit(args) -> int:
     config = _config_from(args)
+    if args.scheduler is None and (args.tiles is not None or args.workers is not None):
+        raise ConfigError("--tiles and --workers split the audit over a --scheduler; give --scheduler too, "
+                          "or leave them out")
     if args.report:
         from validation.report import REPORT_FILES
 
@@ -336,9 +339,6 @@ def cmd_audit(args) -> int:
     if args.report:
         atomic.output_folder(args.report, "--report")
         _check_outputs(*(("--report", Path(args.report) / name) for name in REPORT_FILES))
-    if args.scheduler is None and (args.tiles is not None or args.workers is not None):
-        raise ConfigError("--tiles and --workers split the audit over a --scheduler; give --scheduler too, "
-                          "or leave them out")
     scene = _load_scene(config, args.strict)
     tiled = None
     if args.scheduler is not None:  # bands of rows as Dask tasks, merged into one report
