@@ -17,6 +17,8 @@ Conventions
       of each ray's own direction length (the hit point is ``origin + t * direction``; it is the
       distance when the direction is unit). A direction of zero length, or of a length outside
       1e-18 .. 1e18 (where float32 t or |d|^2 would underflow or overflow), is an error.
+    - Rays and locations are in the mesh's own coordinates, also for a mesh far from the origin,
+      which is re-centred inside (``scene.origin``): the queries move the rays with it.
     - Triangle indices are face indices of the mesh (rows of ``faces``), or indices into
       ``scene.triangles`` for a Scene. Barycentrics: hit = (1-u-v) v0 + u v1 + v v2.
     - All intersection arithmetic is float32 (the inputs are rounded to float32 first); the
@@ -529,6 +531,23 @@ class RayTracer:
                 f"device={self.device!r})")
 
     # -- the two queries ---------------------------------------------------------------
+    def _local(self, origins):
+        """``origins`` moved into the scene's frame: a scene far from the origin is re-centred when
+        built (``Scene.origin``, in float64), and rays given in the mesh's own coordinates must
+        move with it, in float64 before the kernels' float32 (else every ray missed such a mesh,
+        Embree's too). Unchanged when the scene was not moved, or when the input is not a real
+        numeric array (``check_rays`` then names what is wrong); device arrays cannot be moved
+        here, and a moved scene refuses them."""
+        if not any(self.scene.origin):
+            return origins
+        if hasattr(origins, "__cuda_array_interface__"):
+            raise ApiArgumentError(f"this mesh was re-centred (it lies {max(map(abs, self.scene.origin)):.3g} from "
+                                   f"the origin); give its rays as numpy arrays, which are moved with it")
+        arr = np.asarray(origins) if not isinstance(origins, np.ndarray) else origins
+        if arr.dtype.kind not in "iuf" or arr.ndim != 2 or arr.shape[1:] != (3,):
+            return origins
+        return arr.astype(np.float64) - np.asarray(self.scene.origin, np.float64)
+
     def _batch(self, kind, origins, directions, tmin, tmax):
         """(RayBatch in packet order, Packets, lane of each input ray i64[n]); None for n = 0."""
         org, dirs, lo, hi = check_rays(origins, directions, tmin, tmax)
@@ -546,6 +565,7 @@ class RayTracer:
         origin + t * direction), prim i32 (triangle index, -1 = miss), u, v f32 (barycentrics
         of v1 and v2). With ``device="cuda"``, device-array rays get device-array answers.
         """
+        origins = self._local(origins)
         if self.device_queries is not None:
             return self.device_queries.intersect(origins, directions, tmin, tmax, check_rays)
         with numba_threads(self.threads):  # for this call only (``engine.core.threads``)
@@ -560,6 +580,7 @@ class RayTracer:
     def occluded(self, origins, directions, tmin=None, tmax=None) -> np.ndarray:
         """bool (n,): does ray i hit anything with tmin <= t <= tmax (any hit, early exit).
         With ``device="cuda"``, device-array rays get a u8 (n,) device array (1 = occluded)."""
+        origins = self._local(origins)
         if self.device_queries is not None:
             return self.device_queries.occluded(origins, directions, tmin, tmax, check_rays)
         with numba_threads(self.threads):
@@ -604,7 +625,7 @@ class RayTracer:
         v = hits.v[index_ray].astype(np.float64)[:, None]
         t = self.triangles
         return ((1 - u - v) * t.v0[prim].astype(np.float64) + u * t.v1[prim].astype(np.float64)
-                + v * t.v2[prim].astype(np.float64))
+                + v * t.v2[prim].astype(np.float64)) + np.asarray(self.scene.origin, np.float64)  # the mesh's frame
 
     # -- renders -----------------------------------------------------------------------
     def render(self, config=None, *, counters: bool = False):

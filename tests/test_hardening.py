@@ -994,3 +994,33 @@ def test_the_kitchens_light_count_has_one_message(tmp_path, capsys, value):
     pytest.importorskip("trimesh")
     one_error(["render", "--scene", "bart-kitchen", "--param", f"lights={value}", *TINY, "-o", tmp_path / "x.png"],
               capsys, "parameter lights must be 'all' or an integer in 0..10000")
+
+
+@pytest.mark.parametrize("offset", [0.0, 500.0, 1e4, 1e6])
+def test_rays_at_a_mesh_far_from_the_origin_hit_it(offset):
+    """Before: a mesh more than 1,000 sizes from the origin was re-centred when built, and every
+    query traced the caller's rays against the moved triangles: every ray missed, with every
+    traversal (Embree's too, built over the same moved triangles)."""
+    import trimesh
+    from engine import RayMeshIntersector, RayTracer
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    mesh.apply_translation([offset, 0.0, 0.0])
+    rng = np.random.default_rng(3)
+    aim = rng.normal(size=(200, 3)) * 0.3
+    origins = np.array([offset, 0.0, 0.0]) + np.array([0.0, 0.0, 4.0]) + rng.normal(size=(200, 3)) * 0.2
+    directions = (np.array([offset, 0.0, 0.0]) + aim) - origins
+    expected = RayMeshIntersector(mesh).intersects_first(origins, directions)
+    assert (expected >= 0).sum() > 150
+    for traversal in ("partition", "single", "embree"):
+        tracer = RayTracer(mesh, traversal=traversal)
+        assert (tracer.intersects_first(origins, directions) == expected).mean() > 0.99, traversal
+        assert tracer.intersects_any(origins, directions).tolist() == (expected >= 0).tolist()
+    tracer = RayTracer(mesh)
+    locations, index_ray, _ = tracer.intersects_location(origins, directions)
+    theirs, their_rays, _ = RayMeshIntersector(mesh).intersects_location(origins, directions, multiple_hits=False)
+    assert index_ray.tolist() == their_rays.tolist()
+    # RayTracer's corners are float32 where its scene holds them: at 500 (not re-centred) a few
+    # float32 steps of 500; re-centred, those of the mesh's own size.
+    held_at = abs(offset - tracer.scene.origin[0]) + 2.0
+    assert np.abs(locations - theirs).max() < 1e-5 + 16 * float(np.spacing(np.float32(held_at)))
