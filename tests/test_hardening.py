@@ -1024,3 +1024,18 @@ def test_rays_at_a_mesh_far_from_the_origin_hit_it(offset):
     # float32 steps of 500; re-centred, those of the mesh's own size.
     held_at = abs(offset - tracer.scene.origin[0]) + 2.0
     assert np.abs(locations - theirs).max() < 1e-5 + 16 * float(np.spacing(np.float32(held_at)))
+
+
+@pytest.mark.parametrize("name, value, fragment", [("NUMBA_NUM_THREADS", "0", "NUMBA_NUM_THREADS='0'"),
+                                                   ("NUMBA_NUM_THREADS", "100000", "in 1..1024"),
+                                                   ("NUMBA_THREADING_LAYER", "bogus", "must be one of default")])
+def test_numbas_environment_is_one_line_before_numba_loads(tmp_path, name, value, fragment):
+    """Before: NUMBA_NUM_THREADS=0 or a bogus threading layer was numba's traceback at `import
+    numba`, before the command could speak, and NUMBA_NUM_THREADS=100000 crashed (SIGSEGV)."""
+    env = {**os.environ, name: value}
+    done = subprocess.run([sys.executable, "-m", "engine.launch", "render", *TINY, "-o", str(tmp_path / "x.png")],
+                          capture_output=True, text=True, env=env, cwd=ROOT, timeout=600)
+    lines = done.stderr.splitlines()
+    assert done.returncode == 2 and len(lines) == 1 and fragment in lines[0], done.stderr
+    assert lines[0].startswith("packetrt: error: environment variable ")
+    assert not (tmp_path / "x.png").exists()
