@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 from numba import njit, prange
 
+from engine.core.checked import is_flag
 from engine.core.errors import ConfigError, memory_errors_as
 from engine.core.threads import numba_threads
 from engine.core.types import RAY_KINDS, Hits, Packets, RayBatch, Triangles, empty_hits
@@ -543,7 +544,7 @@ class RayTracer:
         if hasattr(origins, "__cuda_array_interface__"):
             raise ApiArgumentError(f"this mesh was re-centred (it lies {max(map(abs, self.scene.origin)):.3g} from "
                                    f"the origin); give its rays as numpy arrays, which are moved with it")
-        arr = np.asarray(origins) if not isinstance(origins, np.ndarray) else origins
+        arr = np.asarray(origins)
         if arr.dtype.kind not in "iuf" or arr.ndim != 2 or arr.shape[1:] != (3,):
             return origins
         return arr.astype(np.float64) - np.asarray(self.scene.origin, np.float64)
@@ -661,8 +662,7 @@ class RayTracer:
 
 
 def _first_hit_only(multiple_hits: bool, where: str) -> None:
-    if not (isinstance(multiple_hits, (bool, np.bool_)) or (isinstance(multiple_hits, (int, np.integer))
-                                                          and multiple_hits in (0, 1))):
+    if not is_flag(multiple_hits):
         raise ApiArgumentError(f"{where}: multiple_hits must be True or False, got {multiple_hits!r}")
     if multiple_hits:
         raise ApiArgumentError(f"{where}: multiple_hits=True is not supported; packetrt answers the first hit "

@@ -160,7 +160,8 @@ def _distinct_outputs(*named) -> None:
             return Path(path).absolute()
 
     # Devices (/dev/null) take any number of writes: only files a write would replace count.
-    given = [(option, resolved(path)) for option, path in named if path and not atomic.is_device(resolved(path))]
+    given = [(option, resolved(path)) for option, path in named if path]
+    given = [(option, path) for option, path in given if not atomic.is_device(path)]
     for i, (option, path) in enumerate(given):
         for other, other_path in given[:i]:
             if path == other_path:

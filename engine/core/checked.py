@@ -42,6 +42,12 @@ def one_of(value, where: str, allowed: tuple, error=ConfigError) -> str:
     return value
 
 
+def is_flag(value) -> bool:
+    """Whether ``value`` is a yes/no argument as Python callers pass them: True, False (numpy's
+    too) or 1 / 0 -- not a string ("no" would read as yes) or an array."""
+    return isinstance(value, (bool, np.bool_)) or (isinstance(value, (int, np.integer)) and value in (0, 1))
+
+
 def to_int(value, where: str, lo: int, hi: int, error=ConfigError) -> int:
     """``value`` (a Python or numpy integer, not a bool) if lo <= value <= hi, else ``error``."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):

@@ -387,13 +387,13 @@ def check_scene(scene: Scene, materials: bool = True) -> Scene:
         checked.to_float(m.ior, f"{named} ior", 1e-3, 1e3, error=SceneError)
     # The geometry first: an auto-placed camera or light of a scene too large or too small
     # fails because of it, and the message should name the cause.
-    reach = float(np.abs(np.asarray(scene.bounds(), np.float64)).max())
+    bounds = np.asarray(scene.bounds(), np.float64)  # column scans of every corner: once
+    reach = float(np.abs(bounds).max())
     if reach > MAX_GEOMETRY:
         raise SceneError(f"{where}: the geometry reaches {reach:.3g} from the scene's centre; packetrt supports "
                          f"geometry within +-{MAX_GEOMETRY:.0e} of it and cameras and lights within "
                          f"+-{MAX_CENTRED:.0e} (float32 rays; a scene merely far from the origin is re-centred)")
-    lo, hi = np.asarray(scene.bounds(), np.float64)
-    size = float((hi - lo).max())
+    size = float((bounds[1] - bounds[0]).max())
     if 0.0 < size < MIN_GEOMETRY:
         raise SceneError(f"{where}: the geometry is {size:.3g} across; packetrt's float32 kernels need a scene at "
                          f"least {MIN_GEOMETRY:.0e} across (scale it up, or query it through RayMeshIntersector, "

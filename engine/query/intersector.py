@@ -46,6 +46,7 @@ import numpy as np
 
 from engine.core.bvh import build_bvh, check_build_settings
 from engine.core.bvh_refit import refit_bvh
+from engine.core.checked import is_flag
 from engine.core.errors import ConfigError, ConfigTypeError, memory_errors_as
 from engine.core.scratch import Scratch
 from engine.core.scene import make_triangles
@@ -128,7 +129,7 @@ def _points(name: str, value) -> np.ndarray:
 def _flag(name: str, value) -> bool:
     """A yes/no argument: True, False (numpy's too) or 1 / 0, as trimesh's callers pass them; a
     string or an array is a QueryTypeError ("no" would read as yes)."""
-    if isinstance(value, (bool, np.bool_)) or (isinstance(value, (int, np.integer)) and value in (0, 1)):
+    if is_flag(value):
         return bool(value)
     raise QueryTypeError(f"{name} must be True or False, got {value!r}")
 
