@@ -271,7 +271,10 @@ def load_mesh_scene(files, params, time):
             uvs = np.asarray(geom.visual.uv, np.float32)
         builder.add_mesh(np.asarray(geom.vertices), np.asarray(geom.faces), index, uvs=uvs, source=str(path))
         if max(material.ambient) > 1.0:
-            emitters.append((np.asarray(geom.vertices, np.float64), material))
+            # The corners its faces use: with maintain_order every geometry of an OBJ carries the
+            # whole file's vertex list, and their mean put the Cornell box's light in the tall block.
+            used = np.unique(np.asarray(geom.faces))
+            emitters.append((np.asarray(geom.vertices, np.float64)[used], material))
     if builder.n_triangles == 0:
         raise SceneError(f"{path}: the file holds no triangles")
     lights = None

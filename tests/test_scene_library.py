@@ -204,3 +204,90 @@ def test_lights_parameter_from_the_command_line(scene_path, tmp_path):
         shadow[value] = json.loads(stats.read_text())["rays"]["shadow"]
     assert shadow["0"] == 0 < shadow["1"] < shadow["all"]
     assert main(["render", "--scene", "bart-museum", "--param", "lights=3", "--size", "16x16"]) == 2
+
+
+#: An open room (floor, ceiling, back wall at z=10, side walls; no front wall at z=0), every
+#: face turned inwards, with a small emitter under the ceiling near the back; then a box.
+OPEN_ROOM_OBJ = """mtllib room.mtl
+o walls
+usemtl white
+v 0 0 0
+v 10 0 0
+v 10 0 10
+v 0 0 10
+v 0 10 0
+v 10 10 0
+v 10 10 10
+v 0 10 10
+f 1 4 3 2
+f 5 6 7 8
+f 4 8 7 3
+f 1 5 8 4
+f 2 3 7 6
+o lamp
+usemtl light
+v 6 9.9 7
+v 8 9.9 7
+v 8 9.9 9
+v 6 9.9 9
+f -4 -1 -2 -3
+o block
+usemtl white
+v 1 0 1
+v 2 0 1
+v 2 1 1
+v 1 1 1
+f -4 -3 -2 -1
+"""
+
+
+def write_open_room(folder: Path) -> Path:
+    (folder / "room.mtl").write_text("newmtl white\nKd 0.8 0.8 0.8\nnewmtl light\nKa 5 5 5\nKd 1 1 1\n")
+    path = folder / "room.obj"
+    path.write_text(OPEN_ROOM_OBJ)
+    return path
+
+
+def test_mesh_file_emitter_places_the_light_under_that_emitter(tmp_path):
+    """The point light stands just inside the room from the emitter's own corners (x 6..8, z
+    7..9 under y 9.9), not at the mean of the file's vertices: trimesh's maintain_order gives
+    every geometry the whole vertex list, and the Cornell box's light landed in its tall block."""
+    from scenes.catalog import load_path
+
+    scene = load_path(str(write_open_room(tmp_path)))
+    (light,) = scene.lights
+    x, y, z = np.asarray(light.position) + np.asarray(scene.origin)
+    assert 6 < x < 8 and 7 < z < 9 and 9 < y < 9.9
+
+
+def test_auto_camera_looks_into_an_open_room_through_its_open_side(tmp_path):
+    """Five walls facing in: from +z the camera saw the outside of the back wall (unlit, black);
+    it now stands on the open -z side and its centre ray meets the back wall's lit inside."""
+    from engine.core.scene import open_side
+    from scenes.catalog import load_path
+
+    scene = load_path(str(write_open_room(tmp_path)))
+    eye = np.asarray(scene.camera.eye) + np.asarray(scene.origin)
+    assert eye[2] < 0 and 0 < eye[0] < 10
+    assert open_side(scene.triangles).tolist() == [0.0, 0.0, -1.0]
+
+
+def test_auto_camera_keeps_plus_z_for_closed_meshes_and_floors():
+    """A closed box faces every side equally and a floor faces up: both keep the +z camera."""
+    import trimesh
+
+    from engine.core.scene import open_side
+    from engine.core.scene import make_triangles
+
+    box = trimesh.creation.box((2.0, 3.0, 4.0))
+    floor = trimesh.Trimesh([[0, 0, 0], [0, 0, 9], [9, 0, 9], [9, 0, 0]], [[0, 1, 2], [0, 2, 3]], process=False)
+    for mesh in (box, floor):
+        tris = make_triangles(np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces), 0)
+        assert open_side(tris).tolist() == [0.0, 0.0, 1.0]
+
+
+def test_cornell_box_light_is_under_its_ceiling_emitter(scene_path):
+    """The emitter spans x 213..343, z 227..332 at y 548; the light stood at y 212, in the tall block."""
+    scene = load_named("cornell-box")
+    x, y, z = scene.lights[0].position
+    assert 213 < x < 343 and 227 < z < 332 and 500 < y < 548

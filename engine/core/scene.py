@@ -344,7 +344,7 @@ class SceneBuilder:
         if offset is not None:
             scene.origin = tuple(float(x) for x in offset)
         if camera is None:
-            scene.camera = auto_camera(scene.bounds())
+            scene.camera = auto_camera(scene.bounds(), side=open_side(tris))
         if not scene.lights:
             scene.lights = [default_light(scene.bounds(), scene.camera)]
         return check_scene(scene, materials=not materials_checked)
@@ -414,13 +414,34 @@ def check_scene(scene: Scene, materials: bool = True) -> Scene:
     return scene
 
 
-def auto_camera(bounds: np.ndarray, fov: float = 40.0) -> Camera:
-    """A camera looking at the box centre from the +z side (slightly above), framing the box."""
+#: How much of a scene's surface area must face one horizontal side, net, before the automatic
+#: camera looks from that side instead of +z (a closed mesh faces every side equally: 0).
+OPEN_SIDE_FRACTION = 0.1
+
+
+def open_side(triangles) -> np.ndarray:
+    """The horizontal axis (f64[3]: +-x or +-z) that the surfaces of ``triangles`` face, net,
+    when their area vectors sum to at least OPEN_SIDE_FRACTION of their area along it; else +z.
+
+    A room open on one side (the Cornell box: five walls facing in) faces its opening; seen
+    from +z the camera looked at the outside of its back wall, which the light inside never
+    reaches: a black image. Closed meshes and floors (whose net faces up) keep +z."""
+    a = np.cross(np.asarray(triangles.e1, np.float64), np.asarray(triangles.e2, np.float64))
+    total = float(np.linalg.norm(a, axis=1).sum())
+    net = a.sum(axis=0)
+    axes = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    best = axes[int(np.argmax(axes @ net))]
+    return best if total > 0 and float(best @ net) >= OPEN_SIDE_FRACTION * total else axes[0]
+
+
+def auto_camera(bounds: np.ndarray, fov: float = 40.0, side=(0.0, 0.0, 1.0)) -> Camera:
+    """A camera looking at the box centre from the horizontal ``side`` (slightly above), framing
+    the box."""
     lo, hi = np.asarray(bounds, np.float64)
     centre = (lo + hi) / 2
     radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-6)
     distance = radius / math.tan(math.radians(fov) / 2) * 1.1
-    direction = np.array([0.0, 0.25, 1.0])
+    direction = np.asarray(side, np.float64) + np.array([0.0, 0.25, 0.0])
     direction /= np.linalg.norm(direction)
     return Camera(tuple(centre + direction * distance), tuple(centre), (0.0, 1.0, 0.0), fov)
 
