@@ -389,8 +389,10 @@ def cmd_scenes(args) -> int:
         files = ("missing: " + ", ".join(r["missing"]) if not r["files_found"]
                  else f"found, but cannot be loaded: {r['error']}" if "error" in r else "found")
         tri = f"{r['triangles']:,}" if r["triangles"] is not None else "-"
-        print(f"{r['name']:<14} {tri:>10} {r['lights'] if r['lights'] is not None else '-':>6} "
-              f"{'yes' if r['animated'] else 'no':>8}  {files}")
+        moving = "yes" if r["animated"] else "time" if r.get("moves_with_time") else "no"
+        print(f"{r['name']:<14} {tri:>10} {r['lights'] if r['lights'] is not None else '-':>6} {moving:>8}  {files}")
+    if any(r.get("moves_with_time") and not r["animated"] for r in rows):
+        print("animated 'time': render --time moves it, but it has no animation path for packetrt animate")
     return 0
 
 

@@ -266,7 +266,8 @@ def load_path(path: str, time: float = 0.0) -> Scene:
 
 def describe(load: bool = True) -> list[dict]:
     """One row per catalog scene for ``packetrt scenes``: name, description, files found,
-    and, when loadable, triangles, lights and animated."""
+    animated (``packetrt animate`` renders it), and, when loadable, triangles, lights and
+    moves_with_time (``render --time`` changes it)."""
     _load_loader_modules()
     rows = []
     for name, entry in sorted(entries().items()):
@@ -279,7 +280,9 @@ def describe(load: bool = True) -> list[dict]:
                 scene = load_named(name)
                 row["triangles"] = scene.n_triangles
                 row["lights"] = len(scene.lights)
-                row["animated"] = entry.animated or scene.animated
+                # "animated": `packetrt animate` renders its path; a scene that only follows
+                # `--time` (cosine-n: the kitchen around a static surface) is "moves_with_time".
+                row["moves_with_time"] = entry.animated or scene.animated
             except (SceneError, ConfigError) as exc:
                 row["error"] = str(exc)
         rows.append(row)
@@ -335,8 +338,9 @@ def open_path(scene_config, override: str = "none") -> ScenePath:
         loader, name = entry.loader, entry.name
     animated = sorted(e.name for e in entries().values() if e.animated)
     if loader not in ANIMATORS:
-        raise ConfigError(f"scene {name!r} is static: it has no animation path to render "
-                          f"(animated scenes: {', '.join(animated)})")
+        raise ConfigError(f"scene {name!r} has no animation path to render (its loader {loader!r} cannot "
+                          f"animate; `render --time T` renders one time of a scene that follows time; "
+                          f"animated scenes: {', '.join(animated)})")
     path = ScenePath(name, ANIMATORS[loader](files, params), entry, override)
     if not path.animated:
         raise ConfigError(f"scene {name!r} does not move: nothing in it is animated "

@@ -305,7 +305,7 @@ def test_bad_paths_are_one_line_errors(tmp_path, scene_file, capsys, args, messa
 
 def test_static_scenes_unwritable_folders_and_reused_folders_are_one_line_errors(tmp_path, scene_file, capsys):
     assert main(["animate", "--scene", "whitted", "-o", str(tmp_path / "w")]) == 2
-    assert "is static: it has no animation path" in capsys.readouterr().err
+    assert "has no animation path to render" in capsys.readouterr().err
     blocker = tmp_path / "file"
     blocker.write_text("x")
     assert main(["animate", "--scene", str(scene_file), "-o", str(blocker)]) == 2

@@ -291,3 +291,31 @@ def test_cornell_box_light_is_under_its_ceiling_emitter(scene_path):
     scene = load_named("cornell-box")
     x, y, z = scene.lights[0].position
     assert 213 < x < 343 and 227 < z < 332 and 500 < y < 548
+
+
+def test_scenes_animated_column_means_animate_renders_it(no_scene_path):
+    """Every catalog scene flagged animated has an animation path (its loader can animate), and
+    cosine-n, whose kitchen follows --time around a static surface, is not flagged: `packetrt
+    scenes` listed it "animated" and `packetrt animate` refused it."""
+    from scenes.catalog import ANIMATORS
+
+    rows = {row["name"]: row for row in describe(load=False)}
+    for name, entry in entries().items():
+        assert rows[name]["animated"] == (entry.animated and entry.loader in ANIMATORS), name
+    assert not rows["cosine-n"]["animated"]
+
+
+def test_scenes_listing_tells_time_following_scenes_apart(monkeypatch, capsys):
+    """The animated column: yes (animate renders it), time (render --time moves it), no."""
+    import scenes.catalog
+    from engine.cli import main
+
+    row = {"files_found": True, "missing": [], "triangles": 10, "lights": 1, "description": "", "loader": "x",
+           "params": {}}
+    rows = [{**row, "name": "a", "animated": True, "moves_with_time": True},
+            {**row, "name": "t", "animated": False, "moves_with_time": True},
+            {**row, "name": "s", "animated": False, "moves_with_time": False}]
+    monkeypatch.setattr(scenes.catalog, "describe", lambda load=True: rows)
+    assert main(["scenes"]) == 0
+    lines = {line.split()[0]: line.split()[3] for line in capsys.readouterr().out.splitlines()[2:5]}
+    assert lines == {"a": "yes", "t": "time", "s": "no"}
