@@ -119,6 +119,9 @@ def test_plugins_and_scenes_json(capsys):
     plugins = json.loads(capsys.readouterr().out)
     names = {p["name"] for p in plugins["traversals"]}
     assert {"single", "embree"} <= names and "none" in {p["name"] for p in plugins["frusta"]}
+    # Whole sentences: the first docstring line alone cut the general frustum's in two.
+    for row in plugins["traversals"] + plugins["frusta"]:
+        assert row["doc"].endswith((".", ")")) and "\n" not in row["doc"], row
     assert main(["scenes", "--json"]) == 0
     rows = {r["name"]: r for r in json.loads(capsys.readouterr().out)["scenes"]}
     assert rows["whitted"]["triangles"] == 3072 and rows["whitted"]["files_found"]

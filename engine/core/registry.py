@@ -91,9 +91,10 @@ def load_entry_points() -> list[str]:
 
 
 def describe_table(table: dict) -> list:
-    """[{"name", "doc"}] for the classes of ``table``, by name; doc is the docstring's first line."""
-    def first_line(cls):
+    """[{"name", "doc"}] for the classes of ``table``, by name; doc is the docstring's first
+    paragraph on one line (its first line alone cut the general frustum's sentence in two)."""
+    def first_paragraph(cls):
         doc = (cls.__doc__ or "").strip()
-        return doc.splitlines()[0] if doc else ""
+        return " ".join(doc.split("\n\n")[0].split())
 
-    return [{"name": n, "doc": first_line(cls)} for n, cls in sorted(table.items())]
+    return [{"name": n, "doc": first_paragraph(cls)} for n, cls in sorted(table.items())]
