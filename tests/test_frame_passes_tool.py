@@ -21,3 +21,15 @@ def test_the_passes_of_a_small_frame_are_timed_and_restored(tmp_path, capsys):
 def test_a_wrong_command_line_prints_the_usage(capsys):
     assert load_tool("frame_passes").main([]) == 2
     assert "frame_passes.py CONFIG.toml" in capsys.readouterr().err
+
+
+def test_help_and_bad_input_are_answers_not_tracebacks(tmp_path, capsys):
+    """--help printed a ConfigError traceback ("config file '--help' does not exist")."""
+    tool = load_tool("frame_passes")
+    assert tool.main(["--help"]) == 0
+    assert "FRAMES" in capsys.readouterr().out
+    assert tool.main([str(tmp_path / "none.toml")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "none.toml" in err and "does not exist" in err
+    assert tool.main([str(tmp_path / "none.toml"), "0"]) == 2
+    assert "FRAMES" in capsys.readouterr().err

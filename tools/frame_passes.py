@@ -10,11 +10,13 @@ a few microseconds a call, against passes of milliseconds.
 """
 from __future__ import annotations
 
+import argparse
 import statistics
 import sys
 import time
 
 import engine.render.whitted as whitted
+from engine.core.errors import PacketrtError
 from engine.render import config as cfg
 from scenes.catalog import scene_from_config
 
@@ -23,13 +25,35 @@ PASSES = ("shade_surface", "light_directions", "add_light_in_place", "add_light"
           "compact_into_packets", "camera_batch")
 
 
+def frame_count(text: str) -> int:
+    """FRAMES: a whole number 1..10,000 (argparse turns the ValueError into one usage line)."""
+    frames = int(text)
+    if not 1 <= frames <= 10_000:
+        raise ValueError(text)
+    return frames
+
+
+def parse(argv: list) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="frame_passes.py", usage=USAGE,
+                                     description="Each shading pass of a frame timed around its call (a diagnostic).")
+    parser.add_argument("config", metavar="CONFIG.toml", help="render config")
+    parser.add_argument("frames", metavar="FRAMES", nargs="?", type=frame_count, default=9,
+                        help="frames timed after a warm-up frame, 1..10000 (default 9)")
+    return parser.parse_args(argv)
+
+
 def main(argv: list) -> int:
-    if not 1 <= len(argv) <= 2:
-        print(f"usage: {USAGE}", file=sys.stderr)
+    try:
+        args = parse(argv)
+    except SystemExit as stop:  # --help (0) or a usage error (2), already printed
+        return int(stop.code or 0)
+    frames = args.frames
+    try:
+        config = cfg.load(args.config)
+        renderer = whitted.WhittedRenderer(scene_from_config(config.scene, config.override), config)
+    except PacketrtError as exc:
+        print(f"frame_passes.py: error: {exc}", file=sys.stderr)
         return 2
-    frames = int(argv[1]) if len(argv) > 1 else 9
-    config = cfg.load(argv[0])
-    renderer = whitted.WhittedRenderer(scene_from_config(config.scene, config.override), config)
     renderer.warm_up()
     renderer.render()
     seconds = {}

@@ -48,4 +48,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    import argparse
+
+    argparse.ArgumentParser(prog="numba_stand_ins_check.py", description=__doc__.splitlines()[0]).parse_args()
     sys.exit(main())

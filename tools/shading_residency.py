@@ -95,6 +95,13 @@ def main(config_path: str) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 2:
-        sys.exit("usage: python tools/shading_residency.py CONFIG.toml")
-    main(sys.argv[1])
+    import argparse
+
+    from engine.core.errors import PacketrtError
+
+    parser = argparse.ArgumentParser(prog="shading_residency.py", description=__doc__.splitlines()[0])
+    parser.add_argument("config", metavar="CONFIG.toml", help="render config (run with NUMBA_NUM_THREADS=1)")
+    try:
+        main(parser.parse_args().config)
+    except PacketrtError as exc:
+        sys.exit(f"shading_residency.py: error: {exc}")
