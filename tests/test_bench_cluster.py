@@ -80,10 +80,17 @@ def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):
 
     import dask
 
+    out = tmp_path / "new"
     with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):  # Dask's own knob, 30 s by default
-        assert main(["bench", str(SMOKE), "--out", str(tmp_path), "--scheduler", "tcp://127.0.0.1:9"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith("packetrt: error: --scheduler tcp://127.0.0.1:9: cannot reach a Dask scheduler")
+        assert main(["bench", str(SMOKE), "--out", str(out), "--scheduler", "tcp://127.0.0.1:9"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith("packetrt: error: --scheduler tcp://127.0.0.1:9: cannot reach a Dask scheduler")
+        assert not out.exists()  # the folder it made for the results is gone again, not left empty
+        # A folder that was there stays, with what it held.
+        out.mkdir()
+        (out / "notes.txt").write_text("mine")
+        assert main(["bench", str(SMOKE), "--out", str(out), "--scheduler", "tcp://127.0.0.1:9"]) == 2
+        assert (out / "notes.txt").read_text() == "mine"
 
 
 def test_a_tiled_audit_over_the_cluster_equals_the_serial_audit(tmp_path):

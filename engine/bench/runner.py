@@ -503,9 +503,33 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
     up to ``retries`` times, while the host runs more than ``steady`` times slower around it than
     at the run's fastest moment (``steadiest``; here only, not on a cluster).
     """
-    from tqdm import tqdm
+    created = not Path(out).exists()
+    try:
+        return _run_matrix(matrix, Path(out), resume, progress, run or run_cell, scheduler, workers, steady, retries)
+    except BaseException:
+        if created:  # an unreachable scheduler, a bad scene ...: no empty folder left behind
+            remove_if_empty(Path(out))
+        raise
 
-    run = run or run_cell
+
+def remove_if_empty(folder: Path) -> None:
+    """Remove ``folder`` when it holds nothing but empty files (what a run that failed before
+    its first cell leaves: an empty results.jsonl)."""
+    try:
+        entries = list(folder.iterdir())
+        if all(e.is_file() and not e.is_symlink() and e.stat().st_size == 0 for e in entries):
+            for e in entries:
+                e.unlink()
+            folder.rmdir()
+    except OSError:
+        pass  # best effort: the error being raised is the one to report
+
+
+def _run_matrix(matrix: Matrix, out: Path, resume: bool, progress: bool, run, scheduler: str | None, workers: int,
+                steady: float | None, retries: int) -> dict:
+    """``run_matrix``'s work, in a folder it may have created (which it removes when this fails
+    before writing anything)."""
+    from tqdm import tqdm
 
     output_folder(out, "--out")
     path = out / results_io.RESULTS
