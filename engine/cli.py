@@ -1,18 +1,21 @@
 """The ``packetrt`` command line.
 
-    packetrt render  [CONFIG] [selectors] [-o OUT.png] [--stats OUT.json] [--audit]
-    packetrt audit   [CONFIG] [selectors] [--json OUT.json] [--report DIR]
+    packetrt render  [CONFIG] [selectors] [-o OUT.png] [--stats OUT.json] [--repeat N | --audit]
+    packetrt audit   [CONFIG] [selectors] [--json OUT.json] [--report DIR] [--oracle embree|open3d|both]
+                     [--scheduler [ADDRESS] [--workers N] [--tiles N]]
     packetrt animate [CONFIG] [selectors] -o DIR [--frames N | --fps F] [--start S] [--end E]
                      [--accel rebuild|refit|auto] [--stats OUT.json] [--resume] [--audit]
-    packetrt bench   MATRIX.toml [--out DIR] [--repeat N] [--resume]
+    packetrt bench   MATRIX.toml [--out DIR] [--repeat N] [--resume] [--device cpu|cuda]
+                     [--scheduler [ADDRESS] [--workers N]] [--steady X [--retries N]]
     packetrt show    [CONFIG] [selectors] [--kind K] [--packet-index I] [-o OUT.png]
     packetrt view    [CONFIG] [selectors]
     packetrt plugins [--json]
     packetrt scenes  [--json]
+    packetrt --version
 
 selectors: --scene S  --param KEY=VALUE  --time T  --traversal KIND=NAME|NAME
            --frustum KIND=NAME|NAME  --packet N  --size WxH  --depth D  --threads T
-           --override none|reflective|refractive
+           --device cpu|cuda  --override none|reflective|refractive  --strict
 
 A user mistake -- a mistyped option included -- prints one line ``packetrt: error: ...`` and
 exits with code 2; an audit that finds a mismatch exits with code 1. A texture or material
@@ -198,6 +201,9 @@ def cmd_render(args) -> int:
     config = _config_from(args)
     _png_output("-o", args.output)
     _check_outputs(("-o", args.output), ("--stats", args.stats))
+    if args.audit and args.repeat:
+        raise ConfigError(f"--audit renders one frame with every ray checked against Embree (its times include the "
+                          f"checking); --repeat {args.repeat} times frames: give one or the other")
     scene = _load_scene(config, args.strict)
     if args.audit:
         return _run_audit(scene, config, args.output, None, None, args.stats)
@@ -298,7 +304,7 @@ def _run_audit(scene, config, image_path, json_path, report_dir, stats_path, ora
     if json_path:
         _write_json(json_path, report)
     if stats_path and result is not None:
-        _write_json(stats_path, stats_dict(scene, config, result))
+        _write_json(stats_path, stats_dict(scene, config, result, audited=True))
     if report_dir:
         from validation.report import write_report
 
@@ -331,6 +337,9 @@ def cmd_audit(args) -> int:
     if args.scheduler is None and (args.tiles is not None or args.workers is not None):
         raise ConfigError("--tiles and --workers split the audit over a --scheduler; give --scheduler too, "
                           "or leave them out")
+    if args.scheduler is not None and args.oracle == "both":  # was refused inside the first Dask task
+        raise ConfigError("--scheduler splits the audit into bands checked against one oracle; --oracle both "
+                          "runs here only (or give --oracle embree or open3d)")
     if args.report:
         from validation.report import REPORT_FILES
 
@@ -479,8 +488,7 @@ def _add_bench_parser(sub) -> None:
                    help="measure a cell again (up to --retries times) when the host ran more than X times slower "
                         "around it than at the run's fastest moment, and keep the steadiest measurement "
                         "(e.g. 1.1; default: measure once)")
-    p.add_argument("--retries", type=int, default=2, help="most extra measurements of a cell under --steady "
-                                                          "(default 2)")
+    p.add_argument("--retries", type=int, help="most extra measurements of a cell under --steady (default 2)")
     p.set_defaults(run=_delegate("engine.bench.runner", "cmd_bench"))
 
 

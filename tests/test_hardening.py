@@ -1039,3 +1039,35 @@ def test_numbas_environment_is_one_line_before_numba_loads(tmp_path, name, value
     assert done.returncode == 2 and len(lines) == 1 and fragment in lines[0], done.stderr
     assert lines[0].startswith("packetrt: error: environment variable ")
     assert not (tmp_path / "x.png").exists()
+
+
+# -- options that were taken and then ignored (session 38) -------------------------------
+
+def test_render_audit_refuses_repeat_and_its_stats_say_they_were_not_counted(tmp_path, capsys):
+    """``render --audit --repeat 3`` rendered one frame and dropped --repeat; its --stats said its
+    zero counters came from "a separate counting pass"."""
+    code, err = run(["render", *TINY, "--audit", "--repeat", "3", "-o", tmp_path / "a.png"], capsys)
+    assert code == 2 and len(err) == 1 and "--repeat 3" in err[0] and not (tmp_path / "a.png").exists()
+    stats = tmp_path / "a.json"
+    assert main(["render", *TINY, "--audit", "-o", str(tmp_path / "a.png"), "--stats", str(stats)]) == 0
+    data = json.loads(stats.read_text())
+    assert data["audited"] is True and data["counters_from"].startswith("none: an audited frame")
+    assert main(["render", *TINY, "-o", str(tmp_path / "b.png"), "--stats", str(stats)]) == 0
+    data = json.loads(stats.read_text())
+    assert data["audited"] is False and data["counters_from"].startswith("a separate counting pass")
+
+
+def test_audit_over_a_scheduler_refuses_two_oracles_before_any_work(tmp_path, capsys):
+    code, err = run(["audit", *TINY, "--scheduler", "tcp://127.0.0.1:9", "--oracle", "both"], capsys)
+    assert code == 2 and len(err) == 1 and "--oracle both" in err[0]
+
+
+@pytest.mark.parametrize("matrix, option", [
+    ("gpu.toml", ["--scheduler"]), ("gpu.toml", ["--resume"]), ("bart-dynamic.toml", ["--workers", "2"]),
+    ("trimesh.toml", ["--steady", "1.1"]), ("bart-dynamic.toml", ["--retries", "1"]),
+])
+def test_matrices_not_of_cells_refuse_the_cell_runners_options(tmp_path, capsys, matrix, option):
+    """They ran and ignored --scheduler, --workers, --steady and --retries (gpu also --resume)."""
+    code, err = run(["bench", ROOT / "benchmarks" / matrix, "--out", tmp_path / "o", *option], capsys)
+    assert code == 2 and len(err) == 1 and option[0] in err[0] and "a matrix of cells" not in err[0]
+    assert not (tmp_path / "o").exists()

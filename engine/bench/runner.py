@@ -621,6 +621,15 @@ def cmd_bench(args) -> int:
                               f"matrix sets its own repetitions (repeat_frames, frames)")
         if not 1 <= repeat <= MAX_REPEAT:
             raise ConfigError(f"--repeat: must be in 1..{MAX_REPEAT}, got {repeat}")
+    if kind in ("gpu", "dynamic", "trimesh"):  # options only the runner of cells reads: refused, not ignored
+        given = [option for option, name in (("--scheduler", "scheduler"), ("--workers", "workers"),
+                                             ("--steady", "steady"), ("--retries", "retries"))
+                 if getattr(args, name, None) is not None]
+        if kind == "gpu" and getattr(args, "resume", False):
+            given.append("--resume")
+        if given:
+            raise ConfigError(f"{args.matrix}: {', '.join(given)} apply to matrices of cells (or, for --resume, of "
+                              f"cells, dynamic paths and trimesh queries); a {kind} matrix runs its own way")
     if kind in ("gpu", "dynamic"):  # their name is the default output folder's, as for cells
         check_matrix_name(args.matrix, data.get("name", Path(args.matrix).stem))
     device = getattr(args, "device", None) or data.get("device", "cpu")
@@ -650,7 +659,8 @@ def cmd_bench(args) -> int:
         return cmd_trimesh_bench(args, data)
     matrix = load_matrix(args.matrix, repeat=args.repeat)
     out = Path(args.out) if args.out else Path("out") / f"bench-{matrix.name}"
-    steady, retries = getattr(args, "steady", None), getattr(args, "retries", 2)
+    steady, retries = getattr(args, "steady", None), getattr(args, "retries", None)
+    retries = 2 if retries is None else retries
     if steady is not None and not (steady >= 1.0 and math.isfinite(steady)):
         raise ConfigError(f"--steady must be a number >= 1 (how many times slower than its fastest the host may "
                           f"run around a cell), got {steady}")

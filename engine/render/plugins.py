@@ -1,7 +1,9 @@
 """The composition root: config names -> new, configured plugin instances.
 
-The only module that imports the built-in plugin packages (``traversals``, ``frusta``; importing
-them registers their classes in ``engine.core.registry``). Every call makes a new instance, so
+The renderer's one door to the built-in plugin packages (``traversals``, ``frusta``; importing
+them registers their classes in ``engine.core.registry``); the only other importer is
+``engine.debug.packet_trace``, which draws walks with ``traversals.single``'s and
+``traversals.rayspace``'s own kernels. Every call makes a new instance, so
 the options of one config (``[options.rayspace] pair_budget``, ``[options.embree] robust``)
 live in the instances that config's renderer holds and die with it.
 """

@@ -26,10 +26,17 @@ def extra_dict(scene, result) -> dict:
             "shadow_order": dict(getattr(result, "shadow_order", {}))}
 
 
-def stats_dict(scene, config, result, frames: list | None = None) -> dict:
+#: ``counters_from`` of a render's --stats: where its counters come from.
+COUNTED = "a separate counting pass over the same rays (timings exclude counting)"
+#: ... and of an audited frame (``render --audit``), which no counting pass follows.
+NOT_COUNTED = "none: an audited frame (render --audit) is not counted, and its times include the checking"
+
+
+def stats_dict(scene, config, result, frames: list | None = None, audited: bool = False) -> dict:
     """The --stats document (see the README for its fields) of ``result`` (a RenderResult of
     ``scene`` rendered with ``config``); ``frames``: every timed frame's seconds (default: the
-    one of ``result``)."""
+    one of ``result``). ``audited``: the frame of an audit (counters zero, times with the
+    checking in them), said so in ``counters_from`` and ``audited``."""
     return {
         "scene": scene.name, "triangles": scene.n_triangles,
         "width": config.render.width, "height": config.render.height,
@@ -43,7 +50,8 @@ def stats_dict(scene, config, result, frames: list | None = None) -> dict:
         "counters": {name: result.counters.get(name, dict.fromkeys(RAY_KINDS, 0))
                      for name in ("ray_aabb", "ray_tri")},
         "counters_by_depth": result.counters_by_depth,
-        "counters_from": "a separate counting pass over the same rays (timings exclude counting)",
+        "counters_from": NOT_COUNTED if audited else COUNTED,
+        "audited": audited,
         "extra": extra_dict(scene, result),
         "frames": frames_dict(frames or [result.seconds["total"]]),
     }
