@@ -231,6 +231,36 @@ def read_mtllibs(path: Path, warnings: list) -> dict:
     return mtl
 
 
+def placed_geometries(loaded, name: str) -> list:
+    """[(name, geometry, vertices f64[V,3], faces i64[F,3])]: every placement of every mesh with
+    faces in what ``trimesh.load`` gave (a Trimesh, or a Scene), its vertices moved by its node's
+    transform in the scene graph. A glTF's nodes place (and instance) their meshes; taking the
+    meshes alone put every one at its own origin, once. A mirroring transform reverses the
+    faces' winding, so that their front faces still face out (trimesh does the same)."""
+    import trimesh
+
+    if not isinstance(loaded, trimesh.Scene):
+        items = [(name, loaded, [np.eye(4)])]
+    else:
+        graph = loaded.graph
+        items = [(key, geom, [graph.get(node)[0] for node in graph.geometry_nodes.get(key, [])] or [np.eye(4)])
+                 for key, geom in loaded.geometry.items()]
+    placed = []
+    for key, geom, transforms in items:
+        if not hasattr(geom, "faces") or len(geom.faces) == 0:
+            continue
+        corners = np.asarray(geom.vertices, np.float64)
+        faces = np.asarray(geom.faces)
+        for matrix in transforms:
+            matrix = np.asarray(matrix, np.float64)
+            if np.array_equal(matrix, np.eye(4)):
+                placed.append((key, geom, corners, faces))
+                continue
+            moved = corners @ matrix[:3, :3].T + matrix[:3, 3]
+            placed.append((key, geom, moved, faces[:, ::-1] if np.linalg.det(matrix[:3, :3]) < 0 else faces))
+    return placed
+
+
 @scene_loader("mesh")
 def load_mesh_scene(files, params, time):
     """Load the first of ``files`` as a mesh scene."""
@@ -257,24 +287,20 @@ def load_mesh_scene(files, params, time):
             loaded = trimesh.load(str(path), process=False, maintain_order=True)
     except Exception as exc:  # trimesh raises many types for a malformed file
         raise SceneError(f"{path}: cannot read mesh: {exc}") from None
-    geometries = list(loaded.geometry.items()) if isinstance(loaded, trimesh.Scene) else [(path.stem, loaded)]
     builder = SceneBuilder(path.stem, source=str(path))
     emitters = []
-    for name, geom in geometries:
-        if not hasattr(geom, "faces") or len(geom.faces) == 0:
-            continue
+    for name, geom, vertices, faces in placed_geometries(loaded, path.stem):
         mat_name = getattr(getattr(geom.visual, "material", None), "name", None) or name
         material = mtl.get(mat_name) or mtl.get(name) or Material(name=mat_name)
         index = builder.add_material(material, key=material.name)
         uvs = None
         if material.texture is not None and getattr(geom.visual, "uv", None) is not None:
             uvs = np.asarray(geom.visual.uv, np.float32)
-        builder.add_mesh(np.asarray(geom.vertices), np.asarray(geom.faces), index, uvs=uvs, source=str(path))
+        builder.add_mesh(vertices, faces, index, uvs=uvs, source=str(path))
         if max(material.ambient) > 1.0:
             # The corners its faces use: with maintain_order every geometry of an OBJ carries the
             # whole file's vertex list, and their mean put the Cornell box's light in the tall block.
-            used = np.unique(np.asarray(geom.faces))
-            emitters.append((np.asarray(geom.vertices, np.float64)[used], material))
+            emitters.append((vertices[np.unique(faces)], material))
     if builder.n_triangles == 0:
         raise SceneError(f"{path}: the file holds no triangles")
     lights = None

@@ -319,3 +319,31 @@ def test_scenes_listing_tells_time_following_scenes_apart(monkeypatch, capsys):
     assert main(["scenes"]) == 0
     lines = {line.split()[0]: line.split()[3] for line in capsys.readouterr().out.splitlines()[2:5]}
     assert lines == {"a": "yes", "t": "time", "s": "no"}
+
+
+def test_gltf_nodes_place_and_instance_their_meshes(tmp_path):
+    """A glTF scene graph places a mesh by its nodes' transforms, once per node: one sphere at
+    the origin, moved by +5 in x, and mirrored about x = -5 (which must keep its faces turned
+    out). The loader took the meshes alone: every one at its own origin."""
+    import trimesh
+
+    from scenes.catalog import load_path
+
+    ball = trimesh.creation.icosphere(subdivisions=1)
+    scene = trimesh.Scene()
+    moved, mirrored = np.eye(4), np.diag([-1.0, 1.0, 1.0, 1.0])
+    moved[0, 3], mirrored[0, 3] = 5.0, -10.0
+    for node, matrix in (("a", np.eye(4)), ("b", moved), ("c", mirrored)):
+        scene.add_geometry(ball, node_name=node, geom_name=f"ball-{node}", transform=matrix)
+    path = tmp_path / "balls.glb"
+    scene.export(str(path))
+    loaded = load_path(str(path))
+    assert loaded.n_triangles == 3 * len(ball.faces)
+    tris = loaded.triangles
+    centroids = (tris.v0 + tris.v1 + tris.v2).astype(np.float64) / 3 + np.asarray(loaded.origin)
+    lo, hi = centroids.min(axis=0), centroids.max(axis=0)
+    assert lo[0] < -10.5 and hi[0] > 5.5
+    centre = np.round(centroids[:, :1] / 5.0) * 5.0  # each ball's centre: x = -10, 0 or 5
+    assert sorted(set(centre[:, 0].tolist())) == [-10.0, 0.0, 5.0]
+    outward = centroids - np.hstack([centre, np.zeros((len(centre), 2))])
+    assert np.all(np.einsum("ij,ij->i", np.asarray(tris.ng, np.float64), outward) > 0)
