@@ -231,6 +231,69 @@ def read_mtllibs(path: Path, warnings: list) -> dict:
     return mtl
 
 
+def colour_of(rgba, default=(1.0, 1.0, 1.0)) -> tuple:
+    """Linear RGB in [0, 1] of a trimesh colour (uint8 0..255 or float 0..1 RGB[A]); None: default."""
+    if rgba is None:
+        return default
+    rgba = np.asarray(rgba, np.float64).ravel()
+    if rgba.size < 3 or not np.all(np.isfinite(rgba[:3])):
+        return default
+    scale = 255.0 if np.asarray(rgba).dtype.kind in "ui" or rgba[:3].max() > 1.0 else 1.0
+    return tuple(float(min(max(c / scale, 0.0), 1.0)) for c in rgba[:3])
+
+
+def texture_of(image, where: str):
+    """f32[H,W,3] of a PIL image a trimesh material holds (None: no texture)."""
+    if image is None:
+        return None
+    try:
+        return np.asarray(image.convert("RGB"), np.float32) / 255.0
+    except Exception as exc:  # a broken embedded image: Pillow raises many types
+        raise SceneError(f"{where}: cannot read its texture: {exc}") from None
+
+
+def material_from_visual(visual, name: str, where: str) -> Material:
+    """The Material of a mesh read from a glTF, PLY, STL or OFF file, from trimesh's visuals.
+
+    glTF (``PBRMaterial``): base colour -> diffuse, base colour texture -> texture; a metallic
+    (>= 0.5), smooth (roughness <= 0.25) surface is a mirror of its base colour; a blended
+    alpha below 1 transmits 1 - alpha (index 1.5). ``SimpleMaterial``: diffuse, ambient,
+    specular, glossiness (Phong exponent) and image. Vertex or face colours (a PLY's): their
+    mean as diffuse (one material a mesh). A mesh without any keeps the default material."""
+    from trimesh.visual.material import PBRMaterial, SimpleMaterial
+
+    kind = getattr(visual, "kind", None)
+    if kind in ("vertex", "face"):
+        colours = visual.vertex_colors if kind == "vertex" else visual.face_colors
+        return Material(name=name, diffuse=colour_of(np.asarray(colours, np.float64).mean(axis=0)))
+    material = getattr(visual, "material", None)
+    if kind != "texture" or material is None:
+        return Material(name=name)
+    if isinstance(material, PBRMaterial):
+        base = colour_of(material.baseColorFactor)
+        metallic = 1.0 if material.metallicFactor is None else float(material.metallicFactor)
+        roughness = 1.0 if material.roughnessFactor is None else float(material.roughnessFactor)
+        factor = material.baseColorFactor
+        alpha = 1.0 if factor is None or np.asarray(factor).size < 4 else \
+            float(np.asarray(factor, np.float64).ravel()[3]) / (255.0 if np.asarray(factor).dtype.kind in "ui" else 1.0)
+        blended = str(getattr(material, "alphaMode", "") or "").upper() == "BLEND"
+        transmission = min(max(1.0 - alpha, 0.0), 1.0) if blended and np.isfinite(alpha) else 0.0
+        mirror = metallic >= 0.5 and roughness <= 0.25
+        texture = texture_of(material.baseColorTexture, where)
+        return Material(name=name, diffuse=base, reflectance=base if mirror else (0.0, 0.0, 0.0),
+                        transmission=transmission, ior=1.5 if transmission > 0 else 1.0, texture=texture,
+                        texture_name="baseColorTexture" if texture is not None else "")
+    if isinstance(material, SimpleMaterial):
+        texture = texture_of(material.image, where)
+        shininess = float(material.glossiness) if material.glossiness is not None else 16.0
+        return Material(name=name, ambient=colour_of(material.ambient, (0.1, 0.1, 0.1)),
+                        diffuse=colour_of(material.diffuse, (0.7, 0.7, 0.7)),
+                        specular=colour_of(material.specular, (0.0, 0.0, 0.0)),
+                        shininess=shininess if np.isfinite(shininess) and 0 <= shininess <= MAX_COLOUR else 16.0,
+                        texture=texture, texture_name="image" if texture is not None else "")
+    return Material(name=name)
+
+
 def placed_geometries(loaded, name: str) -> list:
     """[(name, geometry, vertices f64[V,3], faces i64[F,3])]: every placement of every mesh with
     faces in what ``trimesh.load`` gave (a Trimesh, or a Scene), its vertices moved by its node's
@@ -291,7 +354,10 @@ def load_mesh_scene(files, params, time):
     emitters = []
     for name, geom, vertices, faces in placed_geometries(loaded, path.stem):
         mat_name = getattr(getattr(geom.visual, "material", None), "name", None) or name
-        material = mtl.get(mat_name) or mtl.get(name) or Material(name=mat_name)
+        if suffix == ".obj":  # materials from the MTL as read above (trimesh keeps only part of it)
+            material = mtl.get(mat_name) or mtl.get(name) or Material(name=mat_name)
+        else:
+            material = material_from_visual(geom.visual, mat_name, f"{path}: mesh {name!r}")
         index = builder.add_material(material, key=material.name)
         uvs = None
         if material.texture is not None and getattr(geom.visual, "uv", None) is not None:

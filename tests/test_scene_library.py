@@ -347,3 +347,44 @@ def test_gltf_nodes_place_and_instance_their_meshes(tmp_path):
     assert sorted(set(centre[:, 0].tolist())) == [-10.0, 0.0, 5.0]
     outward = centroids - np.hstack([centre, np.zeros((len(centre), 2))])
     assert np.all(np.einsum("ij,ij->i", np.asarray(tris.ng, np.float64), outward) > 0)
+
+
+def test_gltf_and_ply_colours_become_materials(tmp_path):
+    """glTF base colours, base colour textures and metallic smooth mirrors, and a PLY's vertex
+    colours, reach the materials; they were dropped (every such mesh drawn default grey)."""
+    import trimesh
+    from PIL import Image
+    from trimesh.visual.material import PBRMaterial
+
+    from engine.core.scene import Material
+    from scenes.catalog import load_path
+
+    box = trimesh.creation.box()
+    uv = np.random.default_rng(1).random((len(box.vertices), 2))
+    box.visual = trimesh.visual.TextureVisuals(uv=uv, material=PBRMaterial(
+        name="red", baseColorFactor=[255, 0, 0, 255], metallicFactor=0.0))
+    ball = trimesh.creation.icosphere(subdivisions=1)
+    ball.apply_translation((3.0, 0.0, 0.0))
+    texels = (np.arange(4 * 4 * 3) * 5 % 256).astype(np.uint8).reshape(4, 4, 3)
+    ball.visual = trimesh.visual.TextureVisuals(uv=np.random.default_rng(2).random((len(ball.vertices), 2)),
+                                                material=PBRMaterial(name="tex", baseColorTexture=Image.fromarray(texels)))
+    mirror = trimesh.creation.box()
+    mirror.apply_translation((0.0, 3.0, 0.0))
+    mirror.visual = trimesh.visual.TextureVisuals(uv=uv, material=PBRMaterial(
+        name="chrome", baseColorFactor=[204, 204, 204, 255], metallicFactor=1.0, roughnessFactor=0.1))
+    path = tmp_path / "coloured.glb"
+    trimesh.Scene([box, ball, mirror]).export(str(path))
+    materials = {m.name: m for m in load_path(str(path)).materials}
+    assert materials["red"].diffuse == (1.0, 0.0, 0.0) and materials["red"].reflectance == (0.0, 0.0, 0.0)
+    assert materials["tex"].texture.shape == (4, 4, 3)
+    assert np.allclose(materials["tex"].texture * 255, texels, atol=0.5)
+    assert materials["chrome"].reflectance == materials["chrome"].diffuse == (0.8, 0.8, 0.8)
+
+    ply = trimesh.creation.icosphere(subdivisions=1)
+    ply.visual.vertex_colors = [0, 255, 0, 255]
+    ply.export(str(tmp_path / "green.ply"))
+    (green,) = load_path(str(tmp_path / "green.ply")).materials
+    assert green.diffuse == (0.0, 1.0, 0.0)
+    trimesh.creation.icosphere(subdivisions=1).export(str(tmp_path / "plain.stl"))
+    (plain,) = load_path(str(tmp_path / "plain.stl")).materials
+    assert (plain.diffuse, plain.ambient, plain.texture) == (Material().diffuse, Material().ambient, None)
