@@ -585,3 +585,42 @@ def test_rays_with_many_hits_take_the_exact_path_and_keep_distance_order():
     assert np.bincount(near_ray, minlength=300).max() == 10
     first10 = np.concatenate([np.flatnonzero(index_ray == r)[:10] for r in range(300)])
     np.testing.assert_array_equal(near, locations[first10])
+
+
+# -- found by a fuzz against trimesh's backends (session 38) -------------------------------------
+@pytest.mark.parametrize("stray", [1e7, -1e7, 1e39, np.nan])
+def test_a_vertex_no_face_uses_does_not_move_the_frame(stray):
+    """trimesh's bounds count only the vertices faces use; a stray one 1e7 away shrank the
+    sphere below float32's resolution in the local frame (one hit, off the surface; the centre
+    read as outside), and a NaN or 1e39 one was an error."""
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    mesh = trimesh.Trimesh(np.vstack([sphere.vertices, [[stray] * 3]]), sphere.faces, process=False)
+    ours = RayMeshIntersector(mesh)
+    locations, index_ray, index_tri = ours.intersects_location([[0.0, 0.0, -5.0]], [[0.0, 0.0, 1.0]])
+    assert len(locations) == 2
+    np.testing.assert_allclose(np.abs(locations[:, 2]), 1.0, atol=1e-3)  # the sphere's facets at the poles
+    assert ours.contains_points([[0.0, 0.0, 0.0], [0.0, 0.0, 2.0]]).tolist() == [True, False]
+
+
+@pytest.mark.parametrize("distance", [3.0, 30.0, 100.0, 1000.0])
+def test_a_ray_through_an_edge_crosses_once_from_afar(distance):
+    """A ray at the sphere's centre through the middle of each edge crosses the surface twice;
+    from 30 or more sizes away the two triangles of the edge reported t a few float32 units
+    apart, more than the fixed merge gap: three crossings (2-12% of the edges)."""
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    middle = mesh.vertices[mesh.edges_unique].mean(axis=1)
+    unit = middle / np.linalg.norm(middle, axis=1, keepdims=True)
+    index_tri, index_ray = RayMeshIntersector(mesh).intersects_id(middle + distance * unit, -unit)
+    assert np.bincount(index_ray, minlength=len(middle)).tolist() == [2] * len(middle)
+
+
+def test_bad_ray_warnings_name_the_callers_line_each_time():
+    """The warning named a line in engine/core/threads.py (a decorator), so Python's default
+    filter (once per location) hid it from every later call."""
+    ours = RayMeshIntersector(trimesh.creation.icosphere())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        ours.intersects_first([[0.0, 0.0, -5.0]], [[0.0, 0.0, 0.0]])
+        ours.intersects_id([[0.0, 0.0, -5.0]], [[0.0, 0.0, 0.0]])
+    assert [w.category for w in caught] == [BadRayWarning, BadRayWarning]
+    assert {w.filename for w in caught} == {__file__}

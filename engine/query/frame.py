@@ -37,12 +37,18 @@ class MeshFrame(NamedTuple):
 
 
 def mesh_frame(vertices: np.ndarray, faces: np.ndarray) -> tuple[MeshFrame, np.ndarray]:
-    """(MeshFrame, local vertices f64[V,3]) for vertices f64[V,3], faces i64[T,3]."""
-    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    """(MeshFrame, local vertices f64[V,3]) for vertices f64[V,3], faces i64[T,3]. The centre
+    and scale are those of the vertices the faces use, as trimesh's ``mesh.bounds``: one stray
+    vertex 1e7 sizes away shrank the mesh below float32's resolution in the local frame."""
+    corners = vertices[faces.reshape(-1)] if faces.size else vertices
+    lo, hi = (corners.min(axis=0), corners.max(axis=0)) if len(corners) else (np.zeros(3), np.zeros(3))
     center = (lo + hi) * 0.5
     extent = float((hi - lo).max())
     scale = extent if extent > 0 else 1.0
     local = (vertices - center) / scale
+    unused = np.ones(len(vertices), np.bool_)
+    unused[faces.reshape(-1)] = False
+    local[unused] = 0.0  # a stray vertex, however far or NaN, is in no triangle: kept out of every check
     used = local[faces.reshape(-1)]
     frame = MeshFrame(center, scale, np.ascontiguousarray(vertices[faces]), used.min(axis=0), used.max(axis=0))
     return frame, local

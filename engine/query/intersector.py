@@ -12,7 +12,9 @@ Semantics follow trimesh's backends (``trimesh.ray.ray_pyembree`` / ``ray_triang
   (``multiple_hits=True``, at most ``max_hits`` = 100 per ray); hits are grouped by ray in
   increasing ray index and, within a ray, in increasing distance. A ray through an edge or a
   vertex shared by several triangles crosses the surface once and is reported once (hits within
-  1e-6 of the mesh's scale of the previous one are merged, as trimesh's stepping does).
+  1e-6 of the mesh's scale, or 2^-20 of their distance, of the previous one are merged, as
+  trimesh's stepping does). The mesh's frame (centre and scale) counts only the vertices the
+  faces use, as trimesh's bounds do.
 - Index arrays are int64 (``intersects_first``: int32 like trimesh's default embree backend);
   locations are float64 (n, 3).
 - A ray with a NaN or inf component or a zero direction is a miss, counted in one
@@ -57,7 +59,7 @@ from engine.packet.kernels import child_order_keys
 from engine.query.coherent import (PACK_INPUT, PACK_NONE, PACK_SORTED, block_medians, coherent_blocks,
                                    packet_first_hits, packing, row_length, tiled_rows)
 from engine.query.contains import DIRECTIONS, contains_kernel
-from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError
+from engine.query.errors import BadRayWarning, QueryInputError, QueryTypeError, caller_stacklevel
 from engine.query.frame import FAR_ORIGIN, MeshFrame, mesh_frame
 from engine.query.hits import (collect_hits_kernel, compact_hits_kernel, count_hits_kernel, fill_hits_kernel,
                                first_hit_kernel)
@@ -154,15 +156,18 @@ def _mesh_arrays(mesh):
     if len(faces) == 0:
         raise QueryInputError("mesh.faces is empty: the mesh has no triangles to intersect")
     vertices = _points("mesh.vertices", mesh.vertices)
-    bad = ~np.isfinite(vertices).all(axis=1)
-    if bad.any():  # checked here: after the move to the mesh's frame every vertex would read NaN
-        row = int(np.flatnonzero(bad)[0])
-        raise QueryInputError(f"mesh.vertices[{row}] = {vertices[row].tolist()} is not finite "
-                              f"({int(bad.sum())} such vertices)")
     if faces.min() < 0 or faces.max() >= len(vertices):
         row = int(np.flatnonzero(((faces < 0) | (faces >= len(vertices))).any(axis=1))[0])
         raise QueryInputError(f"mesh.faces[{row}] = {faces[row].tolist()} refers to a vertex that does not exist "
                               f"(the mesh has {len(vertices)} vertices)")
+    # Only the vertices the faces use count (as for trimesh's bounds): a stray NaN one is no error.
+    used = np.zeros(len(vertices), np.bool_)
+    used[faces.reshape(-1)] = True
+    bad = used & ~np.isfinite(vertices).all(axis=1)
+    if bad.any():  # checked here: after the move to the mesh's frame every vertex would read NaN
+        row = int(np.flatnonzero(bad)[0])
+        raise QueryInputError(f"mesh.vertices[{row}] = {vertices[row].tolist()} is not finite "
+                              f"({int(bad.sum())} such vertices)")
     return vertices, faces.astype(np.int64)
 
 
@@ -288,7 +293,7 @@ class RayMeshIntersector:
         if bad:
             warnings.warn(f"{bad} of {len(ok)} rays have a NaN/inf component, a zero direction or an origin "
                           f"{FAR_ORIGIN:.0e} mesh sizes or more from the mesh; answered as misses", BadRayWarning,
-                          stacklevel=4)
+                          stacklevel=caller_stacklevel())
 
     @staticmethod
     def _tree(s: _Structure):
