@@ -228,12 +228,17 @@ def cmd_render(args) -> int:
 
 
 def cmd_animate(args) -> int:
-    from engine.animate.run import run_animation
+    from engine.animate.run import check_stats_target, run_animation
     from engine.render.config import validate
 
     if args.time is not None:
         raise ConfigError("animate renders the scene's path from --start to --end; --time (one moment) is for render")
     config = _config_from(args)
+    if config.scene.time != 0:  # the path sets every frame's time; the config's was dropped unsaid
+        raise ConfigError(f"[scene] time = {config.scene.time:g}: animate renders the scene's path from --start to "
+                          f"--end; a config's time (one moment) is for render")
+    if str(args.output).strip():
+        check_stats_target(Path(args.output), args.stats)  # before _check_outputs makes its folder
     _check_outputs(("--stats", args.stats))
     if args.accel is not None:
         config = validate(replace(config, accel=replace(config.accel, update=args.accel)))

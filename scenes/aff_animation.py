@@ -113,9 +113,14 @@ class AffAnimation:
         caller copies what it keeps (the first call's arrays are the kept build)."""
         if self._base is None:
             placed = self._placed(time, world, moving_only=False)
-            # A scene far from the origin is re-centred, as SceneBuilder does for meshes, with
-            # the first frame's shift kept for the whole path.
-            self.origin = recentring(placed[0].reshape(-1, 3).min(axis=0), placed[0].reshape(-1, 3).max(axis=0))
+            # A scene far from the origin is re-centred, as SceneBuilder does for meshes, by one
+            # shift for the whole path: the scene's at the path's start, whatever time comes
+            # first, so that `render --time t` and an animation's frame at t (from any --start)
+            # are the same image. The first frame's shift made them differ by a pixel.
+            at_start = placed if time == self.start else \
+                self._placed(self.start, self.loader.world_matrices(self.start), moving_only=False)
+            corners = at_start[0].reshape(-1, 3)
+            self.origin = recentring(corners.min(axis=0), corners.max(axis=0))
             self._base = self._triangles(*placed)
             rows, start = [], 0
             for (_, geometry, _), static in zip(self.loader.instances, self.static_parts):

@@ -407,3 +407,112 @@ def test_a_path_far_from_the_origin_is_re_centred_and_renders_like_one_at_it(tmp
     np.testing.assert_array_equal(images["far"][0], images["near"][0])
     differing = np.any(images["far"][1] != images["near"][1], axis=-1).mean()
     assert images["far"][1].any() and differing < 0.05, differing
+
+
+# -- found by a sweep of the animation features (session 38) -----------------------------------
+FAR_SCENE = """
+    v from 100000.37 3.1 -12.3 at 100000 1 0 up 0 1 0 angle 60 hither 0.1 resolution 64 64
+    b 0.2 0.2 0.2
+    l 100000 10 -5
+    a 0 2 3
+    fm 0.1 0.1 0.1 0.8 0.8 0.8 0 0 0 1 0 1
+    p 4  99990 0 -5  100010 0 -5  100010 0 20  99990 0 20
+    fm 0.1 0.1 0.1 0.8 0.2 0.2 0 0 0 1 0 1
+    x mover
+    {
+      p 3  99997 0.5 2  100003 0.5 2  100000 5 2
+    }
+    k mover
+    {
+      transl 3
+        0 0 0 0 0 0 0
+        1 5 0 0 0 0 0
+        2 20.1234567 0.3 0 0 0 0
+    }
+"""
+
+
+def test_a_re_centred_path_renders_every_time_as_render_does(tmp_path):
+    """A scene far from the origin whose moving part leaves the first frame's bounds: the
+    animation kept the first frame's re-centring shift, render --time took its own, and the
+    images differed (a pixel at 256x256); now both use the shift at the path's start, also when
+    the animation starts later."""
+    scene = tmp_path / "far.aff"
+    scene.write_text(textwrap.dedent(FAR_SCENE))
+    size = ["--size", "256x256"]
+    assert main(["animate", "--scene", str(scene), *size, "--frames", "2", "--start", "1", "-o",
+                 str(tmp_path / "late")]) == 0
+    for t, frame in (("1", "late/frame_00000.png"), ("2", "late/frame_00001.png")):
+        assert main(["render", "--scene", str(scene), *size, "--time", t, "-o", str(tmp_path / f"r{t}.png")]) == 0
+        assert np.array_equal(np.asarray(Image.open(tmp_path / frame)), np.asarray(Image.open(tmp_path / f"r{t}.png")))
+
+
+@pytest.mark.parametrize("name", ["frames.json", "path.png", "frame_00001.png", "preview.webp", "preview.gif"])
+def test_stats_may_not_name_a_file_animate_writes(tmp_path, scene_file, capsys, name):
+    out = tmp_path / "a"
+    code = main(["animate", "--scene", str(scene_file), "--size", "16x16", "--frames", "2", "-o", str(out),
+                 "--stats", str(out / name)])
+    err = capsys.readouterr().err.splitlines()
+    assert code == 2 and len(err) == 1 and "one of the files animate writes" in err[0]
+    assert not out.exists()
+
+
+def test_animate_mistakes_found_late_are_one_line_before_the_work(tmp_path, scene_file, capsys, monkeypatch):
+    """-o '' wrote into the current folder; --fps 1e308 was an OverflowError traceback; a
+    config's [scene] time was dropped unsaid; a failure after the folder was made left it."""
+    monkeypatch.chdir(tmp_path)
+    common = ["animate", "--scene", str(scene_file), "--size", "16x16"]
+    assert main(common + ["-o", ""]) == 2 and not list(tmp_path.glob("frame_*"))
+    assert "-o needs a folder name" in capsys.readouterr().err
+    assert main(common + ["--fps", "1e308", "-o", "f"]) == 2 and not (tmp_path / "f").exists()
+    assert "at most 100,000" in capsys.readouterr().err
+    config = tmp_path / "c.toml"
+    config.write_text(f"[scene]\npath = {str(scene_file)!r}\ntime = 1.5\n")
+    assert main(["animate", str(config), "--size", "16x16", "-o", "g"]) == 2 and not (tmp_path / "g").exists()
+    assert "[scene] time = 1.5" in capsys.readouterr().err
+    assert main(common + ["--device", "cuda", "-o", "h"]) == 2 and not (tmp_path / "h").exists()
+
+
+def test_fps_frames_stay_within_the_path():
+    """lo + i / fps rounded past the end (50.00000000000001 on bart-robots' 0..50 s at 1.14 fps)."""
+    from engine.render.animation import plan_times
+
+    class Path:
+        name, start, end, frames = "p", 0.0, 50.0, 51
+
+    times = plan_times(Path(), fps=1.14)
+    assert times[-1] <= 50.0 and len(times) == 58
+
+
+def test_resume_with_audit_refuses_unaudited_frames_and_counts_every_audited_one(tmp_path, scene_file, capsys):
+    """A resumed --audit run took an earlier run's unaudited frames and reported the path
+    audited; a resumed audited run counted only the frames it rendered itself."""
+    out = tmp_path / "r"
+    base = ["animate", "--scene", str(scene_file), "--size", "16x16", "--frames", "3", "-o", str(out)]
+    assert main(base + ["--end", "1"]) == 0
+    assert main(base + ["--end", "1", "--resume", "--audit"]) == 2
+    assert "--audit" in capsys.readouterr().err
+    audited = tmp_path / "s"
+    base = ["animate", "--scene", str(scene_file), "--size", "16x16", "--frames", "3", "-o", str(audited), "--audit"]
+    assert main(base + ["--stats", str(tmp_path / "whole.json")]) == 0
+    whole = json.loads((tmp_path / "whole.json").read_text())["audit"]
+    (audited / "frame_00001.png").unlink()        # one frame to render again
+    assert main(base + ["--resume", "--stats", str(tmp_path / "resumed.json")]) == 0
+    resumed = json.loads((tmp_path / "resumed.json").read_text())
+    assert resumed["frames_rendered"] == 1 and resumed["audit"]["checked"] == whole["checked"] > 0
+
+
+def test_warm_up_places_the_scene_twice_so_frame_zero_compiles_nothing(scene_file):
+    """The per-frame placement of moving rows is a kernel of its own; the warm-up placed the
+    scene once (a full build), so it first ran -- and compiled -- in frame 0's timed phase."""
+    from engine.render import config as cfg
+    from engine.render.animation import AnimationRenderer
+    from scenes.catalog import open_path
+
+    config = cfg.from_dict({"scene": {"path": str(scene_file)}, "render": {"width": 16, "height": 16, "packet": 4}})
+    path = open_path(config.scene)
+    placed = []
+    original = path.scene_at
+    path.scene_at = lambda t: placed.append(t) or original(t)
+    AnimationRenderer(path, config).warm_up(0.0)
+    assert len(placed) >= 2 and len(set(placed)) == 2

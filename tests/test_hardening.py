@@ -1071,3 +1071,18 @@ def test_matrices_not_of_cells_refuse_the_cell_runners_options(tmp_path, capsys,
     code, err = run(["bench", ROOT / "benchmarks" / matrix, "--out", tmp_path / "o", *option], capsys)
     assert code == 2 and len(err) == 1 and option[0] in err[0] and "a matrix of cells" not in err[0]
     assert not (tmp_path / "o").exists()
+
+
+def test_a_dynamic_matrix_refuses_a_lights_parameter_its_preset_overrides(capsys):
+    """kitchen-paper shades with one light; params = {lights = 3} was replaced by 1 unsaid."""
+    from engine.bench.dynamic import load_dynamic
+
+    data = {"kind": "dynamic", "name": "t", "frames": 2, "resolution": 16,
+            "scene": [{"name": "bart-kitchen", "recursion": "kitchen-paper", "params": {"lights": 3}}],
+            "variant": [{"accel": "refit"}]}
+    with pytest.raises(ConfigError, match=r"lights = 3 clashes with preset 'kitchen-paper'"):
+        load_dynamic(data, "m.toml")
+    data["scene"][0]["params"] = {"lights": 1}           # the preset's own count: fine
+    data["variant"][0]["accel"] = "sometimes"           # ... and a variant without a label is named by its settings
+    with pytest.raises(ConfigError, match=r"variant 'accel=sometimes'"):
+        load_dynamic(data, "m.toml")

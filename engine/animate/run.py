@@ -14,6 +14,7 @@ The folder gets, each written through a temporary file and a rename:
 from __future__ import annotations
 
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -21,7 +22,7 @@ import numpy as np
 
 from engine.animate.plot import plot_path
 from engine.animate.preview import keep_for_preview, preview_format, shrink, write_preview
-from engine.core.atomic import output_file, output_folder, write_json
+from engine.core.atomic import output_file, output_folder, remove_if_empty, write_json
 from engine.core.errors import PacketrtError
 from engine.gpu.choose import new_renderer
 from engine.render.animation import AnimationRenderer, path_summary, plan_times
@@ -32,12 +33,13 @@ RECORDS = "frames.json"
 SCHEMA = 1
 
 
-def _identity(config, times: list) -> dict:
+def _identity(config, times: list, audit: bool) -> dict:
     """What must match for ``--resume`` to carry on a run: the config (less the scene time,
-    which the path sets) and the frame times."""
+    which the path sets), the frame times and whether frames are audited (a resumed --audit run
+    took an earlier run's unaudited frames and called the path audited)."""
     settings = config.to_dict()
     settings["scene"].pop("time", None)
-    return {"config": settings, "times": times}
+    return {"config": settings, "times": times, "audit": bool(audit)}
 
 
 def _load_records(out: Path, identity: dict, resume: bool) -> dict:
@@ -59,9 +61,11 @@ def _load_records(out: Path, identity: dict, resume: bool) -> dict:
     except (ValueError, KeyError, TypeError, AttributeError):
         raise PacketrtError(f"{file}: not a packetrt animation record (expected a JSON object with \"identity\" "
                             f"and \"frames\": {{index: record}}); choose another folder") from None
+    if isinstance(earlier, dict):
+        earlier.setdefault("audit", False)  # records written before the flag was kept: unaudited
     if earlier != json.loads(json.dumps(identity)):
-        raise PacketrtError(f"{out} holds frames of a different animation (config or frame times differ); "
-                            f"choose another folder")
+        raise PacketrtError(f"{out} holds frames of a different animation (config, frame times or --audit "
+                            f"differ); choose another folder")
     return {i: r for i, r in frames.items() if _well_formed(r) and _readable_image(out / FRAME_NAME.format(i))}
 
 
@@ -122,21 +126,54 @@ def _against_fresh_tree(animator, frame, kept_observer, observer_for) -> dict:
             "unexplained": [(p % width, p // width) for p in unexplained[:100]]}
 
 
+def is_own_output(folder: Path, file) -> bool:
+    """Whether ``file`` is one of the files an animation writes into ``folder`` (its frames,
+    records, preview or path plot): ``--stats`` naming one replaced it with the JSON."""
+    target = Path(file)
+    if target.resolve().parent != folder.resolve():
+        return False
+    own = {RECORDS, "path.png", "preview.webp", "preview.gif"}
+    return target.name in own or re.fullmatch(r"frame_\d{5}\.png", target.name) is not None
+
+
+def check_stats_target(folder: Path, stats) -> None:
+    """A PacketrtError when ``--stats`` names one of the files written into ``folder``."""
+    if stats and is_own_output(folder, stats):
+        raise PacketrtError(f"--stats {stats} is one of the files animate writes into {folder}/ (frames, "
+                            f"{RECORDS}, preview, path.png); give another file")
+
+
 def run_animation(config, out: str, *, frames=None, fps=None, start=None, end=None, stats=None,
                   resume: bool = False, audit: bool = False, progress=None) -> int:
     """Render the animation path of ``config``'s scene into folder ``out`` (see the module
     doc); returns the exit code (1 when an audited frame had a mismatch, or a refitted frame a
-    pixel that differs from its fresh-tree render without a tie)."""
+    pixel that differs from its fresh-tree render without a tie). A run that fails before its
+    first frame removes the folder if it made it (and it is still empty)."""
+    if not str(out).strip():
+        raise PacketrtError("-o needs a folder name, got an empty one")
+    folder = Path(out)
+    check_stats_target(folder, stats)
+    created = not folder.exists()
+    try:
+        return _run_animation(config, folder, frames, fps, start, end, stats, resume, audit, progress)
+    except BaseException:
+        if created:
+            remove_if_empty(folder)
+        raise
+
+
+def _run_animation(config, folder: Path, frames, fps, start, end, stats, resume: bool, audit: bool,
+                   progress) -> int:
+    """``run_animation``'s work."""
     from scenes.catalog import open_path
     from tqdm import tqdm
 
     path = open_path(config.scene, config.override)
     times = plan_times(path, frames, fps, start, end)
-    folder = Path(out)
     output_folder(folder, "output")
     for name in (RECORDS, f"preview.{preview_format()}", "path.png"):  # before the frames, not after
         output_file(folder / name, "output")
-    identity = _identity(config, times)
+    identity = _identity(config, times, audit)
     records = _load_records(folder, identity, resume)
     todo = [i for i in range(len(times)) if i not in records]
     audit_observer = _frame_observer(audit)
@@ -164,10 +201,6 @@ def run_animation(config, out: str, *, frames=None, fps=None, start=None, end=No
             if frame.record["accel"]["policy"] == "refit":
                 frame.record["audit"]["against_fresh_tree"] = _against_fresh_tree(animator, frame, observer,
                                                                                    audit_observer)
-                compared = frame.record["audit"]["against_fresh_tree"]
-                audit_total["unexplained"] += compared["differing_pixels"] - compared["ties"]
-            for key in ("checked", "mismatches", "ties"):
-                audit_total[key] += frame.record["audit"][key]
         records[i] = frame.record
         _save_records(folder, identity, records)
         if i in keep:
@@ -181,6 +214,14 @@ def run_animation(config, out: str, *, frames=None, fps=None, start=None, end=No
         with Image.open(folder / FRAME_NAME.format(i)) as picture:
             pictures[i] = shrink(np.asarray(picture.convert("RGB"), np.uint8))
     ordered = [records[i] for i in sorted(records)]
+    if audit:  # every frame's, an earlier (audited) run's included
+        for record in ordered:
+            checked = record.get("audit", {})
+            for key in ("checked", "mismatches", "ties"):
+                audit_total[key] += int(checked.get(key, 0))
+            compared = checked.get("against_fresh_tree")
+            if compared:
+                audit_total["unexplained"] += compared["differing_pixels"] - compared["ties"]
     summary = path_summary(ordered)
     span = times[-1] - times[0]
     # The preview plays in scene time: its kept frames spread over the path's span.

@@ -51,6 +51,7 @@ from engine.bench.machine import machine_info
 from engine.core.atomic import output_folder, write_text
 from engine.core.errors import ConfigError, PacketrtError
 from engine.core.types import RAY_KINDS
+from engine.core.threads import thread_count
 from engine.render.animation import AnimationRenderer, path_summary, plan_times
 from engine.render.config import from_dict
 from scenes.catalog import entries, missing_file
@@ -78,6 +79,12 @@ def _table_list(source, data, key, allowed) -> list:
 
 def _scene_label(scene: dict) -> str:
     return str(scene.get("label") or scene.get("name") or Path(str(scene.get("path", "?"))).stem)
+
+
+def _variant_label(variant: dict) -> str:
+    """A variant's label, or its settings ("accel=refit") where it has none (messages said None)."""
+    return str(variant.get("label") or ", ".join(f"{k}={v}" for k, v in variant.items() if k != "options")
+               or "defaults")
 
 
 def _per_kind(value, section) -> dict:
@@ -114,7 +121,12 @@ def cell_config(matrix: dict, scene: dict, variant: dict, source: str):
             _fail(source, f"scene {_scene_label(scene)!r} recursion", f"preset {preset_name!r} sets how many "
                   f"lights cast shadows, which this scene cannot be told (it has no lights parameter); choose a "
                   f"preset that shades with every light")
-        params["lights"] = 0 if not preset.lights else preset.max_lights
+        wanted = 0 if not preset.lights else preset.max_lights
+        if "lights" in params and params["lights"] != wanted:  # the preset's count won without a word
+            _fail(source, f"scene {_scene_label(scene)!r} params", f"lights = {params['lights']!r} clashes with "
+                  f"preset {preset_name!r}, which shades with {wanted} light(s); leave lights out, or choose a "
+                  f"preset that shades with every light (render-defaults, kitchen-full)")
+        params["lights"] = wanted
     side = variant.get("resolution", matrix.get("resolution", 1024))
     sides = side if isinstance(side, list) else [side]  # load_dynamic checked: one or two integers
     width, height = (sides[0], sides[0]) if len(sides) == 1 else sides
@@ -132,7 +144,7 @@ def cell_config(matrix: dict, scene: dict, variant: dict, source: str):
     if variant.get("options"):  # per-plugin options, as a config's [options.NAME] tables
         table["options"] = dict(variant["options"])
     try:
-        return from_dict(table, source=f"{source} scene {_scene_label(scene)!r} variant {variant.get('label')!r}")
+        return from_dict(table, source=f"{source} scene {_scene_label(scene)!r} variant {_variant_label(variant)!r}")
     except ConfigError as exc:
         raise ConfigError(str(exc)) from None
 
@@ -217,7 +229,8 @@ def run_cell(matrix: dict, scene: dict, variant: dict, config, cell_id: str, mac
     return {
         "schema": 1, "kind": "dynamic", "id": cell_id, "matrix": matrix.get("name"),
         "labels": {"scene": _scene_label(scene), "variant": variant.get("label", "")},
-        "config": config.to_dict(), "threads": config.render.threads, "frames": len(times),
+        # The threads the kernels ran on (the config's 0 means every core: the table said "0 threads").
+        "config": config.to_dict(), "threads": thread_count(config.render.threads), "frames": len(times),
         "seconds": {"compile": compile_seconds, "wall": time.time() - started}, "path": summary,
         "machine": machine,
     }
@@ -259,7 +272,7 @@ def table(records: list) -> str:
                      f"{100 * path['phase_share']['scene']:.1f}% | {accel_ms:.1f} | {policies} | {ratio} |")
     m = records[0]["machine"] if records else {}
     lines.append("")
-    lines.append(f"{m.get('cpu', '?')}, {records[0]['threads'] if records else '?'} threads (0 = all cores); "
+    lines.append(f"{m.get('cpu', '?')}, {records[0]['threads'] if records else '?'} threads; "
                  f"one run, warm cache, compile time apart; commit {m.get('git', {}).get('commit', '?')[:10]}.")
     return "\n".join(lines) + "\n"
 

@@ -52,7 +52,7 @@ from engine.bench.cell_scenes import SceneCache, cell_scene
 from engine.bench.matrix import MAX_REPEAT, Cell, Matrix, check_matrix_name, load_matrix
 from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require_open3d
 from engine.bench.yardstick import replay_once
-from engine.core.atomic import output_file, output_folder
+from engine.core.atomic import output_file, output_folder, remove_if_empty
 from engine.core.errors import ConfigError, PacketrtError
 from engine.core.threads import numba_threads
 from engine.core.types import RAY_KINDS, copied_batch, empty_hits
@@ -512,19 +512,6 @@ def run_matrix(matrix: Matrix, out: Path, resume: bool = False, progress: bool =
         raise
 
 
-def remove_if_empty(folder: Path) -> None:
-    """Remove ``folder`` when it holds nothing but empty files (what a run that failed before
-    its first cell leaves: an empty results.jsonl)."""
-    try:
-        entries = list(folder.iterdir())
-        if all(e.is_file() and not e.is_symlink() and e.stat().st_size == 0 for e in entries):
-            for e in entries:
-                e.unlink()
-            folder.rmdir()
-    except OSError:
-        pass  # best effort: the error being raised is the one to report
-
-
 def _run_matrix(matrix: Matrix, out: Path, resume: bool, progress: bool, run, scheduler: str | None, workers: int,
                 steady: float | None, retries: int) -> dict:
     """``run_matrix``'s work, in a folder it may have created (which it removes when this fails
@@ -617,8 +604,9 @@ def cmd_bench(args) -> int:
     repeat = getattr(args, "repeat", None)
     if repeat is not None:
         if kind in ("gpu", "dynamic"):
+            own = "repeat_frames and repeat_rays" if kind == "gpu" else "frames"
             raise ConfigError(f"{args.matrix}: --repeat is for matrices of cells and trimesh matrices; a {kind} "
-                              f"matrix sets its own repetitions (repeat_frames, frames)")
+                              f"matrix sets its own repetitions (its {own} keys)")
         if not 1 <= repeat <= MAX_REPEAT:
             raise ConfigError(f"--repeat: must be in 1..{MAX_REPEAT}, got {repeat}")
     if kind in ("gpu", "dynamic", "trimesh"):  # options only the runner of cells reads: refused, not ignored
@@ -628,8 +616,9 @@ def cmd_bench(args) -> int:
         if kind == "gpu" and getattr(args, "resume", False):
             given.append("--resume")
         if given:
-            raise ConfigError(f"{args.matrix}: {', '.join(given)} apply to matrices of cells (or, for --resume, of "
-                              f"cells, dynamic paths and trimesh queries); a {kind} matrix runs its own way")
+            raise ConfigError(f"{args.matrix}: {', '.join(given)} {'is' if len(given) == 1 else 'are'} not for a "
+                              f"{kind} matrix, which runs its own way (--scheduler, --workers, --steady and "
+                              f"--retries act on matrices of benchmark cells only; --resume not on gpu matrices)")
     if kind in ("gpu", "dynamic"):  # their name is the default output folder's, as for cells
         check_matrix_name(args.matrix, data.get("name", Path(args.matrix).stem))
     device = getattr(args, "device", None) or data.get("device", "cpu")

@@ -150,6 +150,20 @@ def output_folder(path, what: str) -> Path:
     return folder
 
 
+def remove_if_empty(folder: Path) -> None:
+    """Remove ``folder`` when it holds nothing but empty files: what a command that made it and
+    then failed before its first output leaves (an empty results file at most). Best effort:
+    the error being raised is the one to report."""
+    try:
+        entries = list(Path(folder).iterdir())
+        if all(e.is_file() and not e.is_symlink() and e.stat().st_size == 0 for e in entries):
+            for e in entries:
+                e.unlink()
+            Path(folder).rmdir()
+    except OSError:
+        pass
+
+
 def output_file(path, what: str) -> Path:
     """Checks, before any work, that the file ``path`` can be written later: not a folder, in a
     folder that exists or can be made, and is writable (the folder is made now). Otherwise one
