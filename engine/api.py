@@ -2,7 +2,7 @@
 
 >>> import numpy as np, trimesh
 >>> from engine import RayTracer
->>> tracer = RayTracer(trimesh.creation.icosphere())          # or (vertices, faces), or a Scene
+>>> tracer = RayTracer(trimesh.creation.icosphere())          # or (vertices, faces), a trimesh or packetrt Scene
 >>> origins = np.random.default_rng(0).normal(size=(1000, 3)) * 3      # (n, 3)
 >>> directions = -origins + np.random.default_rng(1).normal(size=(1000, 3))  # (n, 3), any length
 >>> tracer.intersects_first(origins, directions)             # (n,) int64, -1 = miss
@@ -413,13 +413,18 @@ def _scene_from(mesh_or_scene):
         builder.add_material(_default_material())
         builder.add_triangles(tris._replace(material=np.zeros_like(tris.material)))
         return builder.build()
+    if hasattr(mesh_or_scene, "graph") and hasattr(mesh_or_scene, "to_mesh"):  # a trimesh.Scene (a glTF's)
+        # Its meshes placed by their nodes' transforms, as one mesh (trimesh's own to_mesh).
+        if not mesh_or_scene.geometry:
+            raise ApiArgumentError("the trimesh.Scene holds no geometry")
+        mesh_or_scene = mesh_or_scene.to_mesh()
     if hasattr(mesh_or_scene, "vertices") and hasattr(mesh_or_scene, "faces"):  # trimesh.Trimesh
         vertices, faces = mesh_or_scene.vertices, mesh_or_scene.faces
     elif isinstance(mesh_or_scene, (tuple, list)) and len(mesh_or_scene) == 2:
         vertices, faces = mesh_or_scene
     else:
-        raise ApiArgumentError("RayTracer needs a trimesh.Trimesh, a (vertices (V,3), faces (T,3)) pair, "
-                          f"packetrt Triangles or a packetrt Scene; got {type(mesh_or_scene).__name__}")
+        raise ApiArgumentError("RayTracer needs a trimesh.Trimesh or trimesh.Scene, a (vertices (V,3), faces "
+                               f"(T,3)) pair, packetrt Triangles or a packetrt Scene; got {type(mesh_or_scene).__name__}")
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
         raise ApiArgumentError(f"faces must be an integer array of shape (T, 3), got {faces.dtype} {faces.shape}")

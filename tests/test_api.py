@@ -362,3 +362,20 @@ def test_import_engine_stays_cheap():
     code = ("import sys, engine; assert 'engine.api' not in sys.modules and 'open3d' not in sys.modules, "
             "sorted(m for m in sys.modules if m.startswith('engine'))")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])
+
+
+def test_a_trimesh_scene_is_traced_with_its_nodes_transforms():
+    """trimesh.load of a glTF gives a trimesh.Scene: RayTracer refused it; now its meshes are
+    placed by their nodes (a sphere at the origin and one moved to x = 5)."""
+    ball = trimesh.creation.icosphere(subdivisions=2)
+    moved = np.eye(4)
+    moved[0, 3] = 5.0
+    scene = trimesh.Scene()
+    scene.add_geometry(ball, node_name="a", geom_name="a")
+    scene.add_geometry(ball, node_name="b", geom_name="b", transform=moved)
+    tracer = RayTracer(scene)
+    hits = tracer.intersects_first(np.array([[0.0, 0.0, -5.0], [5.0, 0.0, -5.0], [2.5, 0.0, -5.0]]),
+                                   np.array([[0.0, 0.0, 1.0]] * 3))
+    assert (hits[:2] >= 0).all() and hits[2] == -1
+    with pytest.raises(ValueError, match="holds no geometry"):
+        RayTracer(trimesh.Scene())

@@ -68,7 +68,10 @@ def test_whitted_renderer_traces_at_its_count_and_leaves_the_callers(threads):
 
 
 class StillPath:
-    """An animation path whose scene never moves (all ``AnimationRenderer`` reads of a path)."""
+    """An animation path whose scene never moves (all ``AnimationRenderer`` reads of a path:
+    its range, which the warm-up places the scene at both ends of, and ``scene_at``)."""
+
+    start, end = 0.0, 1.0
 
     def scene_at(self, time):
         return load_named("whitted")
