@@ -615,3 +615,71 @@ def test_bad_steady_flags_are_one_line(tmp_path, capsys, flags, message):
     assert main(["bench", str(SMOKE), "--out", str(tmp_path / "x"), *flags]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
+
+
+# -- found by a sweep of the runner (session 38) -------------------------------------------------
+def test_two_scenes_under_one_camera_keep_their_own_references_and_yardsticks(tmp_path):
+    """The whitted scene at two subdivisions casts the same primary rays: the reference answers
+    and yardstick timings were cached by the rays alone, so the second cell's right answers were
+    called wrong (737 rays, its rates dropped) and Embree's seconds were the first scene's."""
+    data = {"name": "dg", "repeat": 1, "embree": True, "open3d": False,
+            "axes": {"scene": [{"name": "whitted", "subdivisions": 1}, {"name": "whitted", "subdivisions": 3}],
+                     "traversal": ["ranged"], "frustum": ["none"], "packet": [8], "recursion": ["primary"],
+                     "resolution": [48]}}
+    bench.run_matrix(parse_matrix(data, "dg.toml"), tmp_path, progress=False)
+    first, second = lines(tmp_path / "results.jsonl")
+    assert first["scene"]["triangles"] < second["scene"]["triangles"]
+    for record in (first, second):
+        for who, rows in record["checks"].items():
+            assert all(row["mismatches"] == 0 for row in rows.values()), (who, rows)
+        assert record["mrays_per_s"]["all"] is not None
+    assert first["seconds"]["embree"] != second["seconds"]["embree"]
+
+
+def test_table2_baseline_is_simd_without_frusta_and_labels_name_one_entry(tmp_path):
+    """Table 2 took the first simd 2x2 record, frusta or not, and called it simd 2x2 all the
+    same; one label on two groups' different traversals merged their rows."""
+    from engine.bench.plots import table2_rows
+
+    def record(traversal, frustum, packet, frame):
+        return {"labels": {"scene": "s", "recursion": "r", "resolution": "8x8", "traversal": traversal,
+                           "frustum": frustum, "packet": packet},
+                "fps": {"frame": frame}, "scene": {"triangles": 1}, "rays": {"all": 1},
+                "seconds": {"replay": {k: {"median": 1.0 / frame} for k in RAY_KINDS}, "embree": None}}
+
+    records = [record("simd", "paper", 2, 6.0), record("simd", "none", 2, 1400.0), record("paper", "paper", 16, 2000.0)]
+    (row,) = table2_rows(records)
+    assert row["records"]["small"]["labels"]["frustum"] == "none" and row["baseline"] == "simd 2×2"
+    (row,) = table2_rows([records[0], records[2]])
+    assert row["baseline"] == "simd 2×2 with frusta paper"  # said, not hidden
+    data = {"name": "lab", "repeat": 1, "axes": {"scene": ["whitted"], "recursion": ["shadows"], "resolution": [16],
+                                                 "frustum": ["none"], "packet": [8]},
+            "group": [{"traversal": [{"label": "X", "primary": "ranged"}]},
+                      {"traversal": [{"label": "X", "primary": "masked"}]}]}
+    with pytest.raises(ConfigError, match=r"group\[1\]\.traversal: label 'X' already names another traversal"):
+        parse_matrix(data, "lab.toml")
+
+
+def test_paired_variants_take_the_matrix_options_not_the_first_cells(tmp_path, monkeypatch):
+    import engine.bench.paired_frames as paired
+
+    data = {"name": "po", "repeat": 1, "embree": False,
+            "axes": {"scene": ["whitted"], "frustum": ["paper"], "packet": [8], "recursion": ["shadows"],
+                     "resolution": [16],
+                     "traversal": [{"label": "rs-pixel", "shadow": "rayspace",
+                                    "options": {"rayspace": {"shadow_grid": "pixel"}}}, "ranged"]},
+            "paired": {"variants": ["ranged/paper/8", "rayspace/paper/8"], "repeat": 1}}
+    matrix = parse_matrix(data, "po.toml")
+    assert matrix.cells[0].options  # the first cell's entry carries its own options
+    seen = []
+    monkeypatch.setattr(paired, "paired_frames", lambda cells, *a, **k: seen.extend(cells) or (_ for _ in ()).throw(
+        KeyboardInterrupt()))
+    with pytest.raises(KeyboardInterrupt):
+        paired.run_paired(matrix, tmp_path)
+    assert [cell.options for cell in seen] == [(), ()]
+
+
+def test_an_empty_out_is_an_error_not_the_default_folder(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["bench", str(Path(__file__).parents[1] / "benchmarks" / "smoke.toml"), "--out", ""]) == 2
+    assert "--out needs a folder name" in capsys.readouterr().err and not (tmp_path / "out").exists()

@@ -210,6 +210,8 @@ class Matrix:
     #: frame against the first for every (scene, recursion, size) of the cells, and its repetitions.
     paired: tuple = ()
     paired_repeat: int = 0
+    #: The matrix's own ``[options]`` (a cell's are these merged with its traversal entry's).
+    options: tuple = ()
 
 
 # -- parsing ------------------------------------------------------------------------------
@@ -459,6 +461,9 @@ def parse_matrix(data: dict, source: str = "<matrix>", repeat: int | None = None
         _fail(source, "group", "must be a non-empty array of tables [[group]]")
     base = _axes(source, axes, "axes.", required=False)
     cells: dict = {}
+    # A label names one scene, traversal or frustum across the whole matrix: the same label on
+    # two different entries of two groups made tables merge or drop their cells.
+    named: dict = {}
     for g, group in enumerate(groups):
         where = f"group[{g}]." if "group" in data else "axes."
         unknown = set(group) - set(AXES) - {"tag"}
@@ -469,6 +474,12 @@ def parse_matrix(data: dict, source: str = "<matrix>", repeat: int | None = None
             _fail(source, f"{where}tag", f"must be a string, got {tag!r}")
         own = _axes(source, group, where, required=False)
         merged = {**base, **own}
+        for axis in ("scene", "traversal", "frustum"):
+            for spec in merged.get(axis, []):
+                earlier = named.setdefault((axis, spec.label), spec)
+                if earlier != spec:
+                    _fail(source, f"{where}{axis}", f"label {spec.label!r} already names another {axis} of this "
+                                                    f"matrix; give each its own label")
         missing = [a for a in AXES if a not in merged]
         if missing:
             _fail(source, f"{where}{missing[0]}", f"missing axis (in [axes] or the group); every cell needs "
@@ -493,7 +504,7 @@ def parse_matrix(data: dict, source: str = "<matrix>", repeat: int | None = None
                                                      first["recursion", c.recursion], c.width * c.height, c.packet))
     paired, paired_repeat = _paired(source, data.get("paired"))
     return Matrix(name, description, source, repeat, threads, embree, tuple(plots), ordered, open3d, paired,
-                  paired_repeat)
+                  paired_repeat, options)
 
 
 def _paired(source: str, table) -> tuple:

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.bench.paired_stats import paired_ratio, verdict
-from engine.bench.matrix import Cell, Matrix
+from engine.bench.matrix import Cell, Matrix, merged_options
 from engine.bench.cell_scenes import SceneCache, cell_scene
 from engine.core.atomic import write_json, write_text
 from engine.core.threads import numba_threads
@@ -103,7 +103,8 @@ def run_paired(matrix: Matrix, out: Path) -> list:
     results, texts = [], []
     for scene, recursion, width, height in groups:
         cells = [Cell(scene, traversal, frustum, packet, recursion, width, height, threads=matrix.threads,
-                      embree=False, options=matrix.cells[0].options) for traversal, frustum, packet in matrix.paired]
+                      embree=False, options=merged_options(matrix.options, traversal.options))
+                 for traversal, frustum, packet in matrix.paired]  # not the first cell's: its entry's options
         title = f"{scene.label} {recursion} {width}x{height}"
         print(f"packetrt bench: paired frames, {title}: {', '.join(describe(c) for c in cells)}", file=sys.stderr)
         result = paired_frames(cells, matrix.paired_repeat, log=lambda m: None)

@@ -8,7 +8,7 @@ def replay_once(yardstick, renderer, recorder, repeat: int, timed_replays) -> tu
     and the attributes ``digest``, ``runs``, ``answers``) on exactly the recorded batches, timed by
     ``timed_replays(batches, tracer, repeat)``. A batch set seen before is not traced again. One
     untimed query comes first: thread pools, first touches and lazily built scenes stay out of it."""
-    digest = recorder.digest()
+    digest = recorder.digest(renderer.tris)
     if digest != yardstick.digest:
         tracer = yardstick.tracer(renderer)
         if recorder.batches:
