@@ -176,6 +176,30 @@ def count_invalid_rays(org, dirs, lo, hi, shortest, longest):
     return bad
 
 
+#: Embree misses rays whose directions are shorter than about 3e-17 (its reciprocals overflow),
+#: though check_rays allows 1e-18; such directions are scaled by a power of two first.
+EMBREE_SAFE_EXPONENTS = (-40, 40)
+
+
+def embree_direction_lengths(dirs, lo, hi):
+    """(dirs, tmin, tmax, factor f32[n] or None): rays whose largest direction component lies
+    outside 2^-40 .. 2^40 rescaled by a power of two to near unit length, and their segment
+    bounds with them (t * factor is the distance along the caller's direction). A power of two
+    scales every float32 exactly, so the rays are the same lines and segments. None: no ray
+    needed it (the arrays are returned as they were)."""
+    exponent = np.frexp(np.abs(dirs).max(axis=1))[1]
+    low, high = EMBREE_SAFE_EXPONENTS
+    moved = (exponent < low) | (exponent > high)
+    if not moved.any():
+        return dirs, lo, hi, None
+    factor = np.ones(len(dirs), np.float32)
+    factor[moved] = np.ldexp(np.float32(1.0), -exponent[moved])  # 2^-e: direction * 2^-e is near unit
+    scaled = np.ascontiguousarray(dirs * factor[:, None], np.float32)
+    with np.errstate(over="ignore"):  # a huge tmin times 2^e is beyond any hit: inf is right
+        lo, hi = (lo / factor).astype(np.float32), (hi / factor).astype(np.float32)
+    return scaled, lo, hi, factor
+
+
 def explain_bad_rays(origins, directions, tmin=None, tmax=None):
     """``check_rays``'s rules one at a time in numpy: raises the RayInputError naming the first
     row that breaks the first rule broken (returns the checked rays if none is)."""
@@ -504,7 +528,7 @@ class RayTracer:
             raise ApiArgumentError(f"device must be 'cpu' or 'cuda', got {device!r}")
         self.device = device
         try:  # the plugin layers raise ConfigError; the API's mistakes are ValueErrors too
-            self.packet = check_packet_size(packet)
+            self.packet = check_packet_size(packet, "RayTracer packet")
             self.traversal_name, self.frustum_name = traversal, frustum
             if device == "cuda":
                 from engine.render.device_names import device_traversal_name
@@ -550,17 +574,21 @@ class RayTracer:
             raise ApiArgumentError(f"this mesh was re-centred (it lies {max(map(abs, self.scene.origin)):.3g} from "
                                    f"the origin); give its rays as numpy arrays, which are moved with it")
         arr = np.asarray(origins)
-        if arr.dtype.kind not in "iuf" or arr.ndim != 2 or arr.shape[1:] != (3,):
+        if arr.dtype.kind not in "biuf" or arr.ndim != 2 or arr.shape[1:] != (3,):  # what check_rays takes
             return origins
         return arr.astype(np.float64) - np.asarray(self.scene.origin, np.float64)
 
     def _batch(self, kind, origins, directions, tmin, tmax):
-        """(RayBatch in packet order, Packets, lane of each input ray i64[n]); None for n = 0."""
+        """(RayBatch in packet order, Packets, lane of each input ray i64[n], per-ray factor f32[n]
+        to multiply hit distances by, or None); None for n = 0."""
         org, dirs, lo, hi = check_rays(origins, directions, tmin, tmax)
         count = org.shape[0]
         if count == 0:
             return None
-        return incoherent_batch(kind, org, dirs, lo, hi, self.packet)
+        scale = None
+        if self.traversal_name == "embree":
+            dirs, lo, hi, scale = embree_direction_lengths(dirs, lo, hi)
+        return (*incoherent_batch(kind, org, dirs, lo, hi, self.packet), scale)
 
     @memory_errors_as(RayInputError)
     def intersect(self, origins, directions, tmin=None, tmax=None) -> Hits:
@@ -578,9 +606,11 @@ class RayTracer:
             batch = self._batch("reflection", origins, directions, tmin, tmax)
             if batch is None:
                 return empty_hits(0)
-            rays, packets, lane = batch
-            hits = self.tracer.trace("reflection", "intersect", rays, packets)
-            return Hits(*answers_in_input_order(lane, *hits))
+            rays, packets, lane, scale = batch
+            hits = Hits(*answers_in_input_order(lane, *self.tracer.trace("reflection", "intersect", rays, packets)))
+            if scale is not None:  # distances along the rescaled directions, back to the caller's
+                hits.t[:] = hits.t * scale
+            return hits
 
     @memory_errors_as(RayInputError)
     def occluded(self, origins, directions, tmin=None, tmax=None) -> np.ndarray:
@@ -593,7 +623,7 @@ class RayTracer:
             batch = self._batch("shadow", origins, directions, tmin, tmax)
             if batch is None:
                 return np.zeros(0, np.bool_)
-            rays, packets, lane = batch
+            rays, packets, lane, _ = batch
             return self.tracer.trace("shadow", "occluded", rays, packets)[lane]
 
     # -- trimesh's names ---------------------------------------------------------------
@@ -610,6 +640,8 @@ class RayTracer:
         """(index_tri int64 (m,), index_ray int64 (m,)[, locations f64 (m, 3)]) for the m rays
         that hit, first hit only, in increasing ray order."""
         _first_hit_only(multiple_hits, "intersects_id")
+        if not is_flag(return_locations):  # a string such as 'no' was taken as True
+            raise ApiArgumentError(f"intersects_id: return_locations must be True or False, got {return_locations!r}")
         hits = self.intersect(ray_origins, ray_directions, **segment)
         index_ray = np.flatnonzero(hits.prim >= 0).astype(np.int64)
         index_tri = hits.prim[index_ray].astype(np.int64)
@@ -621,6 +653,7 @@ class RayTracer:
         """(locations f64 (m, 3), index_ray int64 (m,), index_tri int64 (m,)) for the m rays that
         hit: the first hit per ray (trimesh's ``multiple_hits=False``), in increasing ray order.
         A location is the hit's barycentric point on its triangle."""
+        _first_hit_only(multiple_hits, "intersects_location")  # named as the caller called it
         index_tri, index_ray, locations = self.intersects_id(ray_origins, ray_directions, multiple_hits,
                                                              True, **segment)
         return locations, index_ray, index_tri
@@ -640,7 +673,9 @@ class RayTracer:
         config: a ``engine.render.config.Config``, a dict of TOML tables (``{"render": {"width": 256},
         "materials": {"override": "reflective"}}``) or a TOML file path; None = the defaults
         (512 x 512, the paper's traversals and frusta). Its [scene] table is ignored: the tracer
-        renders its own geometry (with ``[materials] override`` applied). ``stats`` is the
+        renders its own geometry (with ``[materials] override`` applied), by the config's own
+        [render], [traversal] and [frustum]: the tracer's traversal, frustum, packet, threads,
+        leaf_size and bins are for its queries. ``stats`` is the
         document ``packetrt render --stats`` writes; ``counters=True`` fills its traversal
         counters from a second, counting render.
         """

@@ -327,7 +327,7 @@ def test_bad_construction_is_named(sphere):
         RayTracer("not a mesh")
     with pytest.raises(ConfigError, match="registered traversals"):
         RayTracer(sphere, traversal="nope")
-    with pytest.raises(ConfigError, match="render.packet"):
+    with pytest.raises(ConfigError, match="RayTracer packet"):
         RayTracer(sphere, packet=3)
     with pytest.raises(ConfigError, match="faces"):
         RayTracer((sphere.vertices, sphere.faces[:, :2]))
@@ -379,3 +379,53 @@ def test_a_trimesh_scene_is_traced_with_its_nodes_transforms():
     assert (hits[:2] >= 0).all() and hits[2] == -1
     with pytest.raises(ValueError, match="holds no geometry"):
         RayTracer(trimesh.Scene())
+
+
+# -- found by a sweep of the API (session 38) ----------------------------------------------------
+@pytest.mark.parametrize("stray, shift", [([2e11, 0.0, 0.0], 0.0), ([np.nan] * 3, 0.0), ([1e300] * 3, 0.0),
+                                          ([0.0, 0.0, 0.0], 1e6)])
+def test_vertices_no_face_uses_neither_place_nor_break_the_scene(stray, shift):
+    """The re-centring took every vertex: one stray vertex 2e11 away moved the scene there (1247
+    of 2000 answers wrong); a mesh at 1e6 with a stray vertex at 0 was not re-centred (157
+    wrong); a stray NaN or 1e300 vertex was an error."""
+    from trimesh.ray.ray_triangle import RayMeshIntersector as NumpyIntersector
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    rng = np.random.default_rng(0)
+    origins = rng.normal(size=(2000, 3)) * 3
+    directions = -origins + rng.normal(size=(2000, 3)) * 0.7
+    expected = NumpyIntersector(mesh).intersects_first(origins, directions)
+    moved = np.array([shift, 0.0, 0.0])
+    tracer = RayTracer((np.vstack([mesh.vertices + moved, [stray]]), mesh.faces))
+    assert tracer.scene.origin[0] == pytest.approx(shift, abs=1e-6)
+    answers = tracer.intersects_first(origins + moved, directions)
+    assert np.array_equal(answers >= 0, expected >= 0)
+
+
+@pytest.mark.parametrize("length", [1e-16, 3e-17, 1e-18, 1e18])
+def test_embree_answers_every_direction_length_the_api_takes(length):
+    """Embree missed rays whose directions were shorter than about 3e-17 (1e-18 is allowed):
+    they are scaled by a power of two first, and t comes back along the caller's direction."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    origins, directions = np.array([[0.13, 0.21, 5.0]]), np.array([[0.0, 0.0, -length]])
+    embree, single = RayTracer(mesh, traversal="embree"), RayTracer(mesh, traversal="single")
+    ours, theirs = embree.intersect(origins, directions), single.intersect(origins, directions)
+    assert ours.prim[0] == theirs.prim[0] >= 0 and embree.occluded(origins, directions)[0]
+    assert ours.t[0] == pytest.approx(theirs.t[0], rel=1e-6)
+    near = embree.intersect(origins, directions, tmax=np.float32(0.5) * theirs.t)  # the segment scales too
+    assert near.prim[0] == -1
+
+
+def test_api_arguments_found_loose():
+    mesh = trimesh.creation.icosphere()
+    tracer = RayTracer(mesh)
+    far = trimesh.creation.box()
+    far.apply_translation([1e6, 0.0, 0.0])
+    # Boolean origins were checked but not moved with a re-centred mesh: a silent miss.
+    assert RayTracer(far).intersects_first(np.array([[True, False, False]]), [[1.0, 0.0, 0.0]])[0] >= 0
+    with pytest.raises(ValueError, match="return_locations must be True or False"):
+        tracer.intersects_id([[0.0, 0.0, -5.0]], [[0.0, 0.0, 1.0]], return_locations="no")
+    with pytest.raises(ValueError, match="^intersects_location: multiple_hits"):
+        tracer.intersects_location([[0.0, 0.0, -5.0]], [[0.0, 0.0, 1.0]], multiple_hits="no")
+    with pytest.raises(ValueError, match="^RayTracer packet must be one of"):
+        RayTracer(mesh, packet=3)

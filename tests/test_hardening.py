@@ -586,7 +586,7 @@ def test_nan_vertices_name_the_first_bad_one():
 
 
 # Session 37's sweep: each of these was a traceback, a silent wrong answer or a lost output -----
-@pytest.mark.parametrize("keyword, fragment", [({"packet": 8.0}, "render.packet"), ({"packet": np.int64(16)}, None),
+@pytest.mark.parametrize("keyword, fragment", [({"packet": 8.0}, "RayTracer packet"), ({"packet": np.int64(16)}, None),
                                                ({"leaf_size": "4"}, "leaf_size"), ({"leaf_size": 1.5}, "leaf_size"),
                                                ({"bins": None}, "bins"), ({"leaf_size": True}, "leaf_size")])
 def test_ray_tracer_settings_must_be_integers(keyword, fragment):

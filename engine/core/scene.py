@@ -103,8 +103,10 @@ class Scene:
 
 
 def checked_vertices(vertices, faces: np.ndarray, source: str) -> np.ndarray:
-    """f64[V,3] ``vertices`` if they are finite, within float32's reach (+-COORDINATE_LIMIT)
-    and every index of ``faces`` (i64[T,3]) names one of them; else a SceneError naming ``source``."""
+    """f64[V,3] ``vertices`` if every index of ``faces`` (i64[T,3]) names one of them and the
+    vertices the faces use are finite and within float32's reach (+-COORDINATE_LIMIT); else a
+    SceneError naming ``source``. A vertex no face uses is in no triangle and is not checked
+    (as trimesh ignores it; ``used_corners`` keeps it out of the re-centring too)."""
     kind = np.asarray(vertices).dtype.kind
     if kind not in "iuf":  # float64 would drop an imaginary part or parse strings
         raise SceneTypeError(f"{source}: vertices must be real numbers (an integer or float array), "
@@ -112,23 +114,31 @@ def checked_vertices(vertices, faces: np.ndarray, source: str) -> np.ndarray:
     vertices = np.asarray(vertices, np.float64)
     if vertices.ndim != 2 or vertices.shape[1] != 3:
         raise SceneError(f"{source}: vertices must have shape (V, 3), got {vertices.shape}")
-    bad = ~np.isfinite(vertices).all(axis=1)
-    if bad.any():
-        i = int(np.nonzero(bad)[0][0])
-        raise SceneError(f"{source}: vertex {i} is not finite ({vertices[i].tolist()}); "
-                         f"{int(bad.sum())} non-finite vertices in all")
-    far = np.abs(vertices).max(axis=1) > COORDINATE_LIMIT if len(vertices) else np.zeros(0, bool)
-    if far.any():
-        i = int(np.nonzero(far)[0][0])
-        raise SceneError(f"{source}: vertex {i} ({vertices[i].tolist()}) is beyond the supported "
-                         f"+-{COORDINATE_LIMIT:.0e} (float32 cannot hold it)")
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
         outside = (faces < 0) | (faces >= len(vertices))
         row = int(np.flatnonzero(outside.any(axis=1))[0])
         index = int(faces[row][outside[row]][0])
         raise SceneError(f"{source}: face {row} refers to vertex {index}, but the vertices are "
                          f"0..{len(vertices) - 1}")
+    used = np.zeros(len(vertices), np.bool_)
+    used[faces.reshape(-1)] = True
+    bad = used & ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        i = int(np.nonzero(bad)[0][0])
+        raise SceneError(f"{source}: vertex {i} is not finite ({vertices[i].tolist()}); "
+                         f"{int(bad.sum())} non-finite vertices in all")
+    with np.errstate(invalid="ignore"):  # NaN in an unused vertex
+        far = used & (np.abs(vertices).max(axis=1) > COORDINATE_LIMIT) if len(vertices) else used
+    if far.any():
+        i = int(np.nonzero(far)[0][0])
+        raise SceneError(f"{source}: vertex {i} ({vertices[i].tolist()}) is beyond the supported "
+                         f"+-{COORDINATE_LIMIT:.0e} (float32 cannot hold it)")
     return vertices
+
+
+def used_corners(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """f64[3T,3]: the corners of the triangles, the only vertices that place a scene."""
+    return vertices[faces.reshape(-1)]
 
 
 def make_triangles(vertices, faces, material, normals=None, uvs=None, *, source="scene") -> Triangles:
@@ -141,8 +151,7 @@ def make_triangles(vertices, faces, material, normals=None, uvs=None, *, source=
     """
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     vertices = checked_vertices(vertices, faces, source)
-    v = vertices.astype(np.float32)
-    v0, v1, v2 = (np.ascontiguousarray(v[faces[:, k]]) for k in range(3))
+    v0, v1, v2 = (np.ascontiguousarray(vertices[faces[:, k]].astype(np.float32)) for k in range(3))  # used ones only
     e1 = (v1 - v0).astype(np.float32)
     e2 = (v2 - v0).astype(np.float32)
     ng = np.cross(e1.astype(np.float64), e2.astype(np.float64))
@@ -307,8 +316,11 @@ class SceneBuilder:
         """The re-centring shift (f64[3]) of the meshes, or None to leave them where they are."""
         if any(kind == "tris" for kind, _ in self._parts):
             return None
-        lo = np.min([p[0].min(axis=0) for _, p in self._parts], axis=0)
-        hi = np.max([p[0].max(axis=0) for _, p in self._parts], axis=0)
+        # The corners the faces use: a stray vertex 2e11 away moved the scene there, and every
+        # hit of RayTracer((vertices, faces)) on it went wrong.
+        corners = [used_corners(p[0], p[1]) for _, p in self._parts]
+        lo = np.min([c.min(axis=0) for c in corners], axis=0)
+        hi = np.max([c.max(axis=0) for c in corners], axis=0)
         return recentring(lo, hi)
 
     def build(self, *, camera: Optional[Camera] = None, lights=None, background=(0.0, 0.0, 0.0),

@@ -24,11 +24,11 @@ from engine.core.types import Packets, RayBatch
 PACKET_SIZES = (2, 4, 8, 16, 32)
 
 
-def check_packet_size(n: int) -> int:
-    """``n`` as an int if it is one of PACKET_SIZES; else a ConfigError (a float such as 8.0 is
-    refused too: the kernels size their arrays with it)."""
+def check_packet_size(n: int, name: str = "render.packet") -> int:
+    """``n`` as an int if it is one of PACKET_SIZES; else a ConfigError naming ``name`` (a float
+    such as 8.0 is refused too: the kernels size their arrays with it)."""
     if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n not in PACKET_SIZES:
-        raise ConfigError(f"render.packet must be one of {', '.join(map(str, PACKET_SIZES))}, got {n!r}")
+        raise ConfigError(f"{name} must be one of {', '.join(map(str, PACKET_SIZES))}, got {n!r}")
     return int(n)
 
 
