@@ -12,7 +12,7 @@ Semantics follow trimesh's backends (``trimesh.ray.ray_pyembree`` / ``ray_triang
   (``multiple_hits=True``, at most ``max_hits`` = 100 per ray); hits are grouped by ray in
   increasing ray index and, within a ray, in increasing distance. A ray through an edge or a
   vertex shared by several triangles crosses the surface once and is reported once (hits within
-  1e-6 of the mesh's scale, or 2^-20 of their distance, of the previous one are merged, as
+  1e-6 of the mesh's scale, or 2^-21 of their distance, of the previous one are merged, as
   trimesh's stepping does). The mesh's frame (centre and scale) counts only the vertices the
   faces use, as trimesh's bounds do.
 - Index arrays are int64 (``intersects_first``: int32 like trimesh's default embree backend);
