@@ -37,6 +37,8 @@ MESH_SUFFIXES = {".obj", ".ply", ".stl", ".off", ".glb", ".gltf"}
 MTL_RANGES = {"Ka": (0.0, MAX_COLOUR), "Kd": (0.0, MAX_COLOUR), "Ks": (0.0, MAX_COLOUR), "Ns": (0.0, MAX_COLOUR),
               "Ni": (0.0, 1000.0), "d": (0.0, 1.0), "Tr": (0.0, 1.0)}
 ILLUM_MODELS = (0, 10)
+#: MTL keys whose values are a colour: "Kd r g b", or "Kd v" for grey.
+COLOUR_KEYS = ("Ka", "Kd", "Ks")
 
 
 def parse_mtl(path: Path, warnings: list) -> dict:
@@ -50,7 +52,7 @@ def parse_mtl(path: Path, warnings: list) -> dict:
         if current is not None:
             materials[current] = material_from_mtl(current, props)
 
-    for number, raw in enumerate(path.read_text(errors="replace").splitlines(), 1):
+    for number, raw in enumerate(path.read_text(encoding="utf-8-sig", errors="replace").splitlines(), 1):
         words = raw.split("#", 1)[0].split()
         if not words:
             continue
@@ -65,6 +67,9 @@ def parse_mtl(path: Path, warnings: list) -> dict:
                 raise SceneError(f"{path}:{number}: {key!r} needs a value")
             if key == "illum":
                 props[key] = [checked.parse_int(args[0], where, *ILLUM_MODELS, error=SceneError)]
+            elif key in COLOUR_KEYS and len(args) == 2:  # was padded to (a, b, a): a made-up colour
+                raise SceneError(f"{path}:{number}: {key!r} takes one value (grey) or three (r g b), got "
+                                 f"{' '.join(args)!r}")
             else:
                 props[key] = [checked.parse_float(a, where, *MTL_RANGES[key], error=SceneError) for a in args[:3]]
         elif key == "map_Kd" and args:
@@ -123,7 +128,7 @@ def checked_obj_text(path: Path) -> str:
     sees absolute indices.
     """
     counts = {"v": 0, "vt": 0, "vn": 0}
-    lines = path.read_text(errors="replace").splitlines()
+    lines = path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
     for number, raw in enumerate(lines, 1):
         words = raw.split("#", 1)[0].split()
         if not words:
@@ -142,19 +147,59 @@ def checked_obj_text(path: Path) -> str:
                 checked.parse_float(w, f"{path}:{number}: {what} {raw.strip()!r}", error=SceneError)
         if key in counts:
             counts[key] += 1
+            lines[number - 1] = " ".join(words)  # trimesh reads "v\t0\t0\t0" as no vertex at all
         elif key == "f":
             if len(words) < 4:
                 raise SceneError(f"{path}:{number}: face {raw.strip()!r} has fewer than 3 vertices")
             corners = [_absolute_corner(path, number, raw, word, counts) for word in words[1:]]
-            lines[number - 1] = "f " + " ".join(corners)
+            lines[number - 1] = "\n".join("f " + " ".join(c) for c in face_triangles(corners))
     return "\n".join(lines) + "\n"
+
+
+def face_triangles(corners: list) -> list:
+    """The corners of one OBJ face as trimesh gets them: a triangle, a polygon without texture
+    coordinates as it is (trimesh splits it), and a polygon with them split here into a fan,
+    (a, b, c), (c, d, a) for a quad as trimesh splits one: trimesh, keeping the file's vertex
+    order, drops the texture coordinates of every mesh that has a polygon with them, and the
+    quads of a textured export were drawn untextured."""
+    if len(corners) == 3 or not any(c.count("/") and c.split("/")[1] for c in corners):
+        return [corners]
+    if len(corners) == 4:
+        a, b, c, d = corners
+        return [[a, b, c], [c, d, a]]
+    return [[corners[0], corners[i], corners[i + 1]] for i in range(1, len(corners) - 1)]
+
+
+def bom_free_resolver(path: Path):
+    """trimesh's resolver of the files an OBJ names (its MTL), with a UTF-8 byte order mark cut
+    off: trimesh read "\ufeffnewmtl red" as no material, and the mesh went grey unsaid."""
+    import trimesh
+
+    class BomFree(trimesh.resolvers.FilePathResolver):
+        def get(self, name):
+            data = super().get(name)
+            return data[3:] if isinstance(data, bytes) and data.startswith(b"\xef\xbb\xbf") else data
+
+    return BomFree(str(path))
+
+
+def unknown_materials(path: Path, obj_text: str, mtl: dict) -> list:
+    """Warning lines for the ``usemtl`` names of an OBJ that its material libraries do not
+    define (drawn default grey; was silent, even under --strict). An OBJ that loads no library
+    is left alone: there every material is the default by design."""
+    if not mtl:
+        return []
+    named = dict.fromkeys(line.split(None, 1)[1].strip() for line in obj_text.splitlines()
+                          if line.startswith("usemtl") and len(line.split(None, 1)) == 2)
+    return [f"{path}: usemtl {name!r} names no material of its material libraries; it is drawn in the default grey"
+            for name in named if name not in mtl]
 
 
 def check_off(path: Path) -> None:
     """An OFF file's header, checked before trimesh reads it (trimesh's own errors on a bad one
     are numpy's: "cannot reshape array of size 3 into shape (99999999999,3)"): the word OFF, then
     the vertex, face and edge counts, and at least three numbers a vertex after them."""
-    words = [w for line in path.read_text(errors="replace").splitlines() for w in line.split("#", 1)[0].split()]
+    words = [w for line in path.read_text(encoding="utf-8-sig", errors="replace").splitlines() for w in line.split("#", 1)[0].split()]
     if not words or not words[0].upper().endswith("OFF"):
         raise SceneError(f"{path}: not an OFF file: expected the word OFF first, got "
                          f"{words[0][:20]!r}" if words else f"{path}: not an OFF file: it is empty")
@@ -165,6 +210,17 @@ def check_off(path: Path) -> None:
     if len(words) - 4 < 3 * vertices:
         raise SceneError(f"{path}: the header declares {vertices:,} vertices, but the file holds "
                          f"{len(words) - 4:,} numbers after it")
+    # The faces, line by line after the vertices' lines: each "n i1 .. in" whole (a file cut
+    # short in its faces loaded what was left, without a word).
+    rows = [line.split("#", 1)[0].split() for line in path.read_text(encoding="utf-8-sig", errors="replace").splitlines()]
+    rows = [r for r in rows if r]
+    header = 1 if len(rows[0]) >= 4 else 2      # "OFF V F E" on one line, or OFF then the counts
+    faces = rows[header + vertices:]
+    declared = int(counts[1])
+    whole = sum(1 for r in faces[:declared] if r[0].isdigit() and len(r) >= 1 + int(r[0]))
+    if whole < declared:
+        raise SceneError(f"{path}: the header declares {declared:,} faces, but the file holds {whole:,} whole face "
+                         f"lines after the vertices: is it cut short?")
 
 
 def check_ascii_ply(path: Path) -> None:
@@ -174,7 +230,7 @@ def check_ascii_ply(path: Path) -> None:
         head = file.read(4096)
     if b"format ascii" not in head.split(b"end_header", 1)[0]:
         return
-    lines = path.read_text(errors="replace").splitlines()
+    lines = path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
     try:
         end = next(i for i, line in enumerate(lines) if line.strip() == "end_header")
     except StopIteration:
@@ -186,12 +242,21 @@ def check_ascii_ply(path: Path) -> None:
             if not words[2].isdigit():
                 raise SceneError(f"{path}: element {words[1]!r} has count {words[2]!r}; expected a whole number")
             declared.append((words[1], int(words[2])))
-    rows = sum(1 for line in lines[end + 1:] if line.strip())
+    rows = [line.split() for line in lines[end + 1:] if line.strip()]
     wanted = sum(count for _, count in declared)
-    if rows < wanted:
+    if len(rows) < wanted:
         counts = ", ".join(f"{name} {count:,}" for name, count in declared)
         raise SceneError(f"{path}: the header declares element {counts} ({wanted:,} lines), but the file holds "
-                         f"{rows:,} lines after it: is it cut short?")
+                         f"{len(rows):,} lines after it: is it cut short?")
+    # The face lines whole: "n i1 .. in" (a last line cut to "3 435 423" lost its face unsaid).
+    start = 0
+    for name, count in declared:
+        if name == "face":
+            for k, words in enumerate(rows[start:start + count]):
+                if not words[0].isdigit() or len(words) < 1 + int(words[0]):
+                    raise SceneError(f"{path}: face {k:,} ({' '.join(words)!r}) lists fewer corners than it "
+                                     f"declares: is the file cut short?")
+        start += count
 
 
 def _absolute_corner(path: Path, number: int, raw: str, word: str, counts: dict) -> str:
@@ -216,7 +281,7 @@ def read_mtllibs(path: Path, warnings: list) -> dict:
     """{material name: Material} from every ``mtllib`` of OBJ ``path``; an MTL file that does
     not exist is a line added to ``warnings``, an ``mtllib`` without a file name a SceneError."""
     mtl = {}
-    for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+    for number, line in enumerate(path.read_text(encoding="utf-8-sig", errors="replace").splitlines(), 1):
         words = line.split("#", 1)[0].split(None, 1)
         if not words or words[0] != "mtllib":
             continue
@@ -338,6 +403,7 @@ def load_mesh_scene(files, params, time):
     if suffix == ".obj":
         obj_text = checked_obj_text(path)
         mtl = read_mtllibs(path, warnings)
+        warnings.extend(unknown_materials(path, obj_text, mtl))
     elif suffix == ".off":
         check_off(path)
     elif suffix == ".ply":
@@ -345,7 +411,7 @@ def load_mesh_scene(files, params, time):
     try:
         if suffix == ".obj":
             loaded = trimesh.load(io.StringIO(obj_text), file_type="obj", process=False, maintain_order=True,
-                                  resolver=trimesh.resolvers.FilePathResolver(str(path)))
+                                  resolver=bom_free_resolver(path))
         else:
             loaded = trimesh.load(str(path), process=False, maintain_order=True)
     except Exception as exc:  # trimesh raises many types for a malformed file

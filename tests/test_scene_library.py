@@ -3,12 +3,13 @@ two times, and the cosine scene's fallback room. Real scenes skip only when the 
 folder beside the checkout is absent."""
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from engine.core.errors import ConfigError
+from engine.core.errors import ConfigError, SceneError
 from scenes.catalog import describe, entries, load_named
 
 SHARED_SCENES = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
@@ -388,3 +389,68 @@ def test_gltf_and_ply_colours_become_materials(tmp_path):
     trimesh.creation.icosphere(subdivisions=1).export(str(tmp_path / "plain.stl"))
     (plain,) = load_path(str(tmp_path / "plain.stl")).materials
     assert (plain.diffuse, plain.ambient, plain.texture) == (Material().diffuse, Material().ambient, None)
+
+
+# -- found by a sweep of the scene loaders (session 38) ------------------------------------------
+def write_texture(folder: Path) -> None:
+    from PIL import Image
+
+    texels = np.zeros((8, 8, 3), np.uint8)
+    texels[:4, :4] = (255, 0, 0)
+    Image.fromarray(texels).save(folder / "checker.png")
+
+
+@pytest.mark.parametrize("faces", ["f 1/1 2/2 3/3 4/4\n", "f 1/1 2/2 3/3\nf 3/3 4/4 1/1\n"])
+def test_obj_quads_keep_their_texture_coordinates(tmp_path, faces):
+    """trimesh, keeping the file's vertex order, dropped the uvs of a mesh with a textured
+    polygon: the quads of a textured export were drawn untextured. Both forms now load the
+    same texture coordinates."""
+    from scenes.catalog import load_path
+
+    write_texture(tmp_path)
+    (tmp_path / "c.mtl").write_text("newmtl tex\nKd 1 1 1\nmap_Kd checker.png\n")
+    (tmp_path / "q.obj").write_text("mtllib c.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+                                    "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nusemtl tex\n" + faces)
+    tris = load_path(str(tmp_path / "q.obj")).triangles
+    assert tris.uvs.shape == (2, 3, 2)
+    corners = {tuple(np.round(p, 3)): tuple(np.round(uv, 3)) for t in range(2)
+               for p, uv in zip((tris.v0[t], tris.v0[t] + tris.e1[t], tris.v0[t] + tris.e2[t]), tris.uvs[t])}
+    assert corners[(1.0, 1.0, 0.0)] == (1.0, 1.0) and corners[(0.0, 1.0, 0.0)] == (0.0, 1.0)
+
+
+def test_obj_and_mtl_text_quirks_are_read_or_named(tmp_path, capsys):
+    """Tab-separated numbers and byte order marks were misread (an unclear error, or a material
+    dropped unsaid); "Kd 0.5 0.5" made up a colour; a usemtl naming no material was silent."""
+    from engine.cli import main
+    from scenes.catalog import load_path
+
+    (tmp_path / "t.obj").write_text("v\t0\t0\t0\nv\t1 0 0\nv 0\t1 0\nf\t1\t2\t3\n")
+    assert load_path(str(tmp_path / "t.obj")).n_triangles == 1
+    (tmp_path / "b.mtl").write_bytes(b"\xef\xbb\xbfnewmtl red\nKd 1 0 0\n")
+    (tmp_path / "b.obj").write_bytes(b"\xef\xbb\xbfmtllib b.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl red\nf 1 2 3\n")
+    assert [(m.name, m.diffuse) for m in load_path(str(tmp_path / "b.obj")).materials] == [("red", (1.0, 0.0, 0.0))]
+    (tmp_path / "two.mtl").write_text("newmtl red\nKd 1 0 0\nnewmtl odd\nKd 0.5 0.5\n")
+    (tmp_path / "two.obj").write_text("mtllib two.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl red\nf 1 2 3\n")
+    with pytest.raises(SceneError, match=r"two\.mtl:4: 'Kd' takes one value \(grey\) or three"):
+        load_path(str(tmp_path / "two.obj"))
+    (tmp_path / "u.obj").write_text("mtllib b.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl zzz\nf 1 2 3\n")
+    out = ["--size", "8x8", "-o", str(tmp_path / "u.png")]
+    assert main(["render", "--scene", str(tmp_path / "u.obj"), *out]) == 0
+    assert "usemtl 'zzz' names no material" in capsys.readouterr().err
+    assert main(["render", "--scene", str(tmp_path / "u.obj"), *out, "--strict"]) == 2
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("few.off", "OFF\n3 5 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", "declares 5 faces, but the file holds 1"),
+    ("cut.off", "OFF\n3 2 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 2\n", "declares 2 faces, but the file holds 1"),
+    ("cut.ply", "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                "element face 2\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
+                "3 0 1 2\n3 0 2\n", "face 1 ('3 0 2') lists fewer corners"),
+])
+def test_mesh_files_cut_short_in_their_faces_are_named(tmp_path, name, text, message):
+    """An OFF or ASCII PLY cut short among its faces loaded what was left, without a word."""
+    from scenes.catalog import load_path
+
+    (tmp_path / name).write_text(text)
+    with pytest.raises(SceneError, match=re.escape(message)):
+        load_path(str(tmp_path / name))
