@@ -25,7 +25,7 @@ from engine.core.scene import PointLight, SceneBuilder, make_triangles, recentri
 from engine.core.types import Triangles
 
 from .aff import Loader, _camera_from, _face_normals, _floats, _transform, check_params
-from .aff_placement import MovingRows, write_triangle_rows
+from .aff_placement import MIRRORED, MovingRows, write_triangle_rows
 from .catalog import scene_animator, scene_loader
 
 
@@ -77,9 +77,12 @@ class AffAnimation:
         ``matrix``, normals (geometric where the block has none) and uvs (zero) filled in when
         the scene carries them."""
         placed, normals = _transform(matrix, geometry.corners, geometry.normals)
+        uvs = geometry.uvs
+        if np.linalg.det(matrix[:3, :3]) < 0:  # a mirror turns the winding: turn it back (see mirrored_rows)
+            placed, normals, uvs = (None if x is None else x[:, MIRRORED] for x in (placed, normals, uvs))
         if self.has_normals and normals is None:
             normals = _face_normals(placed)
-        uvs = (geometry.uvs if geometry.uvs is not None else np.zeros((len(placed), 3, 2))) if self.has_uvs else None
+        uvs = (uvs if uvs is not None else np.zeros((len(placed), 3, 2))) if self.has_uvs else None
         return placed, normals if self.has_normals else None, uvs, np.full(len(placed), material, np.int32)
 
     def _placed(self, time: float, world: list, moving_only: bool) -> tuple:

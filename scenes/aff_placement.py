@@ -45,6 +45,13 @@ def _place_rows(corners, normals, node, a, b, inverse, with_normals, out_corners
                     out_normals[r, c, k] = out_normals[r, c, k] / length if length > 0 else 0.0
 
 
+#: The corner order of a triangle placed by a mirroring transform (determinant < 0): corners 1
+#: and 2 swapped, so that its front face -- the winding's, which decides entering and leaving a
+#: glass surface -- still faces where the file's did (a mirrored glass sphere refracted as if
+#: turned inside out). Normals and texture coordinates follow their corners.
+MIRRORED = [0, 2, 1]
+
+
 class MovingRows:
     """The rows of a scene that move: blocks under animated transforms and ``tpa`` triangles.
 
@@ -128,11 +135,20 @@ class MovingRows:
         placed, normals = self._placed, self._placed_normals
         _place_rows(self._corners_in, self._normals_in, self.all_node, np.ascontiguousarray(a),
                     np.ascontiguousarray(b), inverse, self.has_normals, placed, normals)
+        uvs = self.all_uvs
+        flipped = (np.linalg.det(a) < 0)[self.all_node]  # rows placed by a mirroring transform
+        if flipped.any():
+            placed[flipped] = placed[flipped][:, MIRRORED]
+            if self.has_normals:
+                normals[flipped] = normals[flipped][:, MIRRORED]
+            if uvs is not None:
+                uvs = uvs.copy()
+                uvs[flipped] = uvs[flipped][:, MIRRORED]
         if not self.has_normals:
             normals = None
         elif not self.every_normal_given:
             normals[~self.all_given] = _face_normals(placed[~self.all_given])
-        return placed, normals, self.all_uvs, self.all_material
+        return placed, normals, uvs, self.all_material
 
 
 @njit(cache=True, parallel=True)

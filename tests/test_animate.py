@@ -516,3 +516,40 @@ def test_warm_up_places_the_scene_twice_so_frame_zero_compiles_nothing(scene_fil
     path.scene_at = lambda t: placed.append(t) or original(t)
     AnimationRenderer(path, config).warm_up(0.0)
     assert len(placed) >= 2 and len(set(placed)) == 2
+
+
+MIRRORED_SPHERES = """
+    v from 0 0 9 at 0 0 0 up 0 1 0 angle 45
+    l 0 0 9
+    a 0 1 2
+    fm 0 0 0 0.1 0.1 0.1 0.1 0.1 0.1 20 0.9 1.5
+    xs -1 1 1 0 1 0 0 -2 0 0
+    {
+      s 0 0 0 1
+    }
+    x mover
+    {
+      s 0 0 0 1
+    }
+    k mover
+    {
+      scale 2
+        0 -1 1 1 0 0 0
+        1 -1 1 1 0 0 0
+      transl 2
+        0 2 0 0 0 0 0
+        1 2 0 0 0 0 0
+    }
+"""
+
+
+@pytest.mark.parametrize("time", [0.0, 1.0])
+def test_mirroring_transforms_keep_front_faces_out(tmp_path, time):
+    """A mirroring `xs` (static) or scale key (moving) turned the triangles' winding: their
+    geometric normals pointed in, against the sphere's own normals, and a glass sphere refracted
+    as if inside out (344 of 4,096 pixels off the unmirrored sphere's image)."""
+    scene_file = tmp_path / "mirrored.aff"
+    scene_file.write_text(textwrap.dedent(MIRRORED_SPHERES))
+    tris = load_aff(scene_file, time).triangles
+    assert tris.v0.shape[0] > 100
+    assert np.einsum("ij,ij->i", tris.ng, tris.normals[:, 0]).min() > 0.5
