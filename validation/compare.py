@@ -13,6 +13,14 @@ floating point may decide either way) when:
   triangle's boundary (the ray grazes an outer edge), or at the very ends of the ray's
   [tmin, tmax] segment.
 
+Every rule first asks that our hit (the first answer) is a real one: its point lies on its own
+triangle and inside the segment, within the same tolerances. A hit on a triangle the ray never
+meets, or at t = tmin on a surface the origin is not on, is a mismatch however close its t.
+And a miss (or a farther hit) where the other side hit an *interior* edge -- one shared with a
+single other triangle, the two lying on opposite sides of the ray -- is a crack, not a graze: a
+watertight test hits one of the two. Only a hit at a vertex, on an outer edge, or on an edge
+the ray touches from outside (a silhouette) makes a miss a tie.
+
 Anything else is a *mismatch*. The distance is ``DISTANCE_ULPS`` float32 ulps of the
 largest coordinate involved; t tolerance is ``T_RELATIVE`` of t plus that distance.
 """
@@ -70,13 +78,93 @@ def _corners(tris, prim):
     return tris.v0[prim], tris.v1[prim], tris.v2[prim]
 
 
+def _at_segment_end(rays, idx, t, tol):
+    speed = np.linalg.norm(rays.dir[idx], axis=1)
+    return (np.abs(t - rays.tmin[idx]) * speed <= tol) | (np.abs(t - rays.tmax[idx]) * speed <= tol + T_RELATIVE * t * speed)
+
+
 def _grazes(rays, idx, t, prim, tris, tol):
     """The hit (t, prim) of rays idx touches its triangle's boundary or the segment's ends."""
     p = rays.org[idx].astype(np.float64) + t[:, None] * rays.dir[idx]
     _, to_edge = point_triangle_distance(p, *_corners(tris, prim))
-    speed = np.linalg.norm(rays.dir[idx], axis=1)
-    at_end = (np.abs(t - rays.tmin[idx]) * speed <= tol) | (np.abs(t - rays.tmax[idx]) * speed <= tol + T_RELATIVE * t * speed)
-    return (to_edge <= tol) | at_end
+    return (to_edge <= tol) | _at_segment_end(rays, idx, t, tol)
+
+
+def is_real_hit(rays, idx, t, prim, tris):
+    """bool[M]: hit (t f64[M], prim i32[M]) of rays idx lies on its own triangle and inside the
+    ray's [tmin, tmax], within the distance tolerance plus ``T_RELATIVE`` of the distance (the
+    slack t comparisons get too, so a grazing hit's rounded t still counts)."""
+    speed = np.linalg.norm(rays.dir[idx], axis=1).astype(np.float64)
+    slack = _tolerance(rays, idx, t) + T_RELATIVE * np.abs(t) * speed
+    p = rays.org[idx].astype(np.float64) + t[:, None] * rays.dir[idx]
+    on_triangle, _ = point_triangle_distance(p, *_corners(tris, prim))
+    in_segment = ((t - rays.tmin[idx]) * speed >= -slack) & ((t - rays.tmax[idx]) * speed <= slack)
+    return np.isfinite(t) & (on_triangle <= slack) & in_segment
+
+
+def _edge_keys(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """One hashable key per undirected edge (a, b): f32[M,3] endpoints, compared exactly."""
+    # + 0.0 turns -0.0 into 0.0, which compares equal but has other bytes.
+    a, b = np.asarray(a, np.float32) + np.float32(0), np.asarray(b, np.float32) + np.float32(0)
+    swap = np.zeros(len(a), bool)
+    for axis in range(3):
+        undecided = ~swap & np.all(a[:, :axis] == b[:, :axis], axis=1)
+        swap |= undecided & (a[:, axis] > b[:, axis])   # lexicographic order: canonical either way round
+    lo = np.where(swap[:, None], b, a)
+    hi = np.where(swap[:, None], a, b)
+    both = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))
+    return both.view(np.dtype((np.void, both.dtype.itemsize * 6))).ravel()
+
+
+def crosses_interior_edge(rays, idx, t, prim, tris, tol):
+    """bool[M]: the hit (t, prim) of rays idx lies on one edge of its triangle (not at a vertex),
+    that edge is shared with exactly one other triangle, and the two triangles' third corners lie
+    strictly on opposite sides of the plane through the edge and the ray: the ray passes through
+    the surface there, so a watertight test must hit one of the two."""
+    out = np.zeros(len(idx), bool)
+    if not len(idx):
+        return out
+    corners = [np.asarray(c, np.float64) for c in _corners(tris, prim)]
+    p = rays.org[idx].astype(np.float64) + t[:, None] * rays.dir[idx]
+    at_vertex = np.min([np.linalg.norm(p - c, axis=1) for c in corners], axis=0) <= tol
+    edges = ((0, 1, 2), (1, 2, 0), (2, 0, 1))   # (end, end, opposite corner)
+    near = np.stack([point_triangle_distance(p, corners[i], corners[j], corners[j])[1] <= tol
+                     for i, j, _ in edges], axis=1)
+    one_edge = ~at_vertex & (near.sum(axis=1) == 1)
+    if not one_edge.any():
+        return out
+    which = np.argmax(near, axis=1)
+    rows = np.flatnonzero(one_edge)
+    all_corners = (tris.v0, tris.v1, tris.v2)
+    all_keys = np.concatenate([_edge_keys(all_corners[i], all_corners[j]) for i, j, _ in edges])
+    n_tris = tris.v0.shape[0]
+    end_a = np.array([corners[edges[w][0]][r] for r, w in zip(rows, which[rows])])
+    end_b = np.array([corners[edges[w][1]][r] for r, w in zip(rows, which[rows])])
+    own_opposite = np.array([corners[edges[w][2]][r] for r, w in zip(rows, which[rows])])
+    wanted = _edge_keys(end_a, end_b)
+    order = np.argsort(all_keys)
+    sorted_keys = all_keys[order]
+    first = np.searchsorted(sorted_keys, wanted, side="left")
+    last = np.searchsorted(sorted_keys, wanted, side="right")
+    for k, r in enumerate(rows):
+        sharing = order[first[k]:last[k]]   # positions e * n_tris + triangle, this triangle included
+        if len(sharing) != 2:
+            continue   # an outer edge, or a non-manifold one
+        edge_slot, other = np.divmod(sharing, n_tris)
+        keep = other != prim[r]
+        if keep.sum() != 1:
+            continue
+        slot, neighbour = int(edge_slot[keep][0]), int(other[keep][0])
+        their_opposite = np.asarray(all_corners[edges[slot][2]][neighbour], np.float64)
+        normal = np.cross(end_b[k] - end_a[k], rays.dir[idx[r]].astype(np.float64))
+        out[r] = np.dot(own_opposite[k] - end_a[k], normal) * np.dot(their_opposite - end_a[k], normal) < 0
+    return out
+
+
+def _cracked(rays, idx, t, prim, tris, tol):
+    """bool[M]: a hit inside the segment (not at its ends) that crosses an interior edge: a side
+    that missed it, or hit farther on, went through a crack."""
+    return ~_at_segment_end(rays, idx, t, tol) & crosses_interior_edge(rays, idx, t, prim, tris, tol)
 
 
 def compare_hits(rays: RayBatch, ours: Hits, oracle: Hits, tris: Triangles) -> Comparison:
@@ -107,25 +195,35 @@ def compare_hits(rays: RayBatch, ours: Hits, oracle: Hits, tris: Triangles) -> C
         p_b = rays.org[both] + t_b[:, None] * rays.dir[both]
         d_ab, _ = point_triangle_distance(p_a, *_corners(tris, oracle.prim[both]))
         d_ba, _ = point_triangle_distance(p_b, *_corners(tris, ours.prim[both]))
-        tie[both[close_t & (d_ab <= tol) & (d_ba <= tol)]] = True
+        both_tie = close_t & (d_ab <= tol) & (d_ba <= tol)
         # A ray whose origin lies on another surface (a secondary ray leaving a corner) may
         # report that surface at t = tmin or skip it: both are valid.
         start = rays.tmin[both].astype(np.float64)
-        at_start = (np.abs(t_a - start) * speed[both] <= tol) | (np.abs(t_b - start) * speed[both] <= tol)
-        tie[both[at_start]] = True
-        # A ray through an edge or vertex of a closed surface: the nearer side hit it there, the
-        # other slipped through to a farther surface -- the same event as a miss past such a
-        # point (below). Embree does so on rays aimed at a capsule's or icosphere's vertices
-        # (session 37: float64 puts the vertex first).
+        both_tie |= (np.abs(t_a - start) * speed[both] <= tol) | (np.abs(t_b - start) * speed[both] <= tol)
+        # A ray through a vertex or a silhouette edge of a closed surface: the nearer side hit it
+        # there, the other slipped through to a farther surface -- the same event as a miss past
+        # such a point (below). Embree does so on rays aimed at a capsule's or icosphere's
+        # vertices (session 37: float64 puts the vertex first). Through an interior edge it is
+        # a crack in our test, not a tie.
         nearer_ours = t_a < t_b
         ours_grazes = _grazes(rays, both, t_a, ours.prim[both], tris, tol)
         oracle_grazes = _grazes(rays, both, t_b, oracle.prim[both], tris, tol)
-        tie[both[(nearer_ours & ours_grazes) | (~nearer_ours & oracle_grazes)]] = True
-    for side, other in ((ours, oracle), (oracle, ours)):
-        one = np.flatnonzero(live & (side.prim >= 0) & (other.prim < 0))
-        if one.size:
-            t = side.t[one].astype(np.float64)
-            tie[one[_grazes(rays, one, t, side.prim[one], tris, _tolerance(rays, one, t))]] = True
+        theirs_first = np.flatnonzero(~nearer_ours & oracle_grazes)
+        oracle_grazes[theirs_first] &= ~_cracked(rays, both[theirs_first], t_b[theirs_first],
+                                                  oracle.prim[both[theirs_first]], tris, tol[theirs_first])
+        both_tie |= (nearer_ours & ours_grazes) | (~nearer_ours & oracle_grazes)
+        tie[both[both_tie & is_real_hit(rays, both, t_a, ours.prim[both], tris)]] = True
+    one = np.flatnonzero(live & (ours.prim >= 0) & (oracle.prim < 0))
+    if one.size:   # we hit, the oracle missed: a real hit of ours grazing an edge or an end
+        t = ours.t[one].astype(np.float64)
+        tol = _tolerance(rays, one, t)
+        tie[one[_grazes(rays, one, t, ours.prim[one], tris, tol) & is_real_hit(rays, one, t, ours.prim[one], tris)]] = True
+    one = np.flatnonzero(live & (oracle.prim >= 0) & (ours.prim < 0))
+    if one.size:   # we missed where the oracle hit at an edge: a tie unless that edge is a crack
+        t = oracle.t[one].astype(np.float64)
+        tol = _tolerance(rays, one, t)
+        grazes = _grazes(rays, one, t, oracle.prim[one], tris, tol)
+        tie[one[grazes & ~_cracked(rays, one, t, oracle.prim[one], tris, tol)]] = True
     mismatch = live & ~agree & ~tie
     return Comparison(agree, tie, mismatch, max_err)
 
@@ -134,15 +232,20 @@ def compare_occlusion(rays: RayBatch, ours: np.ndarray, oracle: np.ndarray, tris
                       closest_ours: Hits, closest_oracle: Hits) -> Comparison:
     """Classify every live ray of an occlusion query. ``closest_*`` are closest-hit answers for
     the same rays (only read where the two occlusion answers differ): a differing answer is a
-    tie when the occluding side's hit grazes an edge or an end of the segment."""
+    tie when the occluding side's hit grazes an edge or an end of the segment (ours must be a
+    real hit; the oracle's must not cross an interior edge, see the module docstring)."""
     n = rays.org.shape[0]
     live = rays.tmin <= rays.tmax
     agree = live & (ours == oracle)
     tie = np.zeros(n, bool)
-    for side, closest in ((ours, closest_ours), (oracle, closest_oracle)):
-        one = np.flatnonzero(live & side & ~agree & (closest.prim >= 0))
-        if one.size:
-            t = closest.t[one].astype(np.float64)
-            tie[one[_grazes(rays, one, t, closest.prim[one], tris, _tolerance(rays, one, t))]] = True
+    one = np.flatnonzero(live & ours & ~agree & (closest_ours.prim >= 0))
+    if one.size:   # we are occluded, the oracle is not: our real hit grazes an edge or an end
+        t, prim = closest_ours.t[one].astype(np.float64), closest_ours.prim[one]
+        tie[one[_grazes(rays, one, t, prim, tris, _tolerance(rays, one, t)) & is_real_hit(rays, one, t, prim, tris)]] = True
+    one = np.flatnonzero(live & oracle & ~agree & (closest_oracle.prim >= 0))
+    if one.size:   # the oracle is occluded, we are not: its hit grazes, and not through a crack
+        t, prim = closest_oracle.t[one].astype(np.float64), closest_oracle.prim[one]
+        tol = _tolerance(rays, one, t)
+        tie[one[_grazes(rays, one, t, prim, tris, tol) & ~_cracked(rays, one, t, prim, tris, tol)]] = True
     mismatch = live & ~agree & ~tie
     return Comparison(agree, tie, mismatch, 0.0)
