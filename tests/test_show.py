@@ -246,7 +246,7 @@ def test_auto_picture_colours_packets_by_their_strategy(kind):
     assert pic.tiles.shape == (8, 8, 3)
     tx, ty = pic.tile
     assert tuple(pic.tiles[ty, tx]) == STRATEGY_COLOURS[chosen]
-    rays, packets, _, _, _ = capture_batch(renderer, kind)
+    rays, packets, *_ = capture_batch(renderer, kind)
     frusta = renderer.tracer.frusta_for(kind, rays, packets)
     choices = renderer.tracer.traversal[kind].choose(renderer.bvh, rays, packets, frusta)
     placed = packet_tiles(rays, packets)[:, 0] >= 0  # packets with a live ray have a tile
@@ -373,9 +373,48 @@ def test_captured_batch_survives_the_renderer_reusing_its_arrays():
     renderer.observer = copy_first
     renderer.render()                       # renders are deterministic: capture_batch's is the same
     renderer.observer = None
-    rays, packets, query, answer, n_batches = capture_batch(renderer, "reflection")
+    rays, packets, query, answer, n_batches, _ = capture_batch(renderer, "reflection")
     assert n_batches >= 3
     org, direction, t = first[0]
     np.testing.assert_array_equal(rays.org, org)
     np.testing.assert_array_equal(rays.dir, direction)
     np.testing.assert_array_equal(answer.t, t)
+
+
+@pytest.mark.parametrize("order", ["surface", "light"])
+def test_a_shadow_packet_is_shown_walked_from_the_end_the_render_walked_it(shared_scenes, order):
+    """With ``shadow_order = "light"`` the render walks shadow packets far child first; show
+    records that walk, not the surface-first one: its node count is the render's own count."""
+    from dataclasses import replace
+    from engine.debug.packet_trace import packet_alone
+    from engine.render.config import validate
+    from engine.render.tracer import Tally
+
+    config = with_overrides(Config(), scene="erw6", size=(64, 64))
+    config = validate(replace(config, render=replace(config.render, shadow_order=order)))
+    renderer = WhittedRenderer(scene_from_config(config.scene, config.override), config)
+    captured = capture_batch(renderer, "shadow")
+    assert captured.from_end == (order == "light")
+    walks_differ = 0
+    for k in (3, 5, 9):
+        pic = build_picture(renderer.scene, config, "shadow", k, renderer=renderer)
+        assert pic.summary["from_light"] == (order == "light")
+        alone, alone_packets = packet_alone(captured.rays, captured.packets, k)
+        counted = {}
+        for from_end in (False, True):
+            tally = Tally(count=True)
+            renderer.tracer.trace("shadow", "occluded", alone, alone_packets, tally, from_end=from_end)
+            counted[from_end] = int(tally.stats["shadow"].counters[:, COUNTER_NODES].sum())
+        assert pic.summary["visited"] == counted[order == "light"]
+        walks_differ += counted[False] != counted[True]
+    assert walks_differ   # the two ends really walk differently on these packets
+
+
+@pytest.mark.parametrize("traversal", ["single", "wide", "embree"])
+def test_no_frustum_is_drawn_for_a_traversal_that_culls_with_none(traversal):
+    config = with_overrides(Config(), size=(64, 64), traversal=[traversal])
+    pic = build_picture(load_scene(config.scene), config, "primary")
+    assert "frustum" not in [name for name, *_ in pic.lines]
+    assert not pic.summary["frustum_valid"]
+    assert any("culls with none" in line for line in pic.legend)
+    assert FRUSTUM not in [colour for colour, _ in pic.keys]

@@ -119,9 +119,9 @@ class AutoTraversal(PacketTraversal):
             apply_verdicts(out, self.book.verdicts(self.book.signature_of(rays, packets)) or {})
         return out
 
-    def walk_recorded(self, bvh, tris, rays, packets, frusta, any_hit, hits, record):
+    def walk_recorded(self, bvh, tris, rays, packets, frusta, any_hit, hits, record, from_end=False):
         walk_batch(AUTO, bvh, tris, rays, packets, frusta, any_hit, hits.t, hits.prim, hits.u, hits.v,
-                   record=record, limits=self._limits, per_packet=self._per_packet(packets), book=self.book,
+                   record=record, from_end=from_end, limits=self._limits, per_packet=self._per_packet(packets), book=self.book,
                    min_share=self.split_min_share)
 
     def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats,

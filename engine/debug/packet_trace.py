@@ -137,10 +137,11 @@ class _Recorder:
                            answers.t, answers.prim, answers.u, answers.v, list(notes))
 
 
-def trace_packet(tracer, kind: str, rays, packets, k: int, any_hit: bool) -> PacketTrace:
+def trace_packet(tracer, kind: str, rays, packets, k: int, any_hit: bool, from_end: bool = False) -> PacketTrace:
     """Packet ``k`` of ``rays`` (in ``packets``, of ray kind ``kind``) as the tracer's traversal
     for that kind takes it (one of PACKET_WALKS or RAY_WALKS) through the tracer's BVH, with the
-    frustum the tracer builds for it. Packet traversals record through ``Tracer.record_walk``."""
+    frustum the tracer builds for it. Packet traversals record through ``Tracer.record_walk``;
+    ``from_end``: the far child first, as the render walks shadow rays from the light."""
     walk = getattr(tracer.traversal[kind], "name", None)
     if walk not in PACKET_WALKS + RAY_WALKS:
         raise ValueError(f"no packet walk for traversal {walk!r}; known: {', '.join(PACKET_WALKS + RAY_WALKS)}")
@@ -156,7 +157,7 @@ def trace_packet(tracer, kind: str, rays, packets, k: int, any_hit: bool) -> Pac
     capacity = RECORD_CAPACITY
     while True:
         record = new_record(capacity)
-        answers, alone_frusta = tracer.record_walk(kind, alone, alone_packets, any_hit, record)
+        answers, alone_frusta = tracer.record_walk(kind, alone, alone_packets, any_hit, record, from_end)
         if record.count[0] <= capacity:
             break
         capacity = int(record.count[0])

@@ -37,12 +37,13 @@ import sys
 import tempfile
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
 from engine.core.atomic import replacing
 from engine.core.errors import ConfigError, PacketrtError
-from engine.core.types import RAY_KINDS, Hits, copied_batch
+from engine.core.types import RAY_KINDS, Hits, RayBatch, copied_batch
 
 #: Most scene triangles drawn as wireframe; a bigger scene shows a fixed random sample.
 MAX_WIREFRAME_TRIANGLES = 12000
@@ -94,19 +95,34 @@ class Picture:
 
 # -- choosing the packet ---------------------------------------------------------------------
 
+class CapturedBatch(NamedTuple):
+    """The first batch of one ray kind a render cast: its rays and packets, its query
+    ("intersect" or "occluded") and answer (Hits or bool[R]), how many batches of that kind the
+    render cast, and whether the render walked it from the rays' far ends (a shadow batch walked
+    from the light, ``[render] shadow_order``)."""
+
+    rays: RayBatch
+    packets: object
+    query: str
+    answer: object
+    n_batches: int
+    from_end: bool
+
+
 def capture_batch(renderer, kind: str):
-    """Render once; return (rays, packets, query, answer, batches of that kind) of the first
-    batch of ``kind``, or None when the render cast no ray of that kind."""
+    """Render once; the CapturedBatch of the first batch of ``kind``, or None when the render
+    cast no ray of that kind."""
     seen = []
 
-    def observer(k, query, rays, packets, answer):
+    def observer(k, query, rays, packets, answer, from_end=False):
         if k == kind:
             if not seen:
                 # The renderer reuses its per-lane arrays for later batches: keep copies of the first.
                 rays, packets = copied_batch(rays, packets)
                 answer = Hits(*(np.array(a) for a in answer)) if query == "intersect" else np.array(answer)
-            seen.append((rays, packets, query, answer))
+            seen.append((rays, packets, query, answer, bool(from_end)))
 
+    observer.wants_walk_order = True
     previous = renderer.observer
     renderer.observer = observer
     try:
@@ -115,7 +131,8 @@ def capture_batch(renderer, kind: str):
         renderer.observer = previous
     if not seen:
         return None
-    return (*seen[0], len(seen))
+    rays, packets, query, answer, from_end = seen[0]
+    return CapturedBatch(rays, packets, query, answer, len(seen), from_end)
 
 
 def centre_packet(rays, packets) -> int:
@@ -352,7 +369,7 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
                     "refraction": "no material refracts; try --override refractive"}.get(kind, "")
             hint += f", max depth {config.render.max_depth}" if secondary else ""
         raise PacketrtError(f"this render of {scene.name!r} casts no {kind} rays ({hint})")
-    rays, packets, query, answer, n_batches = captured
+    rays, packets, query, answer, n_batches, from_end = captured
     n_packets = len(packets.offsets) - 1
     if packet_index is None:
         k = centre_packet(rays, packets)
@@ -420,7 +437,7 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
         tracer = renderer.tracer
         if traversal not in PACKET_WALKS + RAY_WALKS:   # a plugin we cannot follow: shown as `single`
             tracer = tracer.with_traversal({**tracer.traversal, kind: make_traversal("single")})
-        trace = trace_packet(tracer, kind, rays, packets, k, any_hit)
+        trace = trace_packet(tracer, kind, rays, packets, k, any_hit, from_end)
         hit = trace.prim >= 0
         t_end = trace.t if not any_hit else np.where(hit, trace.t, rays.tmax[start:stop])
         p0, p1, lanes = ray_segments(rays, start, stop, t_end, renderer.bounds)
@@ -442,7 +459,9 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
                 colours = np.repeat(node_colours(trace.alive[mask], trace.live), 12, axis=0)
                 pic.lines.append((label, pts, seg, colours, width))
         pic.lines.append(_ray_lines(p0, p1, hit[lanes]))
-        fvalid = bool(frusta.valid[k])
+        # A traversal that takes no frusta (single, wide, embree) was culled by none.
+        takes_frusta = getattr(renderer.tracer.traversal[kind], "uses_frusta", True)
+        fvalid = takes_frusta and frusta is not None and bool(frusta.valid[k])
         chosen = None
         plugin = renderer.tracer.traversal[kind]
         if hasattr(plugin, "choose"):   # auto: which strategy walked each packet of the batch
@@ -460,8 +479,10 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
             pic.lines.append(("frustum", corners, frustum_segments(), np.tile(frustum_colour, (12, 1)), 1.5))
         counts = {o: int((outcome == o).sum()) for o in ("entered", "missed", "culled")}
         walk_note = "" if trace.walk == traversal else f" (walked as {trace.walk})"
-        pic.legend.append(f"traversal {traversal}{walk_note}, frustum {frustum_name}"
-                          + ("" if fvalid else " (none built for this packet)"))
+        pic.legend.append(f"traversal {traversal}{walk_note}, "
+                          + (f"frustum {frustum_name}" + ("" if fvalid else " (none built for this packet)")
+                             if takes_frusta else "no frustum (this traversal culls with none)")
+                          + (", walked from the light (shadow_order)" if from_end and renderer.tracer.orders_any_hit(kind) else ""))
         pic.legend.append(f"{trace.live} live rays, {int(hit.sum())} {'occluded' if any_hit else 'hit'}; "
                           f"{len(trace.nodes)} nodes visited: {counts['entered']} entered, "
                           f"{counts['missed']} missed, {counts['culled']} culled")
@@ -474,6 +495,8 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
                     (NODE_CULLED, "node culled by frustum")]
         if chosen is not None:
             pic.keys[2:3] = [(STRATEGY_COLOURS[name], f"auto: {name} (frustum, map)") for name in STRATEGY_COLOURS]
+        elif not takes_frusta:
+            pic.keys.remove((FRUSTUM, "frustum"))
         # Framed on where the packet meets geometry: its rays' ends and the leaves it entered
         # (rays from a far-away camera come in from the side of the picture).
         focus_pts = [p1]
@@ -483,6 +506,7 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
         pic.summary = {"packet": k, "packets": n_packets, "traversal": traversal, "walk": trace.walk,
                        "live": trace.live, "visited": len(trace.nodes), **counts,
                        "frustum_valid": fvalid, "hits": int(hit.sum()),
+                       "from_light": bool(from_end and renderer.tracer.orders_any_hit(kind)),
                        **({} if chosen is None else {"auto_choice": chosen})}
     if sampled:
         pic.legend.append(f"scene wireframe: {MAX_WIREFRAME_TRIANGLES:,} sampled triangles")

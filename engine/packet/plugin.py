@@ -198,11 +198,12 @@ class PacketTraversal:
                                  np.empty(n, np.float32))
         return Hits(*(a[:n] for a in self._scratch))
 
-    def walk_recorded(self, bvh, tris, rays, packets, frusta, any_hit, hits, record):
+    def walk_recorded(self, bvh, tris, rays, packets, frusta, any_hit, hits, record, from_end=False):
         """The walk of a batch of one packet, recorded into ``record`` (a PacketRecord) by the
-        same kernel: answers (closest, or first when ``any_hit``) into ``hits``."""
+        same kernel: answers (closest, or first when ``any_hit``) into ``hits``; ``from_end`` as
+        in ``walk_batch`` (a shadow batch the render walked from the light)."""
         walk_batch(self.strategy, bvh, tris, rays, packets, frusta, any_hit, hits.t, hits.prim, hits.u, hits.v,
-                   record=record)
+                   record=record, from_end=from_end)
 
     def _run(self, bvh, tris, rays, packets, frusta, any_hit, out_t, out_prim, out_u, out_v, stats,
              from_end=False):

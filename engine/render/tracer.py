@@ -119,18 +119,22 @@ class Tracer:
         frustum = self.frustum[kind]
         return None if frustum is None else frustum.build(rays, packets, self.bounds)
 
-    def record_walk(self, kind: str, rays: RayBatch, packets, any_hit: bool, record):
+    def record_walk(self, kind: str, rays: RayBatch, packets, any_hit: bool, record, from_end: bool = False):
         """The walk of a batch of one packet through the kind's traversal, recorded node by node
         into ``record`` (``engine.packet.record``) by the traversal's own kernel, for ``packetrt
         show``: (Hits of the packet's rays -- the first hit found when ``any_hit`` -- and the
         Frusta it was culled with). A traversal that cannot record (no ``walk_recorded``:
-        ``single``, Embree, the ray-space hierarchy) is a ValueError."""
+        ``single``, Embree, the ray-space hierarchy) is a ValueError. ``from_end``: walked far
+        child first, as ``trace`` walks a shadow batch from the light."""
         traversal = self.traversal[kind]
         if not hasattr(traversal, "walk_recorded"):
             raise ValueError(f"traversal {getattr(traversal, 'name', traversal)!r} cannot record a packet walk")
         frusta = self.frusta_for(kind, rays, packets)
         answers = empty_hits(rays.org.shape[0])
-        traversal.walk_recorded(self.bvh, self.tris, rays, packets, frusta, any_hit, answers, record)
+        if from_end and self.orders_any_hit(kind):
+            traversal.walk_recorded(self.bvh, self.tris, rays, packets, frusta, any_hit, answers, record, from_end=True)
+        else:
+            traversal.walk_recorded(self.bvh, self.tris, rays, packets, frusta, any_hit, answers, record)
         return answers, frusta
 
     def with_traversal(self, traversal: dict, frustum: dict | None = None) -> "Tracer":
