@@ -345,6 +345,8 @@ def cmd_audit(args) -> int:
     if args.scheduler is not None and args.oracle == "both":  # was refused inside the first Dask task
         raise ConfigError("--scheduler splits the audit into bands checked against one oracle; --oracle both "
                           "runs here only (or give --oracle embree or open3d)")
+    if args.report is not None and not args.report.strip():
+        raise ConfigError("--report needs a folder name, got an empty one")
     if args.report:
         from validation.report import REPORT_FILES
 
@@ -360,7 +362,7 @@ def cmd_audit(args) -> int:
         from engine.bench.cluster import audit_on_cluster
 
         workers = 1 if args.workers is None else args.workers  # 0 is a mistake, not the default
-        tiles = 2 * workers if args.tiles is None else args.tiles
+        tiles = min(2 * workers, config.render.height) if args.tiles is None else args.tiles
         tiled = audit_on_cluster(config, tiles, args.scheduler, workers, args.oracle)
     return _run_audit(scene, config, None, args.json, args.report, None, oracle=args.oracle, tiled=tiled)
 
@@ -531,6 +533,15 @@ def main(argv=None) -> int:
     # numba-cuda warns at every launch of fewer than 128 blocks; a frame's small queues, scans and
     # upper hierarchy levels are small by nature, and a GPU bench printed dozens of these a scene.
     warnings.filterwarnings("ignore", message="Grid size .* will likely result in GPU under-utilization")
+    with atomic.undoing_made_folders() as undo:
+        code = _run_command(args)
+        if code not in (0, EXIT_MISMATCH):   # failed: no empty output folders left behind
+            undo()
+        return code
+
+
+def _run_command(args) -> int:
+    """The command's exit code; every expected failure is one line on stderr."""
     try:
         return args.run(args)
     except PacketrtError as exc:

@@ -108,8 +108,11 @@ def test_a_tiled_audit_over_the_cluster_equals_the_serial_audit(tmp_path):
     assert tiled["mismatch_count"] == serial["mismatch_count"] == 0
 
 
-@pytest.mark.parametrize("extra, message", [(["--workers", "0"], "--workers must be in 1..256, got 0"),
-                                            (["--tiles", "0"], "--tiles must be in 1..256 (the frame's pixels), got 0")])
+@pytest.mark.parametrize("extra, message", [
+    (["--workers", "0"], "--workers must be in 1..256, got 0"),
+    (["--tiles", "0"], "--tiles must be in 1..16 (the frame's rows: each band is whole rows), got 0"),
+    # More bands than rows: some bands were empty and silently dropped.
+    (["--tiles", "17"], "--tiles must be in 1..16 (the frame's rows: each band is whole rows), got 17")])
 def test_zero_workers_or_tiles_are_refused_not_defaulted(extra, message, capsys):
     from engine.cli import main
 

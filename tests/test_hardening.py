@@ -1086,3 +1086,30 @@ def test_a_dynamic_matrix_refuses_a_lights_parameter_its_preset_overrides(capsys
     data["variant"][0]["accel"] = "sometimes"           # ... and a variant without a label is named by its settings
     with pytest.raises(ConfigError, match=r"variant 'accel=sometimes'"):
         load_dynamic(data, "m.toml")
+
+
+@pytest.mark.parametrize("command", [
+    ["render", "--scene", "no-such-scene", "-o", "{new}/deeper/x.png"],
+    ["render", "--scene", "no-such-scene", "-o", "{new}/x.png", "--stats", "{new}/s/x.json"],
+    ["audit", "--scene", "no-such-scene", "--report", "{new}/report"],
+    ["audit", "--scene", "no-such-scene", "--json", "{new}/a.json"],
+    ["show", "--scene", "no-such-scene", "-o", "{new}/x.png"],
+])
+def test_a_failed_command_leaves_no_folder_it_made_for_its_outputs(tmp_path, capsys, command):
+    new = tmp_path / "new"
+    assert main([part.format(new=new) for part in command]) == 2
+    assert "unknown scene" in capsys.readouterr().err
+    assert not new.exists()
+    # A folder that was there stays, with what it held.
+    new.mkdir()
+    (new / "mine.txt").write_text("mine")
+    assert main([part.format(new=new) for part in command]) == 2
+    assert sorted(p.name for p in new.iterdir()) == ["mine.txt"]
+
+
+@pytest.mark.parametrize("name", ["", " "])
+def test_an_empty_report_folder_name_is_refused(tmp_path, capsys, name, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["audit", "--size", "16x16", "--report", name]) == 2
+    assert capsys.readouterr().err.strip() == "packetrt: error: --report needs a folder name, got an empty one"
+    assert list(tmp_path.iterdir()) == []

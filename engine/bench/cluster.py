@@ -81,17 +81,16 @@ def audit_on_cluster(config, tiles: int, scheduler: str, workers: int = 1, oracl
     checking, the costly part on a large scene, spreads over the workers)."""
     from validation.audit import merge_reports
 
-    pixels = config.render.width * config.render.height
+    rows = config.render.height
     if not 1 <= workers <= 256:
         raise ConfigError(f"--workers must be in 1..256, got {workers}")
-    if not 1 <= tiles <= pixels:
-        raise ConfigError(f"--tiles must be in 1..{pixels:,} (the frame's pixels), got {tiles}")
-    rows = config.render.height
+    if not 1 <= tiles <= rows:   # more bands than rows made empty bands, silently dropped
+        raise ConfigError(f"--tiles must be in 1..{rows:,} (the frame's rows: each band is whole rows), got {tiles}")
     edges = [config.render.width * (rows * k // tiles) for k in range(tiles + 1)]
     client, cluster = connect(scheduler, workers)
     try:
         futures = [client.submit(audit_task, config, lo, hi, oracle, pure=False)
-                   for lo, hi in zip(edges, edges[1:]) if hi > lo]
+                   for lo, hi in zip(edges, edges[1:])]
         results = client.gather(futures)
     finally:
         client.close()

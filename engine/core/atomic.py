@@ -10,6 +10,7 @@ time.
 """
 from __future__ import annotations
 
+import contextvars
 import json
 import math
 import os
@@ -141,6 +142,12 @@ def output_folder(path, what: str) -> Path:
     folder = Path(path)
     if folder.exists() and not folder.is_dir():
         raise PacketrtError(f"{what} {str(folder)!r} is a file; give a folder")
+    made = _made_folders.get()
+    if made is not None:   # inside ``undoing_made_folders``: note each level this call makes
+        missing = folder.absolute()
+        while not missing.exists() and missing != missing.parent:
+            made.append(missing)
+            missing = missing.parent
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -148,6 +155,29 @@ def output_folder(path, what: str) -> Path:
     if not os.access(folder, os.W_OK | os.X_OK):
         raise PacketrtError(f"{what} folder {str(folder)!r} is not writable")
     return folder
+
+
+#: The folders output checks made inside ``undoing_made_folders`` (None outside one).
+_made_folders: contextvars.ContextVar = contextvars.ContextVar("packetrt_made_folders", default=None)
+
+
+@contextmanager
+def undoing_made_folders():
+    """A block (one command) whose output checks may make folders before the work: yields
+    ``undo()``, which removes those of them that are still empty, deepest first -- for a command
+    that failed, so that ``render -o new/x.png`` with a bad scene leaves no ``new/`` behind.
+    Scoped to the block (a context variable), so nothing outlives the command."""
+    made: list = []
+    token = _made_folders.set(made)
+
+    def undo() -> None:
+        for folder in sorted(set(made), key=lambda p: len(p.parts), reverse=True):
+            remove_if_empty(folder)
+
+    try:
+        yield undo
+    finally:
+        _made_folders.reset(token)
 
 
 def remove_if_empty(folder: Path) -> None:
