@@ -34,6 +34,7 @@ from pathlib import Path
 from dataclasses import replace
 
 from engine.core import atomic, checked
+from engine.core.numba_settings import hide_setup_warnings
 from engine.core.errors import ConfigError, PacketrtError, SceneError
 from engine.render.report import frames_dict, stats_dict
 
@@ -527,12 +528,7 @@ def main(argv=None) -> int:
         # One line instead of argparse's usage block; SystemExit(2) as argparse itself would.
         print(f"packetrt: error: {exc}{_nearest_option(parser, argv, str(exc))}", file=sys.stderr)
         raise SystemExit(EXIT_USAGE) from None
-    # numba's note that this machine's TBB is too old for its TBB threading layer (it uses another)
-    # is about numba's set-up, not the command: Open3D loads that TBB (``audit --oracle open3d``).
-    warnings.filterwarnings("ignore", message=".*TBB threading layer.*")
-    # numba-cuda warns at every launch of fewer than 128 blocks; a frame's small queues, scans and
-    # upper hierarchy levels are small by nature, and a GPU bench printed dozens of these a scene.
-    warnings.filterwarnings("ignore", message="Grid size .* will likely result in GPU under-utilization")
+    hide_setup_warnings()
     with atomic.undoing_made_folders() as undo:
         code = _run_command(args)
         if code not in (0, EXIT_MISMATCH):   # failed: no empty output folders left behind

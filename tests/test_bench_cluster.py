@@ -118,3 +118,15 @@ def test_zero_workers_or_tiles_are_refused_not_defaulted(extra, message, capsys)
 
     assert main(["audit", "--size", "16x16", "--scheduler"] + extra) == 2
     assert capsys.readouterr().err.strip().splitlines()[-1] == f"packetrt: error: {message}"
+
+
+def test_workers_print_no_warning_about_numbas_set_up(capfd):
+    """A worker is a process of its own: the command line's warning filters did not reach it,
+    and with Open3D loaded (its TBB is older than numba's TBB layer wants) every worker printed
+    numba's TBB note into the audit's output."""
+    from engine.cli import main
+
+    assert main(["audit", "--size", "16x16", "--scheduler", "--oracle", "open3d"]) == 0
+    out, err = capfd.readouterr()
+    assert "audit whitted" in out
+    assert "TBB threading layer" not in err and "NumbaWarning" not in err

@@ -67,9 +67,11 @@ def run_on_cluster(client, task, cells: list, record) -> int:
 def audit_task(config, lo: int, hi: int, oracle: str) -> tuple:
     """On a worker: (report, image f32[H,W,3], mismatching pixels) of the band [lo, hi) of the
     config's frame (``validation.audit.audit_band``); the scene is loaded there."""
+    from engine.core.numba_settings import hide_setup_warnings
     from scenes.catalog import scene_from_config
     from validation.audit import audit_band
 
+    hide_setup_warnings()   # a worker is a process of its own: the command line's filters are not here
     scene = scene_from_config(config.scene, config.override)
     report, result, pixels = audit_band(scene, config, lo, hi, oracle)
     return report, result.image, list(pixels)

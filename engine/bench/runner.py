@@ -448,6 +448,9 @@ def _is_interrupt(exc: BaseException) -> bool:
 def measure_cell_afresh(cell: Cell, repeat: int, matrix_name: str, run=None) -> dict:
     """One cell measured with fresh caches and yardsticks and this process's machine in its
     record (``run``: the measuring function, default ``run_cell``): a Dask worker's task."""
+    from engine.core.numba_settings import hide_setup_warnings
+
+    hide_setup_warnings()   # a worker is a process of its own: the command line's filters are not here
     run = run or run_cell
     yardstick, open3d = EmbreeYardstick(), Open3DYardstick()
     try:

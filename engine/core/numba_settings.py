@@ -29,3 +29,16 @@ def settings_problem(environ=None) -> str | None:
         return (f"environment variable NUMBA_THREADING_LAYER={layer!r}: must be one of "
                 f"{', '.join(THREADING_LAYERS)} (or unset)")
     return None
+
+
+def hide_setup_warnings() -> None:
+    """Silence two warnings about numba's set-up, not about the command: numba's note that this
+    machine's TBB is too old for its TBB threading layer (it uses another; Open3D loads that
+    TBB), and numba-cuda's note at every launch of fewer than 128 blocks (a GPU frame's small
+    queues, scans and upper hierarchy levels are small by nature; a GPU bench printed dozens a
+    scene). Called by the command line and by the tasks it sends to Dask workers, which are
+    processes of their own."""
+    import warnings
+
+    warnings.filterwarnings("ignore", message=".*TBB threading layer.*")
+    warnings.filterwarnings("ignore", message="Grid size .* will likely result in GPU under-utilization")
