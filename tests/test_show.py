@@ -418,3 +418,12 @@ def test_no_frustum_is_drawn_for_a_traversal_that_culls_with_none(traversal):
     assert not pic.summary["frustum_valid"]
     assert any("culls with none" in line for line in pic.legend)
     assert FRUSTUM not in [colour for colour, _ in pic.keys]
+
+
+@pytest.mark.parametrize("kind, grid", [("shadow", "light"), ("reflection", "direction")])
+def test_a_rayspace_picture_says_when_the_render_grouped_rays_otherwise(kind, grid):
+    config = with_overrides(Config(), traversal=["rayspace"], size=(64, 64), packet=8, depth=1)
+    pic = build_picture(load_scene(config.scene), config, kind)
+    assert any("pixel layout" in line and repr(grid) in line for line in pic.legend)
+    primary = build_picture(load_scene(config.scene), config, "primary")
+    assert not any("pixel layout" in line for line in primary.legend)

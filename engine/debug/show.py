@@ -424,6 +424,14 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
                           f"{'occluded' if any_hit else 'hit'}; {node.survivors.size:,} of {tris.v0.shape[0]:,} "
                           f"triangles survive to the node")
         pic.legend.append("survivors per level, root down: " + ", ".join(f"{c:,}" for c in node.per_level))
+        plugin = renderer.tracer.traversal[kind]
+        grid = getattr(plugin, "shadow_grid" if kind == "shadow" else "secondary_grid", "pixel")
+        if kind != "primary" and grid != "pixel":
+            # The render grouped these rays by direction; a node over a screen tile exists only
+            # in the paper's pixel layout, which this view builds for the batch.
+            option = "shadow_grid" if kind == "shadow" else "secondary_grid"
+            pic.legend.append(f"shown in the paper's pixel layout; the render grouped these rays by {option} = "
+                              f"{grid!r} (same answers, other nodes)")
         pic.keys = [(RAY_HIT, "ray to its hit" if not any_hit else "occluded ray"),
                     (RAY_MISS, "missing ray" if not any_hit else "unoccluded ray"),
                     (HIT_TRIANGLE, "surviving triangle"), (SPHERE, "node sphere"), (FRUSTUM, "node cone")]
