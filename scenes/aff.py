@@ -522,11 +522,17 @@ class ParsedFile:
     keyframes: dict
 
 
+def _ior(value: float) -> float:
+    """NFF's ior 0 means none given (an opaque surface): 1. Anything else is kept as written, so
+    that ``check_scene`` refuses a negative one instead of it turning into 1 unsaid."""
+    return 1.0 if value == 0 else value
+
+
 def _material_fm(values: np.ndarray, name: str) -> Material:
     amb, dif, spe = _floats(values[0:3]), _floats(values[3:6]), _floats(values[6:9])
     phong, transmission, ior = float(values[9]), float(values[10]), float(values[11])
     return Material(name=name, ambient=amb, diffuse=dif, specular=spe, shininess=phong,
-                    reflectance=spe, transmission=transmission, ior=ior if ior > 0 else 1.0)
+                    reflectance=spe, transmission=transmission, ior=_ior(ior))
 
 
 def _material_f(values: np.ndarray, name: str) -> Material:
@@ -534,7 +540,7 @@ def _material_f(values: np.ndarray, name: str) -> Material:
     kd, ks, phong, transmission, ior = (float(x) for x in values[3:8])
     return Material(name=name, ambient=(0.0, 0.0, 0.0), diffuse=_floats(kd * colour),
                     specular=(ks, ks, ks), shininess=phong, reflectance=(ks, ks, ks),
-                    transmission=transmission, ior=ior if ior > 0 else 1.0)
+                    transmission=transmission, ior=_ior(ior))
 
 
 class Parser:

@@ -417,3 +417,14 @@ def test_words_and_their_lines_are_those_of_a_split_per_line(text):
     assert line_of.dtype == np.int32
     assert line_of.tolist() == [n + 1 for n, line in enumerate(per_line) for _ in line]
     assert last_line == len(per_line)
+
+
+@pytest.mark.parametrize("ior, kept", [(0.0, 1.0), (1.33, 1.33)])
+def test_an_ior_of_zero_means_none_given(tmp_path, ior, kept):
+    scene = load(tmp_path, f"f 1 1 1  0.5 0.5 10 0.5 {ior}\n" + TRIANGLE_MESH)
+    assert scene.materials[scene.triangles.material[0]].ior == pytest.approx(kept)
+
+
+def test_a_negative_ior_is_an_error_not_one(tmp_path):
+    with pytest.raises(SceneError, match=r"ior must be a number in \[0.001, 1000\], got -1.5"):
+        load(tmp_path, "f 1 1 1  0.5 0.5 10 0.5 -1.5\n" + TRIANGLE_MESH)
