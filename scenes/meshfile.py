@@ -223,6 +223,29 @@ def check_off(path: Path) -> None:
                          f"lines after the vertices: is it cut short?")
 
 
+def check_stl(path: Path) -> None:
+    """An STL file is whole: a binary one holds the 50 bytes of every triangle its header counts,
+    an ASCII one closes every facet it opens (trimesh reads either cut short as a file without
+    triangles: "the file holds no triangles", which hid the cause)."""
+    data = path.read_bytes()
+    head = data[:512].lstrip()
+    if head[:5].lower() == b"solid" and (b"facet" in head or b"endsolid" in head or len(data) < 84):
+        text = data.decode("utf-8", errors="replace")
+        opened, closed = text.count("facet normal"), text.count("endfacet")
+        if opened != closed or "endsolid" not in text[-4096:]:
+            raise SceneError(f"{path}: the ASCII STL opens {opened:,} facets and closes {closed:,}"
+                             + ("" if "endsolid" in text[-4096:] else ", and has no 'endsolid' line")
+                             + ": is it cut short?")
+        return
+    if len(data) < 84:
+        raise SceneError(f"{path}: a binary STL starts with an 84-byte header; the file has {len(data):,} bytes")
+    declared = int.from_bytes(data[80:84], "little")
+    wanted = 84 + 50 * declared
+    if len(data) < wanted:
+        raise SceneError(f"{path}: the binary STL header counts {declared:,} triangles ({wanted:,} bytes), but the "
+                         f"file has {len(data):,} bytes: is it cut short?")
+
+
 def check_ascii_ply(path: Path) -> None:
     """An ASCII PLY holds a line for every element its header declares (trimesh reads a file cut
     short as one without faces: "the file holds no triangles"); other PLY files pass unread."""
@@ -408,6 +431,8 @@ def load_mesh_scene(files, params, time):
         check_off(path)
     elif suffix == ".ply":
         check_ascii_ply(path)
+    elif suffix == ".stl":
+        check_stl(path)
     try:
         if suffix == ".obj":
             loaded = trimesh.load(io.StringIO(obj_text), file_type="obj", process=False, maintain_order=True,

@@ -454,3 +454,25 @@ def test_mesh_files_cut_short_in_their_faces_are_named(tmp_path, name, text, mes
     (tmp_path / name).write_text(text)
     with pytest.raises(SceneError, match=re.escape(message)):
         load_path(str(tmp_path / name))
+
+
+@pytest.mark.parametrize("cut, message", [
+    (lambda b, a: b[:len(b) // 2], "the binary STL header counts 80 triangles (4,084 bytes), but the file has 2,042"),
+    (lambda b, a: b[:60], "a binary STL starts with an 84-byte header; the file has 60 bytes"),
+    (lambda b, a: a[:1500], "the ASCII STL opens 6 facets and closes 5, and has no 'endsolid' line"),
+])
+def test_an_stl_cut_short_is_named(tmp_path, cut, message):
+    """trimesh reads an STL cut short as one without triangles: the error said only that."""
+    import trimesh
+
+    from scenes.catalog import load_path
+
+    sphere = trimesh.creation.icosphere(1)
+    binary, text = trimesh.exchange.stl.export_stl(sphere), trimesh.exchange.stl.export_stl_ascii(sphere)
+    piece = cut(binary, text)
+    (tmp_path / "m.stl").write_bytes(piece if isinstance(piece, bytes) else piece.encode())
+    with pytest.raises(SceneError, match=re.escape(message)):
+        load_path(str(tmp_path / "m.stl"))
+    (tmp_path / "whole.stl").write_bytes(binary)
+    (tmp_path / "whole_ascii.stl").write_text(text)
+    assert load_path(str(tmp_path / "whole.stl")).n_triangles == load_path(str(tmp_path / "whole_ascii.stl")).n_triangles == 80
