@@ -114,3 +114,19 @@ def test_the_audit_catches_reflection_rays_that_hit_the_wrong_triangle_at_tmin(m
     # surface they leave): a hit there at tmin is a valid start-on-surface answer. The rest are
     # wrong (the comparison used to call all of them ties).
     assert report["mismatch_count"] >= 0.7 * wrong["checked"], wrong
+
+
+def test_the_same_triangle_at_other_barycentrics_is_a_mismatch():
+    """Shading interpolates normals and uvs with (u, v): a hit on the right triangle at the right
+    t but with wrong barycentrics (here swapped) is wrong."""
+    rays = batch([0.7, 0.2, 1.0], DOWN)   # inside triangle 0 (corners (0,0), (1,0), (1,1))
+    point = np.array([0.7, 0.2])
+    # Triangle 0: v0 = (0,0), e1 = (1,0), e2 = (1,1): point = u e1 + v e2 -> v = 0.2, u = 0.5.
+    u, v = 0.5, 0.2
+    assert np.allclose(u * np.array([1, 0]) + v * np.array([1, 1]), point)
+    right = Hits(np.array([1.0], np.float32), np.array([0], np.int32), np.array([u], np.float32), np.array([v], np.float32))
+    swapped = right._replace(u=right.v.copy(), v=right.u.copy())
+    assert compare_hits(rays, right, right, quad).agree[0]
+    assert compare_hits(rays, swapped, right, quad).mismatch[0]
+    nudged = right._replace(u=right.u + np.float32(1e-6))   # float32 noise in u stays agreement
+    assert compare_hits(rays, nudged, right, quad).agree[0]

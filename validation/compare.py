@@ -1,7 +1,7 @@
 """Tie-aware comparison of our answers with an oracle's.
 
 Two answers for one ray *agree* when both miss, or both hit the same triangle at t within
-tolerance. When they differ, the disagreement is a *tie* (an equally valid answer that
+tolerance and at barycentrics (u, v) naming points on it within the same distance. When they differ, the disagreement is a *tie* (an equally valid answer that
 floating point may decide either way) when:
 
 - both hit, at t within tolerance, and each hit point lies within a small distance of
@@ -66,6 +66,16 @@ def point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.n
     inside = (area2 > 0) & (w1 >= 0) & (w2 >= 0) & (w1 + w2 <= 1)
     plane = np.abs(np.einsum("ij,ij->i", p - a, n)) / np.sqrt(safe)
     return np.where(inside, plane, edge), edge
+
+
+def barycentric_distance(tris, prim, u_a, v_a, u_b, v_b) -> np.ndarray:
+    """f64[M]: distance between the points (u_a, v_a) and (u_b, v_b) name on triangles prim
+    (point = v0 + u e1 + v e2, the convention of Embree, Open3D and packetrt's kernels)."""
+    e1 = np.asarray(tris.e1[prim], np.float64)
+    e2 = np.asarray(tris.e2[prim], np.float64)
+    du = (np.asarray(u_a, np.float64) - u_b)[:, None]
+    dv = (np.asarray(v_a, np.float64) - v_b)[:, None]
+    return np.linalg.norm(du * e1 + dv * e2, axis=1)
 
 
 def _tolerance(rays, idx, t):
@@ -181,8 +191,12 @@ def compare_hits(rays: RayBatch, ours: Hits, oracle: Hits, tris: Triangles) -> C
     max_err = 0.0
     if idx.size:
         tol = _tolerance(rays, idx, ours.t[idx])
+        slack = tol + T_RELATIVE * ours.t[idx] * speed[idx]
         err = np.abs(ours.t[idx].astype(np.float64) - oracle.t[idx]) * speed[idx]
-        ok = err <= tol + T_RELATIVE * ours.t[idx] * speed[idx]
+        # The barycentrics too (shading interpolates normals and uvs with them): the points they
+        # name on the triangle lie within the same distance.
+        apart = barycentric_distance(tris, ours.prim[idx], ours.u[idx], ours.v[idx], oracle.u[idx], oracle.v[idx])
+        ok = (err <= slack) & (apart <= slack)
         agree[idx[ok]] = True
         if ok.any():
             max_err = float(np.abs(ours.t[idx[ok]].astype(np.float64) - oracle.t[idx[ok]]).max())
