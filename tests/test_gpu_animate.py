@@ -35,3 +35,13 @@ def test_device_refit_equals_the_cpu_refit():
     result = json.loads(run.stdout.strip().splitlines()[-1])
     assert result["triangles"] > 100
     assert result["equal"] == [{"child_boxes": True, "root_row": True, "leaf_tris": True}] * 2
+
+
+def test_a_refit_that_collapses_into_other_wide_links_renders_like_the_cpu():
+    """The 8-wide collapse opens the larger child first, so a refit (a stretched sphere) can keep
+    the node count and change the links; the device copied only the boxes, over the old links."""
+    run = simulated("-m", "tests.gpu_sim_wide_refit_check")
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert result["same_wide_nodes"] and not result["same_links"]   # the case this is about
+    assert result["differing_pixels"] == {"bvh": 0, "wide": 0}

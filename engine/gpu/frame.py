@@ -335,7 +335,8 @@ class GpuWhittedRenderer:
         if not replaced and self.device_bvh.same_topology(self.bvh):
             self.device_refit.refit(self.device_tris)  # the boxes recomputed on the GPU
             self.device_bvh.host_bvh = self.bvh
-            self._tell_traversals("refit_from", self.bvh)  # the 8-wide tree, collapsed again
+            # The 8-wide tree, collapsed again; one with another node count is made anew below.
+            replaced = not all(self._tell_traversals("refit_from", self.bvh))
         else:
             self.device_bvh = DeviceBVH.from_host(self.bvh, self.tris)
             self.device_refit = DeviceRefit(self.bvh, self.device_bvh)
@@ -371,13 +372,15 @@ class GpuWhittedRenderer:
             self.observer = observer
         return time.perf_counter() - start
 
-    def _tell_traversals(self, method: str, *args) -> None:
+    def _tell_traversals(self, method: str, *args) -> list:
         """Call ``method(*args)`` once on each distinct traversal of the frame that has it (kinds
-        that name the same traversal share one instance)."""
+        that name the same traversal share one instance); their answers, in no set order."""
+        answers = []
         for traversal in {id(t): t for t in self.traversal.values()}.values():
             call = getattr(traversal, method, None)
             if call is not None:
-                call(*args)
+                answers.append(call(*args))
+        return answers
 
     def _frame_arrays(self, pixels: int) -> FrameArrays:
         depth = self.config.render.max_depth

@@ -16,8 +16,9 @@ triangles; row 1: size -- 0 inner, > 0 a leaf of that many triangles, -1 an empt
 slots are skipped by their size, never by their NaN boxes, whose min/max differ between targets).
 
 An animation that refits the binary tree (``engine.gpu.refit``) refits this one by collapsing
-the refitted host tree again and copying its boxes into the same device array
-(``refit_from``): the same topology gives the same wide nodes.
+the refitted host tree again and copying its boxes and links into the same device arrays
+(``refit_from``): the collapse follows box areas, so a refit may merge other nodes (other
+links, and rarely another node count, when the frame makes the traversal anew).
 """
 from __future__ import annotations
 
@@ -154,12 +155,17 @@ class DeviceWideTraversal(DeviceBVHTraversal):
         self.box, self.meta = upload(box), upload(meta)
         self.nodes = box.shape[0]
 
-    def refit_from(self, host_bvh) -> None:
-        """The boxes of a refit of the tree (the same topology) copied into the uploaded ones."""
-        box, _ = wide_tables(host_bvh)
+    def refit_from(self, host_bvh) -> bool:
+        """The 8-wide tree of a refit of the binary tree, boxes and links, copied into the uploaded
+        arrays; False (nothing copied) when it has another number of wide nodes, and the caller
+        makes the traversal anew. The collapse opens the inner child with the larger box first, so
+        refitted boxes can merge other nodes: the same topology does not give the same links."""
+        box, meta = wide_tables(host_bvh)
         if box.shape[0] != self.nodes:
-            raise ValueError(f"a refit of the tree has {box.shape[0]} wide nodes, the uploaded one {self.nodes}")
+            return False
         self.box.copy_to_device(box)
+        self.meta.copy_to_device(meta)
+        return True
 
     def _args(self, org, dirs, tmin, tmax, count):
         b = self.bvh
