@@ -464,19 +464,32 @@ def _default_material():
     return Material()
 
 
-def _as_config(config):
+def _as_config(config, device: str = "cpu"):
+    """The checked Config of ``render``'s argument; a tracer on ``device = "cuda"`` renders there
+    whatever the config's own [render] device says, and the config is checked as a device config
+    (so the device's traversal names, ``bvh``, are known). A CPU tracer keeps the config's device."""
+    from dataclasses import replace
+
     from engine.render import config as cfg
 
+    def on_device(data: dict) -> dict:
+        if device == "cpu":
+            return data
+        render = data.get("render", {})
+        return {**data, "render": {**render, "device": device}} if isinstance(render, dict) else data
+
     if config is None:
-        return cfg.Config()
+        config = cfg.Config()
     if isinstance(config, cfg.Config):
+        if device != "cpu" and config.render.device != device:
+            config = replace(config, render=replace(config.render, device=device))
         return cfg.validate(config)
     if isinstance(config, dict):
-        return cfg.from_dict(config)
+        return cfg.from_dict(on_device(config))
     if isinstance(config, (str, Path)):
         if not str(config).strip():
             raise ApiArgumentError("render config path is empty; give a TOML file, a dict or a Config")
-        return cfg.load(str(config))
+        return cfg.from_dict(on_device(cfg.read_toml(str(config), "config")), source=str(config))
     raise ApiArgumentError(f"render config must be a Config, a dict of TOML tables or a TOML path; "
                       f"got {type(config).__name__}")
 
@@ -687,9 +700,7 @@ class RayTracer:
 
         if not isinstance(counters, (bool, np.bool_)):
             raise ApiArgumentError(f"render: counters must be True or False, got {counters!r}")
-        cfg = _as_config(config)
-        if self.device == "cuda" and cfg.render.device != "cuda":
-            cfg = replace(cfg, render=replace(cfg.render, device="cuda"))
+        cfg = _as_config(config, self.device)
         scene = override_materials(self.scene, cfg.override)
         with numba_threads(cfg.render.threads):  # host work too (the GPU renderer's); the caller's count comes back
             renderer = new_renderer(scene, cfg)

@@ -23,11 +23,13 @@ def main(folder: Path, traversal: str | None = None) -> dict:
     scene = folder / "moving.aff"
     scene.write_text(textwrap.dedent(SCENE))
     codes = {}
+    # The device's own name "bvh" is the CPU's BVH traversals on the device ("single" here).
+    names = {"cpu": {"bvh": "single"}.get(traversal, traversal), "cuda": traversal}
     for device in ("cpu", "cuda"):
         codes[device] = cli(["animate", "--scene", str(scene), "--size", "12x10", "--packet", "4", "--frames", "3",
                              "--accel", "refit", "--device", device, "-o", str(folder / device),
                              "--stats", str(folder / f"{device}.json")] + (["--audit"] if device == "cuda" else [])
-                            + (["--traversal", traversal] if traversal else []))
+                            + (["--traversal", names[device]] if traversal else []))
     difference = max(float(np.abs(np.asarray(Image.open(folder / "cpu" / f"frame_{i:05d}.png"), np.int32)
                                   - np.asarray(Image.open(folder / "cuda" / f"frame_{i:05d}.png"), np.int32)).max())
                      for i in range(3))

@@ -67,6 +67,9 @@ def main() -> dict:
             errors.append(type(error).__name__)
     image_gpu, stats = gpu.render({"render": {"width": 9, "height": 7}})
     image_cpu, _ = cpu.render({"render": {"width": 9, "height": 7}})
+    # The device's own traversal name in a config that does not repeat the device (it was checked
+    # as a CPU config first: "unknown traversal 'bvh'").
+    named_bvh, named_stats = gpu.render({"render": {"width": 9, "height": 7}, "traversal": {"primary": "bvh"}})
     return {"hits": int((want.prim >= 0).sum()),
             "host_equal": all(np.array_equal(a, b) for a, b in zip(want, host)),
             "host_types": [type(a).__name__ for a in host],
@@ -75,7 +78,9 @@ def main() -> dict:
             "occluded_equal": bool(np.array_equal(gpu.occluded(org, d, tmax=tmax), cpu.occluded(org, d, tmax=tmax))),
             "scalar_bounds_equal": scalar_equal, "bounds_kept": kept, "host_tensor_equal": host_tensor_equal,
             "errors": errors, "render_difference": float(np.abs(image_gpu - image_cpu).max()),
-            "render_device": stats["config"]["render"]["device"]}
+            "render_device": stats["config"]["render"]["device"],
+            "bvh_named_difference": float(np.abs(named_bvh - image_cpu).max()),
+            "bvh_named_traversal": named_stats["config"]["traversal"]["primary"]}
 
 
 if __name__ == "__main__":

@@ -12,12 +12,13 @@ import pytest
 from cudasim import simulated
 
 
-@pytest.mark.parametrize("traversal", [None, "wide"])
+@pytest.mark.parametrize("traversal", [None, "wide", "bvh"])
 def test_animation_on_the_device_refits_and_matches_the_cpu_frames(tmp_path, traversal):
     """``packetrt animate --device cuda --accel refit``: each frame's moved triangles and refitted
     boxes are copied into the device arrays in place; frames equal the CPU's, audits clean. With
     ``wide`` on both devices the device's 8-wide tree is collapsed again from each refitted host
-    tree (stale boxes would lose the moved triangles' hits: audit mismatches)."""
+    tree (stale boxes would lose the moved triangles' hits: audit mismatches). The device's own
+    name ``bvh`` is accepted as render, audit and bench accept it (animate refused it)."""
     run = simulated("-m", "tests.gpu_sim_animate_check", str(tmp_path), *([traversal] if traversal else []))
     assert run.returncode == 0, run.stderr[-3000:]
     result = json.loads(run.stdout.strip().splitlines()[-1])

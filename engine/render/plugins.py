@@ -49,6 +49,10 @@ def uses_bvh(config) -> bool:
     ``uses_bvh = False``: Embree and the ray-space hierarchy keep no scene tree of ours)."""
     from engine.core.types import RAY_KINDS
 
+    if getattr(config.render, "device", "cpu") == "cuda":   # the device's names: bvh, wide, rayspace
+        from engine.render.device_names import device_traversal_name
+
+        return any(device_traversal_name(config.traversal.get(k), k) != "rayspace" for k in RAY_KINDS)
     classes = {registry.factory(registry.TRAVERSALS, config.traversal.get(k), "traversal") for k in RAY_KINDS}
     return any(getattr(cls, "uses_bvh", True) for cls in classes)
 
