@@ -464,6 +464,11 @@ def _default_material():
     return Material()
 
 
+def _on_host(array) -> np.ndarray:
+    """``array`` as a numpy array: a device answer (numba ``DeviceNDArray``) copied back."""
+    return array if isinstance(array, np.ndarray) else array.copy_to_host()
+
+
 def _as_config(config, device: str = "cpu"):
     """The checked Config of ``render``'s argument; a tracer on ``device = "cuda"`` renders there
     whatever the config's own [render] device says, and the config is checked as a device config
@@ -640,13 +645,15 @@ class RayTracer:
             return self.tracer.trace("shadow", "occluded", rays, packets)[lane]
 
     # -- trimesh's names ---------------------------------------------------------------
+    # trimesh's interface is numpy: these answer numpy arrays for device-array rays too (the
+    # device's answers are copied back once; ``intersect`` / ``occluded`` keep them there).
     def intersects_first(self, ray_origins, ray_directions, **segment) -> np.ndarray:
         """int64 (n,): index of the first triangle each ray hits, -1 for a miss."""
-        return self.intersect(ray_origins, ray_directions, **segment).prim.astype(np.int64)
+        return _on_host(self.intersect(ray_origins, ray_directions, **segment).prim).astype(np.int64)
 
     def intersects_any(self, ray_origins, ray_directions, **segment) -> np.ndarray:
         """bool (n,): whether each ray hits any triangle."""
-        return self.occluded(ray_origins, ray_directions, **segment)
+        return _on_host(self.occluded(ray_origins, ray_directions, **segment)).astype(np.bool_)
 
     def intersects_id(self, ray_origins, ray_directions, multiple_hits: bool = False,
                       return_locations: bool = False, **segment):
@@ -655,7 +662,7 @@ class RayTracer:
         _first_hit_only(multiple_hits, "intersects_id")
         if not is_flag(return_locations):  # a string such as 'no' was taken as True
             raise ApiArgumentError(f"intersects_id: return_locations must be True or False, got {return_locations!r}")
-        hits = self.intersect(ray_origins, ray_directions, **segment)
+        hits = Hits(*map(_on_host, self.intersect(ray_origins, ray_directions, **segment)))
         index_ray = np.flatnonzero(hits.prim >= 0).astype(np.int64)
         index_tri = hits.prim[index_ray].astype(np.int64)
         if not return_locations:

@@ -40,6 +40,16 @@ def main() -> dict:
                                                              tmax=bound).copy_to_host() != 0,
                                                 cpu.occluded(org[:count], d[:count], tmin=0.5, tmax=bound))))
     kept = len(gpu.device_queries._filled)
+    # trimesh's names answer numpy arrays of trimesh's dtypes for device rays too (the device
+    # answers have no astype and no comparisons on a real GPU).
+    trimesh_names = []
+    for name in ("intersects_first", "intersects_any", "intersects_id", "intersects_location"):
+        on_device_rays = getattr(gpu, name)(cuda.to_device(org), cuda.to_device(d))
+        on_cpu = getattr(cpu, name)(org, d)
+        if not isinstance(on_cpu, tuple):
+            on_device_rays, on_cpu = (on_device_rays,), (on_cpu,)
+        trimesh_names.append(all(type(a) is np.ndarray and a.dtype == b.dtype and np.allclose(a, b)
+                                 for a, b in zip(on_device_rays, on_cpu)))
 
     class HostTensor:
         """Host rays from a library named torch (a CPU tensor): answered as numpy rays are."""
@@ -78,7 +88,7 @@ def main() -> dict:
             "occluded_equal": bool(np.array_equal(gpu.occluded(org, d, tmax=tmax), cpu.occluded(org, d, tmax=tmax))),
             "scalar_bounds_equal": scalar_equal, "bounds_kept": kept, "host_tensor_equal": host_tensor_equal,
             "errors": errors, "render_difference": float(np.abs(image_gpu - image_cpu).max()),
-            "render_device": stats["config"]["render"]["device"],
+            "render_device": stats["config"]["render"]["device"], "trimesh_names": trimesh_names,
             "bvh_named_difference": float(np.abs(named_bvh - image_cpu).max()),
             "bvh_named_traversal": named_stats["config"]["traversal"]["primary"]}
 

@@ -130,6 +130,7 @@ def test_ray_tracer_on_the_device_answers_as_the_cpu_does():
     assert result["errors"] == ["DeviceQueryError", "DeviceQueryError", "ApiArgumentError"]
     assert result["render_device"] == "cuda" and result["render_difference"] <= 1e-5
     assert result["bvh_named_traversal"] == "bvh" and result["bvh_named_difference"] <= 1e-5
+    assert result["trimesh_names"] == [True] * 4
 
 
 def test_gpu_frame_with_textures_equals_the_cpu_frame(frame_check):
