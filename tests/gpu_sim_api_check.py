@@ -89,6 +89,7 @@ def main() -> dict:
             "scalar_bounds_equal": scalar_equal, "bounds_kept": kept, "host_tensor_equal": host_tensor_equal,
             "errors": errors, "render_difference": float(np.abs(image_gpu - image_cpu).max()),
             "render_device": stats["config"]["render"]["device"], "trimesh_names": trimesh_names,
+            "counters_from": gpu.render({"render": {"width": 9, "height": 7}}, counters=True)[1]["counters_from"],
             "bvh_named_difference": float(np.abs(named_bvh - image_cpu).max()),
             "bvh_named_traversal": named_stats["config"]["traversal"]["primary"]}
 

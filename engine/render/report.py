@@ -30,6 +30,8 @@ def extra_dict(scene, result) -> dict:
 COUNTED = "a separate counting pass over the same rays (timings exclude counting)"
 #: ... and of an audited frame (``render --audit``), which no counting pass follows.
 NOT_COUNTED = "none: an audited frame (render --audit) is not counted, and its times include the checking"
+#: ... and of a frame on the GPU, whose kernels keep no traversal counters.
+DEVICE_NOT_COUNTED = "none: the GPU's kernels keep no traversal counters (every counter is 0)"
 
 
 def stats_dict(scene, config, result, frames: list | None = None, audited: bool = False) -> dict:
@@ -50,7 +52,7 @@ def stats_dict(scene, config, result, frames: list | None = None, audited: bool 
         "counters": {name: result.counters.get(name, dict.fromkeys(RAY_KINDS, 0))
                      for name in ("ray_aabb", "ray_tri")},
         "counters_by_depth": result.counters_by_depth,
-        "counters_from": NOT_COUNTED if audited else COUNTED,
+        "counters_from": NOT_COUNTED if audited else DEVICE_NOT_COUNTED if config.render.device == "cuda" else COUNTED,
         "audited": audited,
         "extra": extra_dict(scene, result),
         "frames": frames_dict(frames or [result.seconds["total"]]),
