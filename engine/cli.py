@@ -282,10 +282,11 @@ def cmd_view(args) -> int:
     if exit_after is not None and not (math.isfinite(exit_after) and 0 <= exit_after <= MAX_VIEW_SECONDS):
         raise ConfigError(f"--exit-after must be a number of seconds in 0..{MAX_VIEW_SECONDS:g}, got {exit_after}")
     _check_outputs(("--status-file", getattr(args, "status_file", None)))
+    # The command's own mistakes (a config, --device cuda) before what this machine lacks.
+    config = _cpu_only(_config_from(args), "view")
     problem = display_problem()
     if problem:
         raise PacketrtError(problem)
-    config = _cpu_only(_config_from(args), "view")
     if args.size is None:
         config = validate(replace(config, render=replace(config.render, width=VIEW_SIZE[0], height=VIEW_SIZE[1])))
     run_viewer(_load_scene(config, args.strict), config, status_file=getattr(args, "status_file", None),

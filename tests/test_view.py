@@ -222,3 +222,12 @@ def test_view_orbits_and_shows_its_numbers_under_xvfb(xvfb, tmp_path):
         except subprocess.TimeoutExpired:
             app.kill()
         log.close()
+
+
+def test_the_commands_own_mistakes_come_before_the_missing_display():
+    """``view --device cuda`` is refused as ``show`` refuses it, display or none (the missing
+    display was named first, and fixing it only led to the next error)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    run = run_view(env, "--device", "cuda")
+    assert run.returncode == 2 and run.stderr.count("\n") == 1
+    assert "device 'cuda' is not supported here" in run.stderr
