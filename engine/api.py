@@ -696,8 +696,9 @@ class RayTracer:
         renders its own geometry (with ``[materials] override`` applied), by the config's own
         [render], [traversal] and [frustum]: the tracer's traversal, frustum, packet, threads,
         leaf_size and bins are for its queries. ``stats`` is the
-        document ``packetrt render --stats`` writes; ``counters=True`` fills its traversal
-        counters from a second, counting render.
+        document ``packetrt render --stats`` writes, with ``seconds.compile`` (the warm-up that
+        compiles or loads the kernels) kept out of the frame's times; ``counters=True`` fills its
+        traversal counters from a second, counting render.
         """
         from dataclasses import replace
 
@@ -711,7 +712,9 @@ class RayTracer:
         scene = override_materials(self.scene, cfg.override)
         with numba_threads(cfg.render.threads):  # host work too (the GPU renderer's); the caller's count comes back
             renderer = new_renderer(scene, cfg)
+            compile_seconds = renderer.warm_up()   # JIT compile or cache load, kept out of the frame's times
             result = renderer.render()
+            result.seconds["compile"] = compile_seconds
             if counters:
                 renderer.with_counters(result)
         stats = stats_dict(scene, cfg, result)

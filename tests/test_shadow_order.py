@@ -178,3 +178,35 @@ def test_the_benchmark_replays_shadow_batches_from_the_end_the_renderer_walks_th
     tracer.trace = trace
     replay(recorder.batches, tracer, recorder.from_end)
     assert seen == recorder.from_end
+
+
+def test_stats_count_the_first_frame_whatever_followed_it(tmp_path, capsys):
+    """The counting pass replays the first frame from the shadow order it began with: its
+    counters and ``extra.shadow_order`` do not depend on --repeat (the trials of later frames
+    changed which end the counting pass walked, so the counters moved with --repeat)."""
+    import json
+
+    from engine.cli import main
+
+    seen = []
+    for repeat in ("0", "1", "2"):
+        stats = tmp_path / f"r{repeat}.json"
+        assert main(["render", "--size", "256x256", "--repeat", repeat, "--stats", str(stats),
+                     "-o", str(tmp_path / "x.png")]) == 0
+        doc = json.loads(stats.read_text())
+        seen.append((doc["counters"]["ray_aabb"]["shadow"], doc["extra"]["shadow_order"]))
+    assert seen[0] == seen[1] == seen[2]
+    assert seen[0][1]["0/primary"] in ("surface", "light", "undecided") and len(seen[0][1]) == 3
+
+
+@pytest.mark.parametrize("mode", ["surface", "light"])
+def test_stats_name_a_fixed_end_and_no_end_for_traversals_that_ignore_it(tmp_path, mode):
+    for traversal, expected in (("partition", mode), ("embree", None)):
+        config = cfg.with_overrides(cfg.Config(), size=(64, 64), traversal=[traversal])
+        config = replace(config, render=replace(config.render, shadow_order=mode))
+        renderer = WhittedRenderer(scene_from_config(config.scene, config.override), config)
+        ends = renderer.render().shadow_order
+        if expected is None:
+            assert ends == {}
+        else:
+            assert ends and set(ends.values()) == {expected}

@@ -53,6 +53,8 @@ class ShadowOrder:
             raise ValueError(f"shadow order must be one of {', '.join(SHADOW_ORDERS)}, got {mode!r}")
         self.mode = mode
         self._from_light: dict = {}
+        #: (light, kind) pairs whose shadow rays a packet walk took (``record``), for ``chosen``
+        self.walked: set = set()
         #: (light, kind) -> {"surface": [nodes, rays], "light": [nodes, rays]} summed over its trials
         self.trials: dict = {}
 
@@ -82,7 +84,19 @@ class ShadowOrder:
             return
         self._from_light[(light, kind)] = light_nodes / light_rays < (1.0 - MARGIN) * surface_nodes / surface_rays
 
+    def record(self, light: int, kind: str) -> None:
+        """A packet walk (a traversal that orders its any-hit walk) took a shadow batch of (light, kind)."""
+        self.walked.add((light, kind))
+
     def chosen(self) -> dict:
-        """{"LIGHT/KIND": "light" or "surface"} for every (light, kind) decided so far."""
-        return {f"{light}/{kind}": ("light" if value else "surface")
-                for (light, kind), value in sorted(self._from_light.items())}
+        """{"LIGHT/KIND": "light" | "surface" | "undecided"} for every (light, kind) a packet walk
+        took or a trial decided: the fixed end of mode "surface" or "light"; under "auto" the end
+        decided, or "undecided" (its batches so far walked in trials, or from the surface when
+        too small for one)."""
+        def end(pair):
+            if self.mode != "auto":
+                return self.mode
+            if pair in self._from_light:
+                return "light" if self._from_light[pair] else "surface"
+            return "undecided"
+        return {f"{light}/{kind}": end((light, kind)) for light, kind in sorted(self.walked | set(self._from_light))}

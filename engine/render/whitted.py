@@ -32,6 +32,7 @@ overwrite: an observer that keeps a batch keeps a copy (``engine.core.types.copi
 """
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 
@@ -74,9 +75,10 @@ class RenderResult:
     "plugin_build": {plugin: s}}. rays: {kind: live rays cast}. counters: {"ray_aabb" |
     "ray_tri" | "nodes": {kind: n}} and counters_by_depth (the same per BVH depth, lists), empty
     unless the render counted. extra: {kind: plugin statistics}. shadow_order: {"LIGHT/KIND":
-    "surface" | "light"}, the end each light's shadow rays were walked from once decided
-    (``engine.render.shadow_order``). ``engine.render.report`` turns it into the ``--stats``
-    document.
+    "surface" | "light" | "undecided"}, the end each light's shadow rays were walked from
+    (``engine.render.shadow_order``). shadow_order_at_start: the renderer's ShadowOrder as the
+    frame began (a counting pass replays the frame from it), or None. ``engine.render.report``
+    turns it into the ``--stats`` document.
     """
 
     image: np.ndarray
@@ -86,6 +88,7 @@ class RenderResult:
     counters_by_depth: dict
     extra: dict = field(default_factory=dict)
     shadow_order: dict = field(default_factory=dict)
+    shadow_order_at_start: object = field(default=None, repr=False, compare=False)
 
     def mrays_per_s(self) -> dict:
         return {k: (self.rays[k] / self.seconds["trace"][k] / 1e6 if self.seconds["trace"][k] > 0 else 0.0)
@@ -165,7 +168,10 @@ class WhittedRenderer:
     def _trace_shadow(self, light: int, kind: str, rays, packets, tally):
         """Occlusion of light ``light``'s shadow rays from hits of ``kind`` rays, walked from the
         end ``shadow_order`` chooses (or as a trial of both: ``engine.render.shadow_order``)."""
-        trial = {} if self.shadow_order.wants_trial(light, kind) and self.tracer.orders_any_hit("shadow") else None
+        orders = self.tracer.orders_any_hit("shadow")   # embree, single and rayspace ignore the end
+        if orders:
+            self.shadow_order.record(light, kind)
+        trial = {} if self.shadow_order.wants_trial(light, kind) and orders else None
         occluded = self.tracer.trace("shadow", "occluded", rays, packets, tally,
                                      self.scratch.take(("shadow", "occluded"), rays.org.shape[0], (), np.bool_),
                                      from_end=self.shadow_order.from_light(light, kind), trial=trial)
@@ -210,6 +216,7 @@ class WhittedRenderer:
         cfg = self.config.render
         width, height = size or (cfg.width, cfg.height)
         tally = Tally(count=self.count)
+        order_at_start = copy.deepcopy(self.shadow_order)   # a few small dicts
         start = time.perf_counter()
         image = np.zeros((width * height, 3), np.float32)
         batches = [camera_batch(self.scene, width, height, cfg.packet, self.scratch.allocator(("primary", 0)))]
@@ -237,18 +244,26 @@ class WhittedRenderer:
         seconds = {"bvh": self.bvh.build_seconds, "trace": tally.seconds, "shade": shade_seconds, "total": total,
                    "plugin_build": self.prepare_seconds}
         return RenderResult(image.reshape(height, width, 3), seconds, tally.rays, counters, by_depth, extra,
-                            self.shadow_order.chosen())
+                            self.shadow_order.chosen(), order_at_start)
 
     @at_own_threads
     def with_counters(self, result: RenderResult) -> RenderResult:
         """``result`` with counters and plugin statistics from a second, counting render (so the
-        timed render does not pay for counting)."""
+        timed render does not pay for counting) of the same frame: it starts from the shadow
+        order ``result``'s frame started from, so it walks every shadow batch from the same end
+        and makes the same trials (the counters of the first frame do not depend on how many
+        frames followed it); the renderer's own order is left as it was."""
         count, self.count = self.count, True
+        held = self.shadow_order
+        if result.shadow_order_at_start is not None:
+            self.shadow_order = copy.deepcopy(result.shadow_order_at_start)
         try:
             counted = self.render()
         finally:
             self.count = count
+            self.shadow_order = held
         result.counters, result.counters_by_depth, result.extra = counted.counters, counted.counters_by_depth, counted.extra
+        result.shadow_order = counted.shadow_order
         return result
 
 
