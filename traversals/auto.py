@@ -43,7 +43,8 @@ Options (``[options.auto]``), each defaulting to the fitted value in
   the rule alone, see ``engine.packet.auto_trial``).
 
 Statistics (``--stats``: ``extra.plugins.KIND.auto``): ``packets``, the packets walked by each
-strategy, ``per_batch``, the same for every batch traced, in order, and ``trials``, for each batch
+strategy, ``per_batch``, the same for every walk of a batch, in order (a shadow batch walked as a
+trial of both ends, ``engine.render.shadow_order``, has one entry per group walked), and ``trials``, for each batch
 whose groups were tried (in any earlier frame), one entry per group tried (kind, packets, group,
 tried_packets, own_seconds, other_seconds, walked_by).
 """
