@@ -130,3 +130,24 @@ def test_the_same_triangle_at_other_barycentrics_is_a_mismatch():
     assert compare_hits(rays, swapped, right, quad).mismatch[0]
     nudged = right._replace(u=right.u + np.float32(1e-6))   # float32 noise in u stays agreement
     assert compare_hits(rays, nudged, right, quad).agree[0]
+
+
+TET_V = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, 0.3, 1]], np.float32)
+TET_F = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [2, 0, 3]], np.int32)
+
+
+def test_a_miss_through_a_vertex_the_surface_closes_around_is_a_crack():
+    tet = make_triangles(TET_V, TET_F, 0)
+    down = batch([0.5, 0.3, 2.0], DOWN)   # straight down through the apex, into the solid
+    assert verdict(down, MISS, ([1.0], [1]), tet) == "mismatch"
+    # The apex hit itself is a tie whichever of its three triangles names it.
+    assert verdict(down, ([1.0], [2]), ([1.0], [1]), tet) == "tie"
+    # Past the apex to the base behind it is the same crack as a miss.
+    assert verdict(down, ([2.0], [0]), ([1.0], [1]), tet) == "mismatch"
+
+
+def test_a_ray_touching_a_vertex_from_outside_is_a_tie():
+    tet = make_triangles(TET_V, TET_F, 0)
+    # Through corner 0 in a direction the solid lies wholly to one side of: a silhouette vertex.
+    touching = batch([-1.0, 1.0, 0.0], [1.0, -1.0, 0.0])
+    assert verdict(touching, MISS, ([1.0], [1]), tet) == "tie"

@@ -17,15 +17,17 @@ Every rule first asks that our hit (the first answer) is a real one: its point l
 triangle and inside the segment, within the same tolerances. A hit on a triangle the ray never
 meets, or at t = tmin on a surface the origin is not on, is a mismatch however close its t.
 And a miss (or a farther hit) where the other side hit an *interior* edge -- one shared with a
-single other triangle, the two lying on opposite sides of the ray -- is a crack, not a graze: a
-watertight test hits one of the two. Only a hit at a vertex, on an outer edge, or on an edge
-the ray touches from outside (a silhouette) makes a miss a tie.
+single other triangle, the two lying on opposite sides of the ray -- or a vertex whose fan of
+triangles closes around the ray is a crack, not a graze: a watertight test hits one of them.
+Only a hit on an outer edge, or on an edge or vertex the ray touches from outside (a
+silhouette), makes a miss a tie.
 
 Anything else is a *mismatch*. The distance is ``DISTANCE_ULPS`` float32 ulps of the
 largest coordinate involved; t tolerance is ``T_RELATIVE`` of t plus that distance.
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -171,10 +173,64 @@ def crosses_interior_edge(rays, idx, t, prim, tris, tol):
     return out
 
 
+def _point_keys(points: np.ndarray) -> np.ndarray:
+    """One hashable key per point f32[M,3], compared exactly (-0.0 as 0.0)."""
+    p = np.ascontiguousarray(np.asarray(points, np.float32) + np.float32(0))
+    return p.view(np.dtype((np.void, p.dtype.itemsize * 3))).ravel()
+
+
+#: A fan whose projection along the ray winds this close to a full turn covers the ray's point.
+FULL_TURN_SLACK = 0.05
+
+
+def crosses_at_vertex(rays, idx, t, prim, tris, tol):
+    """bool[M]: the hit (t, prim) of rays idx lies at a corner P of its triangle, and the fan of
+    triangles with a corner exactly at P, seen along the ray, winds once around P (signed angles
+    summing to a full turn, consistently wound): the ray passes through the surface at P, so a
+    watertight test must hit one of them. A fan seen edge-on or folded (a silhouette vertex)
+    winds zero times, and inconsistent winding anything else: those stay ties."""
+    out = np.zeros(len(idx), bool)
+    if not len(idx):
+        return out
+    corners = [np.asarray(c, np.float64) for c in _corners(tris, prim)]
+    p = rays.org[idx].astype(np.float64) + t[:, None] * rays.dir[idx]
+    distance = np.stack([np.linalg.norm(p - c, axis=1) for c in corners], axis=1)
+    rows = np.flatnonzero(distance.min(axis=1) <= tol)
+    if not rows.size:
+        return out
+    all_corners = (tris.v0, tris.v1, tris.v2)
+    n_tris = tris.v0.shape[0]
+    keys = np.concatenate([_point_keys(c) for c in all_corners])
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    nearest = np.argmin(distance[rows], axis=1)
+    vertex = np.array([corners[c][r] for r, c in zip(rows, nearest)])
+    wanted = _point_keys(vertex)
+    first = np.searchsorted(sorted_keys, wanted, side="left")
+    last = np.searchsorted(sorted_keys, wanted, side="right")
+    for k, r in enumerate(rows):
+        slot, fan = np.divmod(order[first[k]:last[k]], n_tris)   # which corner of which triangle is P
+        if len(fan) < 3:
+            continue
+        d = rays.dir[idx[r]].astype(np.float64)
+        d /= np.linalg.norm(d)
+        turn = 0.0
+        for s, f in zip(slot, fan):
+            a = np.asarray(all_corners[(s + 1) % 3][f], np.float64) - vertex[k]
+            b = np.asarray(all_corners[(s + 2) % 3][f], np.float64) - vertex[k]
+            a -= np.dot(a, d) * d   # projected on the plane across the ray
+            b -= np.dot(b, d) * d
+            turn += math.atan2(np.dot(d, np.cross(a, b)), np.dot(a, b))
+        out[r] = abs(abs(turn) - 2 * math.pi) <= FULL_TURN_SLACK
+    return out
+
+
 def _cracked(rays, idx, t, prim, tris, tol):
-    """bool[M]: a hit inside the segment (not at its ends) that crosses an interior edge: a side
-    that missed it, or hit farther on, went through a crack."""
-    return ~_at_segment_end(rays, idx, t, tol) & crosses_interior_edge(rays, idx, t, prim, tris, tol)
+    """bool[M]: a hit inside the segment (not at its ends) that crosses an interior edge or a
+    vertex the surface closes around: a side that missed it, or hit farther on, went through a
+    crack."""
+    inside = ~_at_segment_end(rays, idx, t, tol)
+    return inside & (crosses_interior_edge(rays, idx, t, prim, tris, tol) | crosses_at_vertex(rays, idx, t, prim, tris, tol))
 
 
 def compare_hits(rays: RayBatch, ours: Hits, oracle: Hits, tris: Triangles) -> Comparison:
