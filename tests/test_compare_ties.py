@@ -29,9 +29,18 @@ def batch(org, d, tmin=0.0, tmax=np.inf):
                     np.arange(n, dtype=np.int32), np.ones((n, 3), np.float32), "reflection")
 
 
-def hits(t, prim):
+def hits(t, prim, rays=None, tris=None):
+    """Hits at t on triangles prim; with rays and tris, the barycentrics of each ray's point at t
+    in its triangle's plane (what a real kernel returns), else zeros."""
     n = len(t)
-    return Hits(np.array(t, np.float32), np.array(prim, np.int32), np.zeros(n, np.float32), np.zeros(n, np.float32))
+    t, prim = np.array(t, np.float32), np.array(prim, np.int32)
+    u, v = np.zeros(n, np.float32), np.zeros(n, np.float32)
+    if rays is not None:
+        for i in np.flatnonzero(prim >= 0):
+            point = rays.org[i].astype(np.float64) + float(t[i]) * rays.dir[i]
+            edges = np.stack([tris.e1[prim[i]], tris.e2[prim[i]]], axis=1).astype(np.float64)
+            u[i], v[i] = np.linalg.lstsq(edges, point - tris.v0[prim[i]], rcond=None)[0]
+    return Hits(t, prim, u, v)
 
 
 MISS = ([np.inf], [-1])
@@ -39,7 +48,7 @@ DOWN = [0, 0, -1.0]
 
 
 def verdict(rays, ours, oracle, tris=quad):
-    c = compare_hits(rays, hits(*ours), hits(*oracle), tris)
+    c = compare_hits(rays, hits(*ours, rays, tris), hits(*oracle, rays, tris), tris)
     return "agree" if c.agree[0] else "tie" if c.tie[0] else "mismatch"
 
 
@@ -151,3 +160,24 @@ def test_a_ray_touching_a_vertex_from_outside_is_a_tie():
     # Through corner 0 in a direction the solid lies wholly to one side of: a silhouette vertex.
     touching = batch([-1.0, 1.0, 0.0], [1.0, -1.0, 0.0])
     assert verdict(touching, MISS, ([1.0], [1]), tet) == "tie"
+
+
+def test_a_crack_at_a_non_manifold_edge_or_a_duplicated_face_is_still_a_crack():
+    ray = batch([0.3, 0.3, 2.0], DOWN)   # through the quad's diagonal at (0.3, 0.3)
+    fin = np.vstack([QUAD, [[0.2, 0.8, -1.0]]]).astype(np.float32)
+    with_fin = make_triangles(fin, np.array([[0, 1, 2], [0, 2, 3], [0, 2, 4]], np.int32), 0)
+    doubled = make_triangles(QUAD, np.array([[0, 1, 2], [0, 2, 3], [0, 1, 2]], np.int32), 0)
+    for tris in (with_fin, doubled):
+        assert verdict(ray, MISS, ([2.0], [0]), tris) == "mismatch"
+    # A doubled face in a vertex's fan: the fan still closes around the ray.
+    tet = make_triangles(TET_V, np.vstack([TET_F, TET_F[1:2]]), 0)
+    assert verdict(batch([0.5, 0.3, 2.0], DOWN), MISS, ([1.0], [1]), tet) == "mismatch"
+
+
+def test_a_tie_with_barycentrics_naming_another_point_is_a_mismatch():
+    ray = batch([0.5, 0.5, 1.0], DOWN)   # on the shared diagonal: either triangle is right
+    oracle = hits([1.0], [0], ray, quad)
+    right = hits([1.0], [1], ray, quad)
+    wrong = right._replace(u=np.array([0.0], np.float32), v=np.array([1.0], np.float32))  # corner (0, 1)
+    assert compare_hits(ray, right, oracle, quad).tie[0]
+    assert compare_hits(ray, wrong, oracle, quad).mismatch[0]

@@ -102,16 +102,23 @@ def _grazes(rays, idx, t, prim, tris, tol):
     return (to_edge <= tol) | _at_segment_end(rays, idx, t, tol)
 
 
-def is_real_hit(rays, idx, t, prim, tris):
+def is_real_hit(rays, idx, t, prim, tris, u=None, v=None):
     """bool[M]: hit (t f64[M], prim i32[M]) of rays idx lies on its own triangle and inside the
     ray's [tmin, tmax], within the distance tolerance plus ``T_RELATIVE`` of the distance (the
-    slack t comparisons get too, so a grazing hit's rounded t still counts)."""
+    slack t comparisons get too, so a grazing hit's rounded t still counts); with barycentrics
+    u, v f32[M], the point they name on the triangle is the ray's point at t within the same."""
     speed = np.linalg.norm(rays.dir[idx], axis=1).astype(np.float64)
     slack = _tolerance(rays, idx, t) + T_RELATIVE * np.abs(t) * speed
     p = rays.org[idx].astype(np.float64) + t[:, None] * rays.dir[idx]
     on_triangle, _ = point_triangle_distance(p, *_corners(tris, prim))
     in_segment = ((t - rays.tmin[idx]) * speed >= -slack) & ((t - rays.tmax[idx]) * speed <= slack)
-    return np.isfinite(t) & (on_triangle <= slack) & in_segment
+    real = np.isfinite(t) & (on_triangle <= slack) & in_segment
+    if u is not None:
+        named = (np.asarray(tris.v0[prim], np.float64) + np.asarray(u, np.float64)[:, None] * tris.e1[prim]
+                 + np.asarray(v, np.float64)[:, None] * tris.e2[prim])
+        with np.errstate(invalid="ignore"):
+            real &= np.linalg.norm(np.nan_to_num(p, posinf=0, neginf=0) - named, axis=1) <= slack
+    return real
 
 
 def _edge_keys(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -130,9 +137,9 @@ def _edge_keys(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def crosses_interior_edge(rays, idx, t, prim, tris, tol):
     """bool[M]: the hit (t, prim) of rays idx lies on one edge of its triangle (not at a vertex),
-    that edge is shared with exactly one other triangle, and the two triangles' third corners lie
-    strictly on opposite sides of the plane through the edge and the ray: the ray passes through
-    the surface there, so a watertight test must hit one of the two."""
+    that edge is shared with other triangles, and the triangles' third corners lie strictly on
+    both sides of the plane through the edge and the ray: the ray passes through the surface
+    there, so a watertight test must hit one of them."""
     out = np.zeros(len(idx), bool)
     if not len(idx):
         return out
@@ -160,16 +167,18 @@ def crosses_interior_edge(rays, idx, t, prim, tris, tol):
     last = np.searchsorted(sorted_keys, wanted, side="right")
     for k, r in enumerate(rows):
         sharing = order[first[k]:last[k]]   # positions e * n_tris + triangle, this triangle included
-        if len(sharing) != 2:
-            continue   # an outer edge, or a non-manifold one
         edge_slot, other = np.divmod(sharing, n_tris)
         keep = other != prim[r]
-        if keep.sum() != 1:
-            continue
-        slot, neighbour = int(edge_slot[keep][0]), int(other[keep][0])
-        their_opposite = np.asarray(all_corners[edges[slot][2]][neighbour], np.float64)
+        if not keep.any():
+            continue   # an outer edge
+        # The ray passes between the triangles at this edge when some lie on each side of the
+        # plane through the edge and the ray (two for a manifold edge; a fin or a duplicate
+        # triangle at a non-manifold one changes nothing).
         normal = np.cross(end_b[k] - end_a[k], rays.dir[idx[r]].astype(np.float64))
-        out[r] = np.dot(own_opposite[k] - end_a[k], normal) * np.dot(their_opposite - end_a[k], normal) < 0
+        sides = [np.dot(own_opposite[k] - end_a[k], normal)]
+        for slot, neighbour in zip(edge_slot[keep].tolist(), other[keep].tolist()):
+            sides.append(np.dot(np.asarray(all_corners[edges[slot][2]][neighbour], np.float64) - end_a[k], normal))
+        out[r] = min(sides) < 0 < max(sides)
     return out
 
 
@@ -215,9 +224,14 @@ def crosses_at_vertex(rays, idx, t, prim, tris, tol):
         d = rays.dir[idx[r]].astype(np.float64)
         d /= np.linalg.norm(d)
         turn = 0.0
+        seen = set()
         for s, f in zip(slot, fan):
             a = np.asarray(all_corners[(s + 1) % 3][f], np.float64) - vertex[k]
             b = np.asarray(all_corners[(s + 2) % 3][f], np.float64) - vertex[k]
+            face = frozenset((tuple(a), tuple(b)))
+            if face in seen:   # a triangle listed twice (a double-sided face) covers nothing more
+                continue
+            seen.add(face)
             a -= np.dot(a, d) * d   # projected on the plane across the ray
             b -= np.dot(b, d) * d
             turn += math.atan2(np.dot(d, np.cross(a, b)), np.dot(a, b))
@@ -282,12 +296,12 @@ def compare_hits(rays: RayBatch, ours: Hits, oracle: Hits, tris: Triangles) -> C
         oracle_grazes[theirs_first] &= ~_cracked(rays, both[theirs_first], t_b[theirs_first],
                                                   oracle.prim[both[theirs_first]], tris, tol[theirs_first])
         both_tie |= (nearer_ours & ours_grazes) | (~nearer_ours & oracle_grazes)
-        tie[both[both_tie & is_real_hit(rays, both, t_a, ours.prim[both], tris)]] = True
+        tie[both[both_tie & is_real_hit(rays, both, t_a, ours.prim[both], tris, ours.u[both], ours.v[both])]] = True
     one = np.flatnonzero(live & (ours.prim >= 0) & (oracle.prim < 0))
     if one.size:   # we hit, the oracle missed: a real hit of ours grazing an edge or an end
         t = ours.t[one].astype(np.float64)
         tol = _tolerance(rays, one, t)
-        tie[one[_grazes(rays, one, t, ours.prim[one], tris, tol) & is_real_hit(rays, one, t, ours.prim[one], tris)]] = True
+        tie[one[_grazes(rays, one, t, ours.prim[one], tris, tol) & is_real_hit(rays, one, t, ours.prim[one], tris, ours.u[one], ours.v[one])]] = True
     one = np.flatnonzero(live & (oracle.prim >= 0) & (ours.prim < 0))
     if one.size:   # we missed where the oracle hit at an edge: a tie unless that edge is a crack
         t = oracle.t[one].astype(np.float64)
@@ -311,7 +325,7 @@ def compare_occlusion(rays: RayBatch, ours: np.ndarray, oracle: np.ndarray, tris
     one = np.flatnonzero(live & ours & ~agree & (closest_ours.prim >= 0))
     if one.size:   # we are occluded, the oracle is not: our real hit grazes an edge or an end
         t, prim = closest_ours.t[one].astype(np.float64), closest_ours.prim[one]
-        tie[one[_grazes(rays, one, t, prim, tris, _tolerance(rays, one, t)) & is_real_hit(rays, one, t, prim, tris)]] = True
+        tie[one[_grazes(rays, one, t, prim, tris, _tolerance(rays, one, t)) & is_real_hit(rays, one, t, prim, tris, closest_ours.u[one], closest_ours.v[one])]] = True
     one = np.flatnonzero(live & oracle & ~agree & (closest_oracle.prim >= 0))
     if one.size:   # the oracle is occluded, we are not: its hit grazes, and not through a crack
         t, prim = closest_oracle.t[one].astype(np.float64), closest_oracle.prim[one]
