@@ -181,3 +181,36 @@ def test_a_tie_with_barycentrics_naming_another_point_is_a_mismatch():
     wrong = right._replace(u=np.array([0.0], np.float32), v=np.array([1.0], np.float32))  # corner (0, 1)
     assert compare_hits(ray, right, oracle, quad).tie[0]
     assert compare_hits(ray, wrong, oracle, quad).mismatch[0]
+
+
+LAYERS = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0],           # A, its outer edge y = 0 at z = 0
+                   [-5, -5, -1], [5, -5, -1], [0, 5, -1],      # B, wide, behind it
+                   [-5, -5, -2], [5, -5, -2], [0, 5, -2]], np.float32)   # C, behind B
+layers = make_triangles(LAYERS, np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]], np.int32), 0)
+
+
+def test_behind_a_graze_or_a_start_the_oracle_is_asked_what_lies_there():
+    from validation.oracle import EmbreeOracle
+
+    oracle = EmbreeOracle(layers)
+
+    def judged(rays, ours, theirs, **kwargs):
+        c = compare_hits(rays, hits(*ours, rays, layers), hits(*theirs, rays, layers), layers, **kwargs)
+        return "agree" if c.agree[0] else "tie" if c.tie[0] else "mismatch"
+
+    edge = batch([0.5, 0.0, 1.0], DOWN)   # grazes A's outer edge at t = 1; B lies behind at t = 2
+    assert judged(edge, MISS, ([1.0], [0])) == "tie"   # without the oracle to ask: the old rule
+    assert judged(edge, MISS, ([1.0], [0]), again=oracle.intersect) == "mismatch"
+    assert judged(edge, ([3.0], [2]), ([1.0], [0]), again=oracle.intersect) == "mismatch"   # skipped B
+    assert judged(edge, ([2.0], [1]), ([1.0], [0]), again=oracle.intersect) == "tie"        # B: right
+    blocked = compare_occlusion(edge, np.array([False]), np.array([True]), layers, hits(*MISS),
+                                hits([1.0], [0], edge, layers), again=oracle.occluded)
+    assert blocked.mismatch[0]
+    # A ray starting on A: the oracle reports A at tmin; skipping A is right only onto B.
+    start = batch([0.25, 0.25, 0.0], DOWN)
+    assert judged(start, ([2.0], [2]), ([0.0], [0]), again=oracle.intersect) == "mismatch"   # C at t = 2
+    assert judged(start, ([1.0], [1]), ([0.0], [0]), again=oracle.intersect) == "tie"        # B at t = 1
+    # With nothing behind, a miss past an outer edge stays a tie.
+    alone = make_triangles(LAYERS[:3], np.array([[0, 1, 2]], np.int32), 0)
+    c = compare_hits(edge, hits(*MISS), hits([1.0], [0], edge, alone), alone, again=EmbreeOracle(alone).intersect)
+    assert c.tie[0]

@@ -65,10 +65,13 @@ class _Answers:
         return {"occluded": bool(self.occluded[i]), **_hit_record(self.closest, i)}
 
 
-def _classify(rays, tris, a: _Answers, b: _Answers):
+def _classify(rays, tris, a: _Answers, b: _Answers, oracle=None):
+    """Side a's answers against side b's; ``oracle``: b's oracle, asked what lies behind a hit
+    of b's that a tie rule would excuse (``validation.compare``)."""
     if a.query == "intersect":
-        return compare_hits(rays, a.closest, b.closest, tris)
-    return compare_occlusion(rays, a.occluded, b.occluded, tris, a.closest, b.closest)
+        return compare_hits(rays, a.closest, b.closest, tris, again=None if oracle is None else oracle.intersect)
+    return compare_occlusion(rays, a.occluded, b.occluded, tris, a.closest, b.closest,
+                             again=None if oracle is None else oracle.occluded)
 
 
 class _Tally:
@@ -155,7 +158,7 @@ class AuditObserver:
             closest_ours = self.reference.trace(kind, "intersect", rays, packets)
             ours = _Answers(query, closest_ours, answer)
             theirs = [_Answers(query, o.intersect(rays), o.occluded(rays)) for o in self.oracles]
-        results = [_classify(rays, self.tris, ours, t) for t in theirs]
+        results = [_classify(rays, self.tris, ours, t, o) for t, o in zip(theirs, self.oracles)]
         for oracle, tally, side, result in zip(self.oracles, self.tallies, theirs, results):
             tally.add(kind, rays, result, lambda i, side=side: {
                 "kind": kind, "query": query, "ray": _ray_record(rays, i),
@@ -164,7 +167,7 @@ class AuditObserver:
             kind, query, rays, i, ours, theirs, results))
         if self.between is not None:
             a, b = (o.name for o in self.oracles)
-            self.between.add(kind, rays, _classify(rays, self.tris, theirs[0], theirs[1]), lambda i: {
+            self.between.add(kind, rays, _classify(rays, self.tris, theirs[0], theirs[1], self.oracles[1]), lambda i: {
                 "kind": kind, "query": query, "ray": _ray_record(rays, i),
                 a: theirs[0].record(i), b: theirs[1].record(i), "ours": ours.record(i)})
 

@@ -247,8 +247,24 @@ def _cracked(rays, idx, t, prim, tris, tol):
     return inside & (crosses_interior_edge(rays, idx, t, prim, tris, tol) | crosses_at_vertex(rays, idx, t, prim, tris, tol))
 
 
-def compare_hits(rays: RayBatch, ours: Hits, oracle: Hits, tris: Triangles) -> Comparison:
-    """Classify every live ray of a closest-hit query."""
+def past(rays: RayBatch, idx: np.ndarray, t_from: np.ndarray) -> RayBatch:
+    """Rays idx of ``rays`` again, from t_from (f64[M]) to their own tmax: the segment behind an
+    answer that a tie rule excuses, for asking the oracle what lies there."""
+    return RayBatch(rays.org[idx], rays.dir[idx], rays.inv_dir[idx], np.asarray(t_from, np.float32), rays.tmax[idx],
+                    rays.pixel[idx], rays.weight[idx], rays.kind)
+
+
+def _step_past(rays, idx, t, tol) -> np.ndarray:
+    """f64[M]: a t just beyond t (twice the distance slack) for rays idx."""
+    speed = np.linalg.norm(rays.dir[idx], axis=1).astype(np.float64)
+    return t + 2 * (tol + T_RELATIVE * np.abs(t) * speed) / np.maximum(speed, 1e-30)
+
+
+def compare_hits(rays: RayBatch, ours: Hits, oracle: Hits, tris: Triangles, again=None) -> Comparison:
+    """Classify every live ray of a closest-hit query. ``again``: None, or the oracle's closest
+    hits for any RayBatch (``intersect``): where the oracle's hit grazes an edge or lies at tmin
+    and ours is a miss or a farther hit, the oracle is asked what lies behind its hit, and ours
+    must be that (a miss behind an edge with a surface behind it is wrong)."""
     n = rays.org.shape[0]
     live = rays.tmin <= rays.tmax
     agree = np.zeros(n, bool)
@@ -281,9 +297,9 @@ def compare_hits(rays: RayBatch, ours: Hits, oracle: Hits, tris: Triangles) -> C
         d_ba, _ = point_triangle_distance(p_b, *_corners(tris, ours.prim[both]))
         both_tie = close_t & (d_ab <= tol) & (d_ba <= tol)
         # A ray whose origin lies on another surface (a secondary ray leaving a corner) may
-        # report that surface at t = tmin or skip it: both are valid.
+        # report that surface at t = tmin or skip it: both are valid (ours skipping it: below).
         start = rays.tmin[both].astype(np.float64)
-        both_tie |= (np.abs(t_a - start) * speed[both] <= tol) | (np.abs(t_b - start) * speed[both] <= tol)
+        both_tie |= np.abs(t_a - start) * speed[both] <= tol
         # A ray through a vertex or a silhouette edge of a closed surface: the nearer side hit it
         # there, the other slipped through to a farther surface -- the same event as a miss past
         # such a point (below). Embree does so on rays aimed at a capsule's or icosphere's
@@ -295,7 +311,18 @@ def compare_hits(rays: RayBatch, ours: Hits, oracle: Hits, tris: Triangles) -> C
         theirs_first = np.flatnonzero(~nearer_ours & oracle_grazes)
         oracle_grazes[theirs_first] &= ~_cracked(rays, both[theirs_first], t_b[theirs_first],
                                                   oracle.prim[both[theirs_first]], tris, tol[theirs_first])
-        both_tie |= (nearer_ours & ours_grazes) | (~nearer_ours & oracle_grazes)
+        both_tie |= nearer_ours & ours_grazes
+        # The oracle's hit grazes or lies at tmin and ours is farther: ours must be what lies
+        # behind the oracle's hit (asked of the oracle when it can be).
+        behind = (~nearer_ours & oracle_grazes) | (np.abs(t_b - start) * speed[both] <= tol)
+        check = np.flatnonzero(behind & ~both_tie)
+        if again is not None and check.size:
+            rows = both[check]
+            next_hit = again(past(rays, rows, _step_past(rays, rows, t_b[check], tol[check])))
+            slack = tol[check] + T_RELATIVE * t_a[check] * speed[rows]
+            behind[check] = (next_hit.prim == ours.prim[rows]) | (
+                np.abs(next_hit.t.astype(np.float64) - t_a[check]) * speed[rows] <= slack)
+        both_tie |= behind
         tie[both[both_tie & is_real_hit(rays, both, t_a, ours.prim[both], tris, ours.u[both], ours.v[both])]] = True
     one = np.flatnonzero(live & (ours.prim >= 0) & (oracle.prim < 0))
     if one.size:   # we hit, the oracle missed: a real hit of ours grazing an edge or an end
@@ -307,17 +334,30 @@ def compare_hits(rays: RayBatch, ours: Hits, oracle: Hits, tris: Triangles) -> C
         t = oracle.t[one].astype(np.float64)
         tol = _tolerance(rays, one, t)
         grazes = _grazes(rays, one, t, oracle.prim[one], tris, tol)
-        tie[one[grazes & ~_cracked(rays, one, t, oracle.prim[one], tris, tol)]] = True
+        grazes &= ~_cracked(rays, one, t, oracle.prim[one], tris, tol)
+        check = np.flatnonzero(grazes)
+        if again is not None and check.size:   # and nothing lies behind the graze
+            rows = one[check]
+            next_hit = again(past(rays, rows, _step_past(rays, rows, t[check], tol[check])))
+            far = next_hit.prim >= 0
+            if far.any():   # a surface behind it: only another graze (or an end) excuses the miss
+                t_next = next_hit.t[far].astype(np.float64)
+                far_rows = rows[far]
+                far[far] = ~_grazes(rays, far_rows, t_next, next_hit.prim[far], tris, _tolerance(rays, far_rows, t_next))
+            grazes[check] = ~far
+        tie[one[grazes]] = True
     mismatch = live & ~agree & ~tie
     return Comparison(agree, tie, mismatch, max_err)
 
 
 def compare_occlusion(rays: RayBatch, ours: np.ndarray, oracle: np.ndarray, tris: Triangles,
-                      closest_ours: Hits, closest_oracle: Hits) -> Comparison:
+                      closest_ours: Hits, closest_oracle: Hits, again=None) -> Comparison:
     """Classify every live ray of an occlusion query. ``closest_*`` are closest-hit answers for
     the same rays (only read where the two occlusion answers differ): a differing answer is a
     tie when the occluding side's hit grazes an edge or an end of the segment (ours must be a
-    real hit; the oracle's must not cross an interior edge, see the module docstring)."""
+    real hit; the oracle's must not cross an interior edge, see the module docstring). ``again``:
+    None, or the oracle's occlusion of any RayBatch (``occluded``): where we are not occluded and
+    the oracle's blocker grazes, nothing may block the segment behind it."""
     n = rays.org.shape[0]
     live = rays.tmin <= rays.tmax
     agree = live & (ours == oracle)
@@ -330,6 +370,11 @@ def compare_occlusion(rays: RayBatch, ours: np.ndarray, oracle: np.ndarray, tris
     if one.size:   # the oracle is occluded, we are not: its hit grazes, and not through a crack
         t, prim = closest_oracle.t[one].astype(np.float64), closest_oracle.prim[one]
         tol = _tolerance(rays, one, t)
-        tie[one[_grazes(rays, one, t, prim, tris, tol) & ~_cracked(rays, one, t, prim, tris, tol)]] = True
+        grazes = _grazes(rays, one, t, prim, tris, tol) & ~_cracked(rays, one, t, prim, tris, tol)
+        check = np.flatnonzero(grazes)
+        if again is not None and check.size:
+            rows = one[check]
+            grazes[check] = ~np.asarray(again(past(rays, rows, _step_past(rays, rows, t[check], tol[check]))), bool)
+        tie[one[grazes]] = True
     mismatch = live & ~agree & ~tie
     return Comparison(agree, tie, mismatch, 0.0)
