@@ -48,17 +48,19 @@ class Comparison(NamedTuple):
     max_abs_t_err: float
 
 
+def point_segment_distance(p: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+    """f64[M]: distance from points p to segments q0-q1, all f64[M,3]."""
+    e = q1 - q0
+    length2 = np.einsum("ij,ij->i", e, e)
+    s = np.clip(np.einsum("ij,ij->i", p - q0, e) / np.where(length2 > 0, length2, 1), 0, 1)
+    return np.linalg.norm(p - (q0 + s[:, None] * e), axis=1)
+
+
 def point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray):
     """(distance to the triangle, distance to its boundary): f64[M] each, for f[M,3] inputs."""
     p, a, b, c = (np.asarray(x, np.float64) for x in (p, a, b, c))
-
-    def segment(q0, q1):
-        e = q1 - q0
-        length2 = np.einsum("ij,ij->i", e, e)
-        s = np.clip(np.einsum("ij,ij->i", p - q0, e) / np.where(length2 > 0, length2, 1), 0, 1)
-        return np.linalg.norm(p - (q0 + s[:, None] * e), axis=1)
-
-    edge = np.minimum(np.minimum(segment(a, b), segment(b, c)), segment(c, a))
+    edge = np.minimum(np.minimum(point_segment_distance(p, a, b), point_segment_distance(p, b, c)),
+                      point_segment_distance(p, c, a))
     n = np.cross(b - a, c - a)
     area2 = np.einsum("ij,ij->i", n, n)
     safe = np.where(area2 > 0, area2, 1)
@@ -135,6 +137,16 @@ def _edge_keys(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return both.view(np.dtype((np.void, both.dtype.itemsize * 6))).ravel()
 
 
+def _exact_matches(keys: np.ndarray, wanted: np.ndarray) -> list:
+    """For each of ``wanted`` (keys from ``_edge_keys`` / ``_point_keys``), the positions in
+    ``keys`` that hold the same key: i64 arrays, one per wanted key."""
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    first = np.searchsorted(sorted_keys, wanted, side="left")
+    last = np.searchsorted(sorted_keys, wanted, side="right")
+    return [order[lo:hi] for lo, hi in zip(first, last)]
+
+
 def crosses_interior_edge(rays, idx, t, prim, tris, tol):
     """bool[M]: the hit (t, prim) of rays idx lies on one edge of its triangle (not at a vertex),
     that edge is shared with other triangles, and the triangles' third corners lie strictly on
@@ -147,8 +159,7 @@ def crosses_interior_edge(rays, idx, t, prim, tris, tol):
     p = rays.org[idx].astype(np.float64) + t[:, None] * rays.dir[idx]
     at_vertex = np.min([np.linalg.norm(p - c, axis=1) for c in corners], axis=0) <= tol
     edges = ((0, 1, 2), (1, 2, 0), (2, 0, 1))   # (end, end, opposite corner)
-    near = np.stack([point_triangle_distance(p, corners[i], corners[j], corners[j])[1] <= tol
-                     for i, j, _ in edges], axis=1)
+    near = np.stack([point_segment_distance(p, corners[i], corners[j]) <= tol for i, j, _ in edges], axis=1)
     one_edge = ~at_vertex & (near.sum(axis=1) == 1)
     if not one_edge.any():
         return out
@@ -160,14 +171,10 @@ def crosses_interior_edge(rays, idx, t, prim, tris, tol):
     end_a = np.array([corners[edges[w][0]][r] for r, w in zip(rows, which[rows])])
     end_b = np.array([corners[edges[w][1]][r] for r, w in zip(rows, which[rows])])
     own_opposite = np.array([corners[edges[w][2]][r] for r, w in zip(rows, which[rows])])
-    wanted = _edge_keys(end_a, end_b)
-    order = np.argsort(all_keys)
-    sorted_keys = all_keys[order]
-    first = np.searchsorted(sorted_keys, wanted, side="left")
-    last = np.searchsorted(sorted_keys, wanted, side="right")
+    matches = _exact_matches(all_keys, _edge_keys(end_a, end_b))
     for k, r in enumerate(rows):
-        sharing = order[first[k]:last[k]]   # positions e * n_tris + triangle, this triangle included
-        edge_slot, other = np.divmod(sharing, n_tris)
+        # Positions e * n_tris + triangle of the triangles with this edge, this one included.
+        edge_slot, other = np.divmod(matches[k], n_tris)
         keep = other != prim[r]
         if not keep.any():
             continue   # an outer edge
@@ -209,16 +216,11 @@ def crosses_at_vertex(rays, idx, t, prim, tris, tol):
         return out
     all_corners = (tris.v0, tris.v1, tris.v2)
     n_tris = tris.v0.shape[0]
-    keys = np.concatenate([_point_keys(c) for c in all_corners])
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
     nearest = np.argmin(distance[rows], axis=1)
     vertex = np.array([corners[c][r] for r, c in zip(rows, nearest)])
-    wanted = _point_keys(vertex)
-    first = np.searchsorted(sorted_keys, wanted, side="left")
-    last = np.searchsorted(sorted_keys, wanted, side="right")
+    matches = _exact_matches(np.concatenate([_point_keys(c) for c in all_corners]), _point_keys(vertex))
     for k, r in enumerate(rows):
-        slot, fan = np.divmod(order[first[k]:last[k]], n_tris)   # which corner of which triangle is P
+        slot, fan = np.divmod(matches[k], n_tris)   # which corner of which triangle is P
         if len(fan) < 3:
             continue
         d = rays.dir[idx[r]].astype(np.float64)

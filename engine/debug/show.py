@@ -469,6 +469,7 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
         pic.lines.append(_ray_lines(p0, p1, hit[lanes]))
         # A traversal that takes no frusta (single, wide, embree) was culled by none.
         takes_frusta = getattr(renderer.tracer.traversal[kind], "uses_frusta", True)
+        from_light = bool(from_end and renderer.tracer.orders_any_hit(kind))
         fvalid = takes_frusta and frusta is not None and bool(frusta.valid[k])
         chosen = None
         plugin = renderer.tracer.traversal[kind]
@@ -490,7 +491,7 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
         pic.legend.append(f"traversal {traversal}{walk_note}, "
                           + (f"frustum {frustum_name}" + ("" if fvalid else " (none built for this packet)")
                              if takes_frusta else "no frustum (this traversal culls with none)")
-                          + (", walked from the light (shadow_order)" if from_end and renderer.tracer.orders_any_hit(kind) else ""))
+                          + (", walked from the light (shadow_order)" if from_light else ""))
         pic.legend.append(f"{trace.live} live rays, {int(hit.sum())} {'occluded' if any_hit else 'hit'}; "
                           f"{len(trace.nodes)} nodes visited: {counts['entered']} entered, "
                           f"{counts['missed']} missed, {counts['culled']} culled")
@@ -514,7 +515,7 @@ def build_picture(scene, config, kind: str, packet_index=None, renderer=None) ->
         pic.summary = {"packet": k, "packets": n_packets, "traversal": traversal, "walk": trace.walk,
                        "live": trace.live, "visited": len(trace.nodes), **counts,
                        "frustum_valid": fvalid, "hits": int(hit.sum()),
-                       "from_light": bool(from_end and renderer.tracer.orders_any_hit(kind)),
+                       "from_light": from_light,
                        **({} if chosen is None else {"auto_choice": chosen})}
     if sampled:
         pic.legend.append(f"scene wireframe: {MAX_WIREFRAME_TRIANGLES:,} sampled triangles")
