@@ -108,3 +108,25 @@ def test_the_paired_speed_up_divides_the_calls_of_the_same_round():
 def test_mistakes_in_the_matrix_are_named(data, words):
     with pytest.raises(ConfigError, match=words.replace("[", r"\[").replace("]", r"\]")):
         parse(dict(data, kind="trimesh"), "m.toml")
+
+
+def test_stepping_rehits_explains_only_hits_within_trimeshs_step():
+    """Two coincident faces (opposite windings) and one 0.1 behind: trimesh's stepping may report
+    both coincident faces for a grazing ray; that ray counts as a re-hit, while an extra hit
+    farther than trimesh's step (a crossing packetrt would have missed) does not."""
+    import numpy as np
+    import trimesh
+
+    from engine.bench.trimesh_queries import stepping_rehits
+
+    quad = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
+    vertices = np.concatenate([quad, quad, quad + [0, 0, -0.1]])
+    faces = np.array([[0, 1, 2], [4, 6, 5], [8, 9, 10]])
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    origins, directions = np.array([[0.3, -0.4, 1.0]] * 3), np.array([[0.0, 0.0, -1.0]] * 3)
+    # ray 0: theirs re-found the coincident face (explained); ray 1: theirs found the face 0.1
+    # behind that ours missed (not explained); ray 2: ours has the same two crossings plus the
+    # coincident face's (fewer on theirs' side: not a re-hit either).
+    ours = (np.array([0, 2, 0, 0, 1, 2]), np.array([0, 0, 1, 2, 2, 2]))
+    theirs = (np.array([0, 1, 2, 0, 2, 0, 2]), np.array([0, 0, 0, 1, 1, 2, 2]))
+    assert stepping_rehits(mesh, ours, theirs, origins, directions) == 1

@@ -624,3 +624,24 @@ def test_bad_ray_warnings_name_the_callers_line_each_time():
         ours.intersects_id([[0.0, 0.0, -5.0]], [[0.0, 0.0, 0.0]])
     assert [w.category for w in caught] == [BadRayWarning, BadRayWarning]
     assert {w.filename for w in caught} == {__file__}
+
+
+@pytest.mark.parametrize("gap_of_diagonal", [0.6, 0.8])
+def test_hits_closer_than_trimeshs_step_are_one_crossing(gap_of_diagonal):
+    """trimesh steps 1e-6 of ``mesh.scale`` (its box's diagonal) past each hit, so two surfaces
+    closer than that along a ray are one crossing. The merge gap was 1e-6 of the largest extent
+    instead: on a flat mesh (diagonal sqrt(2) x its largest extent) two squares 0.8e-6 x diagonal
+    apart were two crossings for packetrt and one for trimesh."""
+    square = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    top = square.faces[np.isclose(square.triangles_center[:, 2], 0.5)]
+    diagonal = np.sqrt(2.0)  # the two squares' box: 1 x 1 x ~0
+    lift = gap_of_diagonal * 1e-6 * diagonal
+    vertices = np.concatenate([square.vertices, square.vertices + [0.0, 0.0, lift]])
+    mesh = trimesh.Trimesh(vertices, np.concatenate([top, top + len(square.vertices)]), process=False)
+    assert np.isclose(mesh.scale, diagonal)
+    # Near the squares: the relative part of the merge (2^-21 of t) stays below the gap.
+    origins = np.array([[0.1, 0.2, 0.8], [-0.3, 0.1, 0.8], [0.2, -0.2, 0.2]])
+    directions = np.array([[0.0, 0.0, -1.0], [0.01, 0.0, -1.0], [0.0, 0.01, 1.0]])
+    ours = RayMeshIntersector(mesh).intersects_id(origins, directions)
+    theirs = EmbreeIntersector(mesh).intersects_id(origins, directions)
+    assert np.bincount(ours[1], minlength=3).tolist() == np.bincount(theirs[1], minlength=3).tolist() == [1, 1, 1]

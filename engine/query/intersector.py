@@ -67,9 +67,17 @@ from engine.query.locations import locations_kernel
 from engine.query.order import coherent_order, ray_order
 from engine.query.wide import packed_tree
 
-#: Hits closer than this (in units of the mesh's largest extent) to the previous one along a
-#: ray are one crossing; trimesh steps 1e-6 of the mesh's scale past each hit.
+#: Hits closer than this fraction of the mesh's scale (trimesh's ``mesh.scale``: its box's
+#: diagonal) to the previous one along a ray are one crossing; trimesh steps 1e-6 of that scale
+#: past each hit. ``merge_gap`` puts it in the local frame's units.
 MERGE_GAP = 1e-6
+
+
+def merge_gap(frame: MeshFrame) -> np.float32:
+    """MERGE_GAP of trimesh's scale in the local frame (whose unit is the largest extent, so the
+    diagonal there is 1 to sqrt(3)): with the largest extent instead, a kitchen ray kept two
+    hits 9e-6 apart that trimesh's 1.2e-5 step merges."""
+    return np.float32(MERGE_GAP * max(float(np.linalg.norm(frame.hi - frame.lo)), 1.0))
 
 #: trimesh's default cap on hits per ray.
 DEFAULT_MAX_HITS = 100
@@ -342,7 +350,7 @@ class RayMeshIntersector:
         btri = allocate("slot_tri", n * slot, (), np.int32)
         kept = allocate("kept", n, (), np.int64)
         ok = allocate("ok", n, (), np.bool_)
-        collect_hits_kernel(*tree, *frame, rays.rows, np.float32(MERGE_GAP), max_hits, slot, bt, btri, bu, bv, kept, ok)
+        collect_hits_kernel(*tree, *frame, rays.rows, merge_gap(s.frame), max_hits, slot, bt, btri, bu, bv, kept, ok)
         self._warn_bad(ok)
         offsets = np.arange(n + 1, dtype=np.int64) * slot  # where each row's hits start
         over = np.flatnonzero(kept < 0)
@@ -355,7 +363,7 @@ class RayMeshIntersector:
             et, eu, ev = (np.empty(int(extra[-1]), np.float32) for _ in range(3))
             etri = np.empty(int(extra[-1]), np.int32)
             extra_kept = np.empty(len(over), np.int64)
-            fill_hits_kernel(*tree, *frame, rows, extra, np.float32(MERGE_GAP), max_hits, et, etri, eu, ev, extra_kept)
+            fill_hits_kernel(*tree, *frame, rows, extra, merge_gap(s.frame), max_hits, et, etri, eu, ev, extra_kept)
             offsets[over] = n * slot + extra[:-1]
             kept[over] = extra_kept
             bt, btri, bu, bv = (np.concatenate(pair) for pair in ((bt, et), (btri, etri), (bu, eu), (bv, ev)))
@@ -435,5 +443,5 @@ class RayMeshIntersector:
         s = self._structure()
         out = np.empty(len(pts), np.bool_)
         contains_kernel(*self._tree(s), pts, s.frame.center, float(s.frame.scale), s.frame.lo, s.frame.hi,
-                        DIRECTIONS.astype(np.float32), np.float32(MERGE_GAP), out)
+                        DIRECTIONS.astype(np.float32), merge_gap(s.frame), out)
         return out
