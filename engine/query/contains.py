@@ -8,8 +8,9 @@ keeps only the two counts. A line is
 triangle's edge (barycentric 0), when two triangles report one crossing (the ray may graze an
 edge or a vertex rather than cross), or when it has more than CAP hits. As in trimesh, the
 answer is taken from the forward and backward counts of the first direction in ``DIRECTIONS``
-whose line is not ambiguous and whose two parities agree; when none qualifies, the parities of
-all casts vote. Points outside the mesh's bounding box are outside without a cast.
+whose line is not ambiguous and whose two parities agree, or is outside at the first direction
+whose parities disagree where one way meets no surface (trimesh's free-space rule: on an open
+mesh, a line out through a hole); when none decides, the parities of all casts vote. Points outside the mesh's bounding box are outside without a cast.
 """
 import numpy as np
 from numba import njit, prange
@@ -81,6 +82,11 @@ def contains_kernel(nodes, node_bits, block_tri, blocks, points, center, scale, 
                 casts += 2
                 if not unclear and p_forward == p_backward:
                     out[i] = p_forward == 1
+                    decided = True
+                    break
+                if p_forward != p_backward and (ahead == 0 or behind == 0):
+                    # trimesh's free-space rule: parities that disagree where one way meets no
+                    # surface at all (an open mesh's hole) say outside.
                     decided = True
                     break
             if not decided:
