@@ -142,3 +142,29 @@ def test_a_character_device_is_written_into_not_replaced(tmp_path):
     atomic.write_text(node, "discarded")
     assert stat.S_ISCHR(node.stat().st_mode)
     assert [p.name for p in tmp_path.iterdir()] == ["null"]
+
+
+def test_an_append_that_fails_part_way_leaves_whole_lines(tmp_path, monkeypatch):
+    """A full disk (or the file-size limit) after part of a record: the part was left in
+    results.jsonl, half a JSON line, and the error named no file."""
+    import errno
+
+    path = tmp_path / "results.jsonl"
+    atomic.append_line(path, '{"cell":1}\n')
+    real_write = os.write
+    calls = []
+
+    def full_after_four_bytes(fd, data):
+        calls.append(len(data))
+        if len(calls) == 1:
+            return real_write(fd, bytes(data[:4]))
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(atomic.os, "write", full_after_four_bytes)
+    with pytest.raises(PacketrtError, match="results.jsonl.*No space left"):
+        atomic.append_line(path, '{"cell":2,"seconds":[1.0,2.0]}\n')
+    monkeypatch.undo()
+    assert calls[0] > 4
+    assert path.read_text() == '{"cell":1}\n'
+    atomic.append_line(path, '{"cell":3}\n')
+    assert path.read_text().splitlines() == ['{"cell":1}', '{"cell":3}']

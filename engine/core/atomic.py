@@ -122,11 +122,25 @@ def write_json(path, data, what: str = "") -> None:
 
 
 def append_line(path, line: str) -> None:
-    """Append one whole ``line`` (it ends with a newline) to ``path``, flushed and synced."""
-    with open(path, "a", encoding="utf-8") as f:
-        f.write(line)
-        f.flush()
-        os.fsync(f.fileno())
+    """Append one whole ``line`` (it ends with a newline) to ``path``, flushed and synced. A
+    write that fails part-way (a full disk, the file-size limit) is cut back off, so the file
+    keeps whole lines only, and is one PacketrtError naming the file."""
+    data = memoryview(line.encode("utf-8"))
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    try:
+        size = os.lseek(fd, 0, os.SEEK_END)
+        try:
+            while data:  # unbuffered: nothing is left in a buffer to be written at close
+                data = data[os.write(fd, data):]
+            os.fsync(fd)
+        except OSError as exc:
+            try:
+                os.ftruncate(fd, size)
+            except OSError:
+                pass  # then the reader skips the torn last line (``engine.bench.results``)
+            raise PacketrtError(f"cannot append to {str(path)!r}: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
 
 
 def truncate(path, size: int) -> None:
