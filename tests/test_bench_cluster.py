@@ -130,3 +130,15 @@ def test_workers_print_no_warning_about_numbas_set_up(capfd):
     out, err = capfd.readouterr()
     assert "audit whitted" in out
     assert "TBB threading layer" not in err and "NumbaWarning" not in err
+
+
+@pytest.mark.parametrize("address", ["tls://127.0.0.1:9", "ucx://127.0.0.1:9"])
+def test_a_scheduler_address_distributed_cannot_use_is_one_line(address, tmp_path, capsys):
+    """A tls:// address without Dask's TLS settings, or ucx:// without UCX: distributed raises
+    a TypeError, which came out as a 50-line traceback and exit code 1."""
+    from engine.cli import main
+
+    assert main(["bench", str(SMOKE), "--out", str(tmp_path / "o"), "--scheduler", address]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"packetrt: error: --scheduler {address}: cannot reach a Dask scheduler")
+    assert not any(line.startswith("Traceback") for line in err)

@@ -38,7 +38,9 @@ def connect(address: str, workers: int = 1):
         # Dask's own connect timeout (distributed.comm.timeouts.connect, 30 s unless the user's
         # Dask config or DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT says otherwise).
         return Client(address), None
-    except (OSError, TimeoutError, ValueError) as error:
+    except Exception as error:  # noqa: BLE001 -- any failure to connect (a refused or timed-out
+        # address, a tls:// address without Dask's TLS settings, a ucx:// one without UCX) is
+        # this one line, not a traceback of distributed's internals
         raise ConfigError(f"--scheduler {address}: cannot reach a Dask scheduler there "
                           f"({type(error).__name__}: {error})") from None
 
