@@ -19,3 +19,13 @@ def crash_once_then_run(cell, repeat, scene_cache, yardstick, machine, matrix_na
     except FileExistsError:
         return run_cell(cell, repeat, scene_cache, yardstick, machine, matrix_name, references, open3d=open3d)
     os._exit(17)  # no cleanup, no record: the worker is gone mid-cell
+
+
+def crash_on_cell(cell, repeat, scene_cache, yardstick, machine, matrix_name, references, open3d=None, key=None):
+    """Kill this worker process whenever the cell ``key`` starts (a cell that takes its machine
+    down every time, as one that runs out of memory would); measure the others normally."""
+    from engine.bench.runner import run_cell
+
+    if cell.key == key:
+        os._exit(17)
+    return run_cell(cell, repeat, scene_cache, yardstick, machine, matrix_name, references, open3d=open3d)

@@ -142,3 +142,65 @@ def test_a_scheduler_address_distributed_cannot_use_is_one_line(address, tmp_pat
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith(f"packetrt: error: --scheduler {address}: cannot reach a Dask scheduler")
     assert not any(line.startswith("Traceback") for line in err)
+
+
+def test_a_cell_that_keeps_killing_its_worker_is_one_error_and_the_rest_is_kept(tmp_path):
+    """Dask gives up on a task whose workers keep dying (KilledWorker; a lost scheduler cancels
+    the futures the same way): that was a traceback of distributed's, exit 1, and no tables for
+    the cells that had finished. Now one PacketrtError naming the cell, the finished records
+    whole, the tables written for them."""
+    import dask
+
+    from engine.bench.cluster import LOCAL, ClusterLost
+    from engine.bench.matrix import load_matrix
+    from engine.bench.runner import run_matrix
+    from tests.bench_cluster_helpers import crash_on_cell
+
+    matrix = load_matrix(str(SMOKE))
+    doomed = matrix.cells[-1]
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):  # the first death gives up
+        with pytest.raises(ClusterLost, match="KilledWorker") as caught:
+            run_matrix(matrix, tmp_path, progress=False, scheduler=LOCAL, workers=1,
+                       run=functools.partial(crash_on_cell, key=doomed.key))
+    assert doomed.describe() in str(caught.value) and "\n" not in str(caught.value)
+    kept = records(tmp_path)
+    assert doomed.key not in kept
+    assert (tmp_path / "results.jsonl").read_text().endswith("\n") or not kept
+    assert (tmp_path / "results.csv").is_file() == bool(kept)
+
+
+def test_a_lost_cluster_error_is_told_from_the_tasks_own():
+    from concurrent.futures import CancelledError
+
+    from engine.bench.cluster import _lost
+
+    class KilledWorker(Exception):  # distributed.scheduler's, by name
+        pass
+
+    assert _lost(CancelledError("scheduler-connection-lost")) and _lost(KilledWorker("task"))
+    assert not _lost(ValueError("the task's own")) and not _lost(OSError("a file the task read"))
+
+
+def test_a_scheduler_without_workers_is_one_line_not_a_wait_for_ever(tmp_path, capsys, monkeypatch):
+    from distributed import LocalCluster
+
+    from engine.bench import cluster
+    from engine.cli import main
+
+    monkeypatch.setattr(cluster, "WORKER_WAIT", 1.0)
+    with LocalCluster(n_workers=0, processes=False, dashboard_address=":0") as empty:
+        address = empty.scheduler_address
+        assert main(["bench", str(SMOKE), "--out", str(tmp_path / "o"), "--scheduler", address]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (f"packetrt: error: --scheduler {address}: the scheduler has no workers (none joined in 1 s); "
+                       f"start some with `dask worker {address}`")
+    assert not (tmp_path / "o").exists()
+
+
+def test_workers_with_a_scheduler_address_is_refused_not_ignored(tmp_path, capsys):
+    from engine.cli import main
+
+    assert main(["bench", str(SMOKE), "--out", str(tmp_path / "o"), "--scheduler", "tcp://127.0.0.1:9",
+                 "--workers", "4"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("packetrt: error: --workers sizes the local Dask cluster") and "tcp://127.0.0.1:9" in err[-1]

@@ -16,10 +16,78 @@ once, for checks rather than timings). An address (``tcp://host:8786``) points a
 """
 from __future__ import annotations
 
-from engine.core.errors import ConfigError
+import logging
+import signal
+from contextlib import contextmanager
 
+from engine.core.errors import ConfigError, PacketrtError
+
+
+class ClusterLost(PacketrtError):
+    """The scheduler went away, or a task's workers kept dying, before every task finished:
+    what finished is kept (``results.jsonl``), the rest can be run again with --resume."""
+
+
+def _lost(error: BaseException) -> bool:
+    """Whether ``error`` from a future says the cluster failed rather than the task's own code:
+    the scheduler's connection lost (the futures cancelled), a task that killed its workers
+    (distributed's KilledWorker), a closed comm."""
+    from concurrent.futures import CancelledError
+
+    names = {kind.__name__ for kind in type(error).__mro__}
+    return isinstance(error, CancelledError) or bool(names & {"KilledWorker", "CommClosedError"})
+
+
+def _why(error: BaseException) -> str:
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+@contextmanager
+def quiet_dask_logs():
+    """distributed's own log lines held back while a command runs on a cluster: a lost scheduler
+    or worker logged tracebacks of distributed's internals ("Failed to reconnect", "marked as
+    failed") around the one error line that says what happened. The level comes back after."""
+    logger = logging.getLogger("distributed")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+@contextmanager
+def _quiet_worker_processes():
+    """Start local worker processes with Ctrl-C ignored and distributed logging only errors
+    (both inherited by the processes started meanwhile): a terminal sends SIGINT to the whole
+    process group, and each worker printed its own KeyboardInterrupt traceback, and a warning for
+    the cell it was running, while the command itself stops them as it exits."""
+    import os
+
+    before = os.environ.get(WORKER_LOG_LEVEL)
+    os.environ[WORKER_LOG_LEVEL] = "error"
+    try:
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread: signals are not ours to set
+        previous = None
+    try:
+        yield
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+        if before is None:
+            os.environ.pop(WORKER_LOG_LEVEL, None)
+        else:
+            os.environ[WORKER_LOG_LEVEL] = before
+
+
+#: Dask's configuration variable of distributed's log level, read by each worker as it starts.
+WORKER_LOG_LEVEL = "DASK_LOGGING__DISTRIBUTED"
 #: ``--scheduler`` with no address.
 LOCAL = "local"
+#: Seconds to wait for a first worker at a scheduler that has none.
+WORKER_WAIT = 30.0
 
 
 def connect(address: str, workers: int = 1):
@@ -32,17 +100,28 @@ def connect(address: str, workers: int = 1):
     if not 1 <= workers <= 256:
         raise ConfigError(f"--workers must be in 1..256, got {workers}")
     if address == LOCAL:
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+        with _quiet_worker_processes():
+            # ":0": the scheduler's HTTP routes on a free port (with None it still took 8787, and
+            # warned when another cluster held it).
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
         return Client(cluster), cluster
     try:
         # Dask's own connect timeout (distributed.comm.timeouts.connect, 30 s unless the user's
         # Dask config or DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT says otherwise).
-        return Client(address), None
+        client = Client(address)
     except Exception as error:  # noqa: BLE001 -- any failure to connect (a refused or timed-out
         # address, a tls:// address without Dask's TLS settings, a ucx:// one without UCX) is
         # this one line, not a traceback of distributed's internals
         raise ConfigError(f"--scheduler {address}: cannot reach a Dask scheduler there "
                           f"({type(error).__name__}: {error})") from None
+    try:
+        # A scheduler without workers would take the tasks and wait for ever.
+        client.wait_for_workers(1, timeout=WORKER_WAIT)
+    except Exception:  # noqa: BLE001 -- distributed's TimeoutError, or the scheduler gone meanwhile
+        client.close()
+        raise ConfigError(f"--scheduler {address}: the scheduler has no workers (none joined in {WORKER_WAIT:g} s); "
+                          f"start some with `dask worker {address}`") from None
+    return client, None
 
 
 def run_on_cluster(client, task, cells: list, record) -> int:
@@ -58,7 +137,14 @@ def run_on_cluster(client, task, cells: list, record) -> int:
     ran = 0
     try:
         for future in as_completed(futures):
-            record(futures[future], future.result())
+            try:
+                answer = future.result()
+            except Exception as error:
+                if not _lost(error):
+                    raise  # the task's own error (a PacketrtError is one line)
+                raise ClusterLost(f"the Dask cluster failed after {ran} of {len(cells)} cell(s) "
+                                  f"({futures[future].describe()}: {_why(error)})") from None
+            record(futures[future], answer)
             ran += 1
     finally:
         for future in futures:
@@ -92,13 +178,26 @@ def audit_on_cluster(config, tiles: int, scheduler: str, workers: int = 1, oracl
         raise ConfigError(f"--tiles must be in 1..{rows:,} (the frame's rows: each band is whole rows), got {tiles}")
     edges = [config.render.width * (rows * k // tiles) for k in range(tiles + 1)]
     client, cluster = connect(scheduler, workers)
-    try:
-        futures = [client.submit(audit_task, config, lo, hi, oracle, pure=False)
-                   for lo, hi in zip(edges, edges[1:])]
-        results = client.gather(futures)
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+    with quiet_dask_logs():
+        try:
+            results = _audit_bands(client, config, edges, oracle)
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
     report = merge_reports([r for r, _, _ in results])
     return report, results[0][1], sorted(p for _, _, found in results for p in found)
+
+
+def _audit_bands(client, config, edges: list, oracle: str) -> list:
+    """``audit_on_cluster``'s tasks, one per band between consecutive ``edges`` (ray indices):
+    [(report, image, pixels)] in band order."""
+    futures = [client.submit(audit_task, config, lo, hi, oracle, pure=False) for lo, hi in zip(edges, edges[1:])]
+    try:
+        return [future.result() for future in futures]
+    except Exception as error:
+        if not _lost(error):
+            raise
+        raise ClusterLost(f"the Dask cluster failed during the audit ({_why(error)}); run it again") from None
+    finally:
+        client.cancel(futures)  # nothing left pending when the client closes (Ctrl-C included)

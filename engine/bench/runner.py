@@ -49,6 +49,7 @@ from engine.bench import results as results_io
 from engine.bench.floor import floor_tracer, uses_packet_traversals
 from engine.bench.machine import machine_info
 from engine.bench.cell_scenes import SceneCache, cell_scene
+from engine.bench.cluster import LOCAL, ClusterLost
 from engine.bench.matrix import MAX_REPEAT, Cell, Matrix, check_matrix_name, load_matrix
 from engine.bench.open3d_yardstick import Open3DYardstick, open3d_rates, require_open3d
 from engine.bench.yardstick import replay_once
@@ -461,20 +462,27 @@ def measure_cell_afresh(cell: Cell, repeat: int, matrix_name: str, run=None) -> 
         open3d.close()
 
 
-def _run_on_dask(matrix: Matrix, todo: list, path: Path, scheduler: str, workers: int, run) -> int:
-    """The cells ``todo`` as Dask tasks, each record appended to ``path`` as it arrives."""
-    from engine.bench.cluster import connect, run_on_cluster
+def _run_on_dask(matrix: Matrix, todo: list, path: Path, scheduler: str, workers: int, run, recorded) -> int:
+    """The cells ``todo`` as Dask tasks, each record appended to ``path`` as it arrives and
+    counted in ``recorded`` (a list, one entry a record: the count survives an interrupt)."""
+    from engine.bench.cluster import connect, quiet_dask_logs, run_on_cluster
 
     client, cluster = connect(scheduler, workers)
     print(f"{matrix.name}: {len(todo)} cell(s) as Dask tasks on {client.scheduler.address} "
           f"({len(client.scheduler_info()['workers'])} worker(s))", file=sys.stderr)
-    try:
-        task = functools.partial(measure_cell_afresh, repeat=matrix.repeat, matrix_name=matrix.name, run=run)
-        return run_on_cluster(client, task, todo, lambda cell, record: results_io.append(path, record))
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+
+    def record(cell, record):
+        results_io.append(path, record)
+        recorded.append(cell.key)
+
+    with quiet_dask_logs():
+        try:
+            task = functools.partial(measure_cell_afresh, repeat=matrix.repeat, matrix_name=matrix.name, run=run)
+            return run_on_cluster(client, task, todo, record)
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
 
 
 def steadiest(measure, record: dict, limit: float, retries: int, fastest: dict):
@@ -557,7 +565,12 @@ def _run_matrix(matrix: Matrix, out: Path, resume: bool, progress: bool, run, sc
                 require_open3d(matrix.source)
             here = todo
             if scheduler is not None:
-                ran = _run_on_dask(matrix, todo, path, scheduler, workers, run if run is not run_cell else None)
+                recorded = []
+                try:
+                    ran = _run_on_dask(matrix, todo, path, scheduler, workers, run if run is not run_cell else None,
+                                       recorded)
+                finally:
+                    ran = len(recorded)
                 here = []
             machine = machine_info()
             costs = [_cost(c, scenes[(c.scene.name, c.scene.params, c.scene.time)], matrix.repeat) for c in here]
@@ -593,6 +606,10 @@ def _run_matrix(matrix: Matrix, out: Path, resume: bool, progress: bool, run, sc
         if not _is_interrupt(exc):
             raise
         interrupted = True
+    except ClusterLost:
+        if ran:  # the finished cells' tables, as after an interrupt; the error is the one line
+            write_outputs(out, matrix)
+        raise
     files = write_outputs(out, matrix)
     files += [out / name for name in paired_frames.PAIRED_FILES if matrix.paired and (out / name).is_file()]
     if interrupted:
@@ -670,6 +687,9 @@ def cmd_bench(args) -> int:
                           "--workers out (cells run here one at a time)")
     if steady is not None and getattr(args, "scheduler", None) is not None:
         raise ConfigError("--steady measures cells here, one after another; it does not combine with --scheduler")
+    if getattr(args, "workers", None) is not None and getattr(args, "scheduler", None) not in (None, LOCAL):
+        raise ConfigError(f"--workers sizes the local Dask cluster that --scheduler with no address starts; the "
+                          f"scheduler at {args.scheduler} has its own workers (leave --workers out)")
     summary = run_matrix(matrix, out, resume=args.resume, scheduler=getattr(args, "scheduler", None),
                          workers=1 if getattr(args, "workers", None) is None else args.workers,
                          steady=steady, retries=retries)
