@@ -659,3 +659,27 @@ def test_contains_on_an_open_box_follows_trimeshs_free_space_rule(open_side):
     ours = RayMeshIntersector(mesh).contains_points(points)
     assert np.array_equal(ours, EmbreeIntersector(mesh).contains_points(points))
     assert 0.3 < ours.mean() < 0.9
+
+
+@pytest.mark.parametrize("distance", [1.0, 30.0, 100.0])
+def test_a_thin_plate_is_two_crossings_from_afar(distance):
+    """A plate 1e-5 thick (7e-6 of mesh.scale, seven times trimesh's step) seen from 30 sizes
+    away: the relative merge (2^-21 of t), meant for the two triangles of one edge, joined its two
+    faces into one crossing, where Embree and exact geometry give two."""
+    mesh = trimesh.creation.box(extents=(1.0, 1.0, 1e-5))
+    origins = np.array([[0.1, 0.2, distance], [-0.3, 0.25, -distance]])
+    directions = np.array([[0.0, 0.0, -1.0], [0.001, 0.0, 1.0]])
+    index_tri, index_ray, locations = RayMeshIntersector(mesh).intersects_id(origins, directions,
+                                                                             return_locations=True)
+    assert np.bincount(index_ray, minlength=2).tolist() == [2, 2]
+    np.testing.assert_allclose(np.sort(locations[index_ray == 0, 2]), [-5e-6, 5e-6], atol=1e-9)
+
+
+@pytest.mark.parametrize("shells", [129, 130])
+def test_contains_inside_more_shells_than_a_line_can_sort(shells):
+    """Lines through points inside 129+ nested spheres cross more than CAP (256) surfaces:
+    each such line gave (0, 0) crossings, so every point was outside whatever its parity."""
+    mesh = trimesh.util.concatenate([trimesh.creation.icosphere(1, radius=1.0 + 0.05 * i) for i in range(shells)])
+    points = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.3], [1.02, 0.0, 0.0]])
+    enclosing = np.array([shells, shells, shells - 1])  # the innermost icosphere's inradius is about 0.98
+    assert RayMeshIntersector(mesh).contains_points(points).tolist() == (enclosing % 2 == 1).tolist()

@@ -36,7 +36,12 @@ def _line(nodes, node_bits, block_tri, blocks, ox, oy, oz, dx, dy, dz, stack, st
                          np.float32(-np.inf), np.float32(np.inf), COLLECT, stack, stack_t, entries, answers,
                          bt, btri, bu, bv, CAP)
     if n > CAP:
-        return 0, 0, True
+        # Too many to sort and merge here: each side's raw count (a shared edge may count
+        # twice), for the vote only. It returned (0, 0): every such line voted outside, and a
+        # point inside 129 nested shells was outside.
+        ahead, _, _, _, _ = walk(nodes, node_bits, block_tri, blocks, ox, oy, oz, dx, dy, dz, np.float32(0.0),
+                                 np.float32(np.inf), COLLECT, stack, stack_t, entries, answers, bt, btri, bu, bv, 0)
+        return ahead, n - ahead, True
     ambiguous = False
     for i in range(n):
         if bu[i] == 0 or bv[i] == 0 or bu[i] + bv[i] >= 1 or abs(bt[i]) < gap:
