@@ -683,3 +683,22 @@ def test_an_empty_out_is_an_error_not_the_default_folder(tmp_path, monkeypatch, 
     monkeypatch.chdir(tmp_path)
     assert main(["bench", str(Path(__file__).parents[1] / "benchmarks" / "smoke.toml"), "--out", ""]) == 2
     assert "--out needs a folder name" in capsys.readouterr().err and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("extra, named", [(["--repeat", "3"], "repeat 3"), ([], "'renamed'")])
+def test_resume_refuses_records_of_another_matrix_or_repeat(smoke_dir, tmp_path, capsys, extra, named):
+    """--resume with a different --repeat, or another matrix's records in --out, counted those
+    records as done: the table mixed repeat counts, or kept another matrix's cells."""
+    out = tmp_path / "again"
+    shutil.copytree(smoke_dir, out)
+    before = (out / "results.jsonl").read_bytes()
+    matrix = SMOKE
+    if not extra:
+        matrix = tmp_path / "renamed.toml"
+        matrix.write_text(SMOKE.read_text().replace(f'name = "{bench.load_matrix(str(SMOKE)).name}"',
+                                                    'name = "renamed"'))
+        assert bench.load_matrix(str(matrix)).name == "renamed"
+    assert main(["bench", str(matrix), "--out", str(out), "--resume", *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("packetrt: error: --resume: ") and named in err
+    assert (out / "results.jsonl").read_bytes() == before

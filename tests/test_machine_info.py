@@ -24,3 +24,17 @@ def test_summary_line_carries_the_identity_and_reads_older_records():
     older = {k: v for k, v in machine.items() if k != "cpu_identity"}
     assert cpu_label(older) == machine["cpu"]
     assert machine_line([{"machine": older, "threads": 2}]).startswith(f"{machine['cpu']}, 2 threads")
+
+
+def test_summary_line_names_every_machine_of_mixed_records():
+    """Records from a cluster's workers or a --resume on another host were all summarised under
+    the first record's machine ("2 threads" over rows measured with 1)."""
+    machine = machine_info()
+    other = dict(machine, cpu="Other CPU", cpu_identity=dict(machine["cpu_identity"], llvm_cpu="other"))
+    records = [{"machine": machine, "threads": 2}, {"machine": machine, "threads": 1},
+               {"machine": machine, "threads": 1}, {"machine": other, "threads": 1}]
+    line = machine_line(records)
+    assert line.startswith("mixed machines: ")
+    assert f"{cpu_label(machine)}, 2 threads (1 row); {cpu_label(machine)}, 1 threads (2 rows); " \
+           f"{cpu_label(other)}, 1 threads (1 row)" in line
+    assert machine_line(records[:1]).startswith(f"{cpu_label(machine)}, 2 threads;")

@@ -41,7 +41,20 @@ def save(fig, path: Path) -> Path:
 
 
 def machine_line(records: list) -> str:
+    """The machine under a table: the first record's CPU, threads, versions and commit; where
+    other records ran on another CPU or thread count (a cluster's workers, a --resume on another
+    host), each distinct (CPU, threads) with its count of records, so no table claims one machine
+    for rows that did not share it."""
     m = records[0]["machine"]
     dirty = " (with uncommitted changes)" if m["git"]["dirty"] else ""
-    return (f"{cpu_label(m)}, {records[0]['threads']} threads; Python {m['python']}, numpy {m['numpy']}, numba "
+    hosts = ordered((cpu_label(r["machine"]), r["threads"]) for r in records)
+    if len(hosts) == 1:
+        where = f"{hosts[0][0]}, {hosts[0][1]} threads"
+    else:
+        counts = {host: 0 for host in hosts}
+        for r in records:
+            counts[(cpu_label(r["machine"]), r["threads"])] += 1
+        where = "mixed machines: " + "; ".join(f"{cpu}, {threads} threads ({n} row{'s' if n != 1 else ''})"
+                                               for (cpu, threads), n in counts.items())
+    return (f"{where}; Python {m['python']}, numpy {m['numpy']}, numba "
             f"{m['numba']}, embreex {m['embreex']} (Embree {m['embree']}); commit {m['git']['commit'][:10]}{dirty}")

@@ -462,6 +462,18 @@ def measure_cell_afresh(cell: Cell, repeat: int, matrix_name: str, run=None) -> 
         open3d.close()
 
 
+def _check_same_matrix(records: list, matrix: Matrix, path: Path) -> None:
+    """--resume goes on with the same matrix at the same --repeat: records of another matrix
+    (or repeat count) in ``path`` were counted as done and their cells silently kept."""
+    other = [r for r in records if r.get("matrix", matrix.name) != matrix.name
+             or r.get("repeat", matrix.repeat) != matrix.repeat]
+    if other:
+        first = other[0]
+        raise ConfigError(f"--resume: {path} holds {len(other)} record(s) of matrix {first.get('matrix')!r} with "
+                          f"repeat {first.get('repeat')}; this run is {matrix.name!r} with repeat {matrix.repeat} "
+                          f"(give another --out, or leave out --resume to start afresh)")
+
+
 def _run_on_dask(matrix: Matrix, todo: list, path: Path, scheduler: str, workers: int, run, recorded) -> int:
     """The cells ``todo`` as Dask tasks, each record appended to ``path`` as it arrives and
     counted in ``recorded`` (a list, one entry a record: the count survives an interrupt)."""
@@ -553,7 +565,10 @@ def _run_matrix(matrix: Matrix, out: Path, resume: bool, progress: bool, run, sc
               file=sys.stderr)
         for stale in paired_frames.PAIRED_FILES:  # the earlier run's pairs: this run writes its own, or none
             (out / stale).unlink(missing_ok=True)
-    done = {r["id"] for r in results_io.read_results(path)[0]}
+    earlier = results_io.read_results(path)[0]
+    if resume:
+        _check_same_matrix(earlier, matrix, path)
+    done = {r["id"] for r in earlier}
     todo = [c for c in matrix.cells if c.key not in done]
     scenes = preflight(todo, matrix.source) if todo else {}  # a bad scene parameter: one line, before any
     print(f"{matrix.name}: {len(matrix.cells)} cells, {len(matrix.cells) - len(todo)} already done, "
