@@ -164,6 +164,19 @@ def test_interrupted_run_is_consistent_and_resumes(tmp_path, monkeypatch, capsys
     assert sorted(r["id"] for r in records) == sorted(c.key for c in matrix.cells)
 
 
+def test_ctrl_c_before_the_first_cell_leaves_no_folder(tmp_path, monkeypatch, capsys):
+    """It left a new folder with an empty results.csv and a summary.md of no rows."""
+    out = tmp_path / "new"
+
+    def ctrl_c(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bench, "run_cell", ctrl_c)
+    assert main(["bench", str(SMOKE), "--out", str(out)]) == 130
+    assert "before the first cell finished" in capsys.readouterr().err
+    assert not out.exists()
+
+
 VALID = """
 name = "t"
 repeat = 1

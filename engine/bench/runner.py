@@ -625,6 +625,10 @@ def _run_matrix(matrix: Matrix, out: Path, resume: bool, progress: bool, run, sc
         if ran:  # the finished cells' tables, as after an interrupt; the error is the one line
             write_outputs(out, matrix)
         raise
+    if interrupted and not results_io.read_results(path)[0]:
+        # Stopped before any cell finished: no empty tables (and a folder this run made goes).
+        print("packetrt bench: interrupted before the first cell finished", file=sys.stderr)
+        raise KeyboardInterrupt
     files = write_outputs(out, matrix)
     files += [out / name for name in paired_frames.PAIRED_FILES if matrix.paired and (out / name).is_file()]
     if interrupted:
