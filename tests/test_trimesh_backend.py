@@ -683,3 +683,14 @@ def test_contains_inside_more_shells_than_a_line_can_sort(shells):
     points = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.3], [1.02, 0.0, 0.0]])
     enclosing = np.array([shells, shells, shells - 1])  # the innermost icosphere's inradius is about 0.98
     assert RayMeshIntersector(mesh).contains_points(points).tolist() == (enclosing % 2 == 1).tolist()
+
+
+@pytest.mark.parametrize("size", [1e-100, 1e-150])
+def test_locations_on_a_vanishingly_small_mesh(size):
+    """The float64 plane distance scales as the mesh's size cubed: it underflowed to 0 for a
+    mesh 1e-120 across, and the location came back as the ray's origin."""
+    mesh = trimesh.Trimesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]) * size, np.array([[0, 1, 2]]), process=False)
+    locations, index_ray, index_tri = RayMeshIntersector(mesh).intersects_location(
+        np.array([[0.2, 0.2, -1.0]]) * size, np.array([[0.0, 0.0, 1.0]]))
+    assert index_tri.tolist() == [0]
+    np.testing.assert_allclose(locations / size, [[0.2, 0.2, 0.0]], atol=1e-12)

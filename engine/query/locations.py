@@ -26,6 +26,11 @@ def locations_kernel(corners, origins, directions, index_ray, index_tri, u, v, o
         nx = e1y * e2z - e1z * e2y
         ny = e1z * e2x - e1x * e2z
         nz = e1x * e2y - e1y * e2x
+        # The normal scaled to a largest component of 1: it grows as the mesh's size squared, and
+        # the plane distance below as its cube, which underflowed to t = 0 for a mesh 1e-120 across.
+        largest = max(abs(nx), abs(ny), abs(nz))
+        if largest > 0:
+            nx, ny, nz = nx / largest, ny / largest, nz / largest
         denom = nx * dx + ny * dy + nz * dz
         size = np.sqrt(nx * nx + ny * ny + nz * nz) * np.sqrt(dx * dx + dy * dy + dz * dz)
         if abs(denom) > 1e-9 * size:
