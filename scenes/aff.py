@@ -953,13 +953,19 @@ def _floats(values) -> tuple:
     return tuple(float(x) for x in values)
 
 
-def _camera_from(view: Optional[dict], keyframes: dict, time: float, mode: str):
+def _camera_from(view: Optional[dict], keyframes: dict, time: float, mode: str, source: str = "the scene"):
+    """(Camera or None, "animated" | "static" | "auto-framed") at ``time``; a camera keyframe
+    whose matrix has no forward or up direction (a scale of 0) is a SceneError naming ``source``."""
     fov = float(view["angle"][0]) if view else 45.0
     if mode == "auto" and "camera" in keyframes:
         m = keyframes["camera"].matrix(time)
         eye = m[:3, 3]
         forward = m[:3, :3] @ np.array([0.0, 0.0, -1.0])
         up = m[:3, :3] @ np.array([0.0, 1.0, 0.0])
+        # Checked here: the division below printed numpy's warnings before the NaN camera's error.
+        if not (np.linalg.norm(forward) > 0 and np.linalg.norm(up) > 0 and np.isfinite(m).all()):
+            raise SceneError(f"{source}: the camera keyframes at time {time:g} give no view direction (a scale "
+                             f"of 0 or a non-finite transform); the camera needs a non-zero scale")
         return Camera(_floats(eye), _floats(eye + forward / np.linalg.norm(forward)),
                       _floats(up / np.linalg.norm(up)), fov), "animated"
     if view:

@@ -62,7 +62,7 @@ class AffAnimation:
         self.moving = MovingRows(loader, [p is None for p in self.static_parts], self.has_normals, self.has_uvs)
         anim = loader.settings["animation"]
         self.start, self.end, self.frames = (float(anim[0]), float(anim[1]), int(anim[2])) if anim else (0.0, 0.0, 1)
-        _, camera_kind = _camera_from(loader.settings["view"], loader.keyframes, 0.0, camera)
+        _, camera_kind = _camera_from(loader.settings["view"], loader.keyframes, 0.0, camera, str(self.path))
         self.animated = bool(self.moving_nodes.any() or loader.animated_tris or camera_kind == "animated")
         # Rows of the triangle arrays each moving part fills, and the arrays of the last full build.
         self._moving_rows: Optional[np.ndarray] = None
@@ -167,7 +167,7 @@ class AffAnimation:
         placed_lights = [PointLight(_floats(world[node][:3, :3] @ position + world[node][:3, 3] - shift), _floats(colour))
                          for node, position, colour in loader.lights]
         view = loader.settings["view"]
-        cam, camera_kind = _camera_from(view, loader.keyframes, time, self.camera_mode)
+        cam, camera_kind = _camera_from(view, loader.keyframes, time, self.camera_mode, str(self.path))
         if cam is not None and self.origin is not None:
             cam = replace(cam, eye=_floats(np.asarray(cam.eye) - shift), look_at=_floats(np.asarray(cam.look_at) - shift))
         anim = loader.settings["animation"]

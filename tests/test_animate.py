@@ -553,3 +553,15 @@ def test_mirroring_transforms_keep_front_faces_out(tmp_path, time):
     tris = load_aff(scene_file, time).triangles
     assert tris.v0.shape[0] > 100
     assert np.einsum("ij,ij->i", tris.ng, tris.normals[:, 0]).min() > 0.5
+
+
+def test_a_camera_keyed_to_scale_zero_is_one_line_without_numpy_warnings(tmp_path, capfd):
+    """A camera keyframe of scale 0 has no view direction: numpy's divide warnings (four lines
+    with source) came before the NaN camera's error."""
+    text = textwrap.dedent(SCENE).replace("k camera\n{\n  transl 2", "k camera\n{\n  scale 1\n    0  0 0 0  0 0 0\n  transl 2")
+    assert "scale 1" in text
+    path = tmp_path / "flat.aff"
+    path.write_text(text)
+    assert main(["render", "--scene", str(path), "--size", "16x16", "--time", "1", "-o", str(tmp_path / "x.png")]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"packetrt: error: {path}: the camera keyframes at time ") and "give no view" in err[0]
