@@ -565,3 +565,22 @@ def test_a_camera_keyed_to_scale_zero_is_one_line_without_numpy_warnings(tmp_pat
     assert main(["render", "--scene", str(path), "--size", "16x16", "--time", "1", "-o", str(tmp_path / "x.png")]) == 2
     err = capfd.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"packetrt: error: {path}: the camera keyframes at time ") and "give no view" in err[0]
+
+
+def test_dynamic_table_takes_static_fps_from_a_rebuild_of_the_same_frames():
+    """A refit row's static FPS came from any rebuild row of the same scene and plugins: a 64x64
+    refit showed an 8x8 rebuild cell's static FPS."""
+    from engine.bench.dynamic import table
+
+    def record(variant, update, size, frame_seconds):
+        frames = [{"seconds": {"trace": frame_seconds, "shade": 0.0, "accel": 0.001}, "accel": {"policy": update}}] * 2
+        return {"labels": {"scene": "s", "variant": variant}, "frames": 2, "threads": 2, "machine": {},
+                "config": {"accel": {"update": update}, "traversal": "t", "frustum": "f",
+                           "render": {"width": size, "height": size}},
+                "path": {"frames": frames, "mean_fps": 1.0, "phase_share": {"accel": 0.1, "scene": 0.1},
+                         "policies": {update: 2}}}
+
+    rows = [record("small", "rebuild", 8, 0.01), record("big", "rebuild", 64, 0.5), record("refit", "refit", 64, 0.4)]
+    lines = {line.split("|")[2].strip(): line.split("|") for line in table(rows).splitlines() if line.startswith("| s |")}
+    assert lines["refit"][6].strip() == "2.00"   # the 64x64 rebuild's 1 / 0.5 s, not the 8x8's 100
+    assert lines["small"][6].strip() == "100.00"

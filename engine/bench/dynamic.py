@@ -242,20 +242,27 @@ def _static_fps(record: dict) -> float:
     return len(frames) / sum(f["seconds"]["trace"] + f["seconds"]["shade"] for f in frames)
 
 
+def _same_frames(record: dict) -> tuple:
+    """What makes two cells render the same frames: scene, traversal and frustum, image size,
+    frame count and recursion. A refit row's static FPS comes from the rebuild row with the same
+    key (it came from any rebuild row of the scene and plugins: an 8x8 one for a 64x64 refit)."""
+    cfg = record["config"]
+    return (record["labels"]["scene"], json.dumps(cfg["traversal"]), json.dumps(cfg["frustum"]),
+            cfg["render"]["width"], cfg["render"]["height"], record["frames"], json.dumps(cfg.get("recursion")))
+
+
 def table(records: list) -> str:
     """dynamic.md: one row per cell (see the module doc)."""
     fresh = {}
     for r in records:
-        cfg = r["config"]
-        if cfg["accel"]["update"] == "rebuild":
-            fresh[(r["labels"]["scene"], json.dumps(cfg["traversal"]), json.dumps(cfg["frustum"]))] = r
+        if r["config"]["accel"]["update"] == "rebuild":
+            fresh[_same_frames(r)] = r
     lines = ["| scene | variant | size | frames | mean FPS | static FPS | FPS / static | accel share | scene share | "
              "accel ms (mean) | policies | trace / fresh tree, per frame (median, max) |",
              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|"]
     for r in records:
         cfg, path = r["config"], r["path"]
-        key = (r["labels"]["scene"], json.dumps(cfg["traversal"]), json.dumps(cfg["frustum"]))
-        base = fresh.get(key)
+        base = fresh.get(_same_frames(r))
         static = _static_fps(base if base is not None else r)
         accel_ms = 1000 * np.mean([f["seconds"]["accel"] for f in path["frames"]])
         ratio = "–"
