@@ -457,6 +457,17 @@ def test_stats_may_not_name_a_file_animate_writes(tmp_path, scene_file, capsys, 
     assert not out.exists()
 
 
+@pytest.mark.parametrize("suffix", ["", "/"])
+def test_stats_may_not_name_the_output_folder(tmp_path, scene_file, capsys, suffix):
+    """--stats naming the -o folder itself was refused only after every frame had rendered."""
+    out = tmp_path / "a"
+    code = main(["animate", "--scene", str(scene_file), "--size", "16x16", "--frames", "2", "-o", str(out),
+                 "--stats", str(out) + suffix])
+    err = capsys.readouterr().err.splitlines()
+    assert code == 2 and len(err) == 1 and "is the -o folder itself" in err[0]
+    assert not out.exists()
+
+
 def test_animate_mistakes_found_late_are_one_line_before_the_work(tmp_path, scene_file, capsys, monkeypatch):
     """-o '' wrote into the current folder; --fps 1e308 was an OverflowError traceback; a
     config's [scene] time was dropped unsaid; a failure after the folder was made left it."""

@@ -137,7 +137,11 @@ def is_own_output(folder: Path, file) -> bool:
 
 
 def check_stats_target(folder: Path, stats) -> None:
-    """A PacketrtError when ``--stats`` names one of the files written into ``folder``."""
+    """A PacketrtError when ``--stats`` names ``folder`` itself or one of the files written into
+    it (the folder itself was refused only after the whole path had rendered, the stats lost)."""
+    if stats and Path(stats).resolve() == folder.resolve():
+        raise PacketrtError(f"--stats {stats} is the -o folder itself; give a file for the JSON "
+                            f"(e.g. {folder / 'stats.json'})")
     if stats and is_own_output(folder, stats):
         raise PacketrtError(f"--stats {stats} is one of the files animate writes into {folder}/ (frames, "
                             f"{RECORDS}, preview, path.png); give another file")
